@@ -1,0 +1,20 @@
+# robo3d: recordings in, measured meshes out. See README.md and workflow/rules/.
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/silhouettes.smk"
+include: "workflow/rules/laser.smk"
+include: "workflow/rules/mesh.smk"
+include: "workflow/rules/evaluate.smk"
+
+
+rule all:
+    input:
+        get_all_outputs(),
+    default_target: True

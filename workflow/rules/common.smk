@@ -1,0 +1,55 @@
+# Validation and the small helpers the rules use. Logic lives in robo3d/, not here.
+from robo3d.config import validate_config
+from robo3d.pipeline import find_recordings, recording_stages
+
+config.update(validate_config(config))
+
+RECORDINGS = find_recordings(config["recordings"], topics=config["topics"])
+
+
+wildcard_constraints:
+    rec="|".join(sorted(RECORDINGS)) or "NO_RECORDINGS",
+
+
+def get_recording(wildcards):
+    """The .mcap file of one recording."""
+    return RECORDINGS[wildcards.rec].path
+
+
+def get_fuse_inputs(wildcards):
+    """What fusion has: the hull (views), the aligned clouds (laser frames), or both."""
+    stages = recording_stages(RECORDINGS[wildcards.rec])
+    out = {}
+    if "hull" in stages:
+        out["hull"] = f"results/{wildcards.rec}/hull.npz"
+    if "laser" in stages:
+        out["aligned"] = f"results/{wildcards.rec}/aligned.npz"
+    return out
+
+
+def get_evaluate_inputs(wildcards):
+    """The recording and every result it supports."""
+    stages = recording_stages(RECORDINGS[wildcards.rec])
+    out = {"recording": RECORDINGS[wildcards.rec].path,
+           "mesh": f"results/{wildcards.rec}/mesh.ply",
+           "fused": f"results/{wildcards.rec}/fused.ply"}
+    if "hull" in stages:
+        out["hull"] = f"results/{wildcards.rec}/hull.npz"
+    if "laser" in stages:
+        out["clouds"] = f"results/{wildcards.rec}/clouds.npz"
+        out["aligned"] = f"results/{wildcards.rec}/aligned.npz"
+    return out
+
+
+def get_all_outputs():
+    """The public outputs of every recording, as far as its data supports them."""
+    out = []
+    for name, rec in sorted(RECORDINGS.items()):
+        stages = recording_stages(rec)
+        if "hull" in stages:
+            out.append(f"results/{name}/hull.ply")
+        if "laser" in stages:
+            out.append(f"results/{name}/aligned.ply")
+        out += [f"results/{name}/fused.ply", f"results/{name}/mesh.ply",
+                f"results/{name}/metrics.json"]
+    return out

@@ -1,0 +1,57 @@
+# The active half (seed §4): stripe pixels -> triangulated clouds -> aligned clouds.
+
+
+rule stripes:
+    input:
+        recording=get_recording,
+    output:
+        npz="results/{rec}/stripes.npz",
+        report="results/{rec}/reports/stripes.json",
+        rrd="results/{rec}/stripes.rrd",
+    log:
+        "logs/stripes/{rec}.log",
+    benchmark:
+        "benchmarks/stripes/{rec}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/stripes.py"
+
+
+rule triangulate:
+    input:
+        stripes="results/{rec}/stripes.npz",
+    output:
+        npz="results/{rec}/clouds.npz",
+        ply="results/{rec}/clouds.ply",
+        report="results/{rec}/reports/triangulate.json",
+        rrd="results/{rec}/triangulate.rrd",
+    log:
+        "logs/triangulate/{rec}.log",
+    benchmark:
+        "benchmarks/triangulate/{rec}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/triangulate.py"
+
+
+rule align:
+    input:
+        clouds="results/{rec}/clouds.npz",
+    output:
+        npz="results/{rec}/aligned.npz",
+        ply="results/{rec}/aligned.ply",
+        report="results/{rec}/reports/align.json",
+        rrd="results/{rec}/align.rrd",
+    log:
+        "logs/align/{rec}.log",
+    benchmark:
+        "benchmarks/align/{rec}.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    script:
+        "../scripts/align.py"

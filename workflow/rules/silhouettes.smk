@@ -1,0 +1,38 @@
+# The passive half (seed §3): silhouettes -> carved volume.
+
+
+rule silhouettes:
+    input:
+        recording=get_recording,
+    output:
+        npz="results/{rec}/silhouettes.npz",
+        report="results/{rec}/reports/silhouettes.json",
+        rrd="results/{rec}/silhouettes.rrd",
+    log:
+        "logs/silhouettes/{rec}.log",
+    benchmark:
+        "benchmarks/silhouettes/{rec}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/silhouettes.py"
+
+
+rule carve:
+    input:
+        silhouettes="results/{rec}/silhouettes.npz",
+    output:
+        npz="results/{rec}/hull.npz",
+        ply="results/{rec}/hull.ply",
+        report="results/{rec}/reports/carve.json",
+        rrd="results/{rec}/carve.rrd",
+    log:
+        "logs/carve/{rec}.log",
+    benchmark:
+        "benchmarks/carve/{rec}.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    script:
+        "../scripts/carve.py"

@@ -48,6 +48,12 @@ class CameraModel:
                                    f"coefficients, got {d.size}")
         if d.size == 4:
             d = np.concatenate([d, [0.0]])
+        if d.size == 8:  # rational_polynomial: only its plumb_bob part is modelled
+            if np.any(d[5:] != 0):
+                raise CalibrationError(f"camera {self.frame_id!r}: rational_polynomial "
+                                       f"k4..k6 = {d[5:].tolist()} are unsupported "
+                                       f"(plumb_bob only)")
+            d = d[:5]
         if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
             raise CalibrationError(f"camera {self.frame_id!r}: K or D is not finite")
         if k[0, 0] <= 0 or k[1, 1] <= 0:

@@ -126,9 +126,7 @@ def _read(path: str, cfg: Mapping[str, Any], roles: tuple[str, ...], require: bo
     rec = read_recording(path, topics=topic_map(cfg["topics"]), roles=roles,
                          max_pose_gap_ns=int(round(cfg["timing"]["max_pose_gap_s"] * 1e9)),
                          base_frame=cfg["frames"]["base"], require=require)
-    for w in rec.warnings:
-        log.warning("%s", w)
-    return rec
+    return rec  # the reader has logged its warnings (rec.warnings keeps them)
 
 
 def _camera_arrays(cameras: list[CameraModel]) -> dict[str, np.ndarray]:

@@ -111,6 +111,17 @@ class Recording:
                 path=self.path, topic=msg.topic, time_ns=msg.timestamp_ns)
         return cam
 
+    def decode(self, msg: ImageMessage) -> np.ndarray:
+        """Decode an image and check its size against its calibration.
+
+        Returns ``(H, W)`` or ``(H, W, 3)`` RGB uint8/uint16 with ``(H, W)`` the size of
+        :meth:`camera_for`; raises :class:`~robo3d.errors.CalibrationError` (no
+        calibration) or :class:`~robo3d.errors.ImageDecodeError` (bad bytes, wrong size).
+        """
+        from .images import decode_checked
+
+        return decode_checked(msg, self.camera_for(msg))
+
     def camera_poses(self, msgs: list[ImageMessage]) -> np.ndarray:
         """``T_base_camera`` ``(N, 4, 4)`` of each image at its own timestamp.
 

@@ -1,0 +1,255 @@
+"""Encoding and decoding of recorded images (``recording-format.md``, Encodings).
+
+Images are handed around as numpy arrays in RGB order: ``(H, W)`` for one channel,
+``(H, W, 3)`` RGB for colour, ``uint8`` or (``mono16`` and 16-bit PNG) ``uint16``.
+
+Encodings
+---------
+``png``, ``jpeg``
+    Compressed (``foxglove.CompressedImage``); decoded with OpenCV. PNG carries
+    ``uint8`` grey/RGB and ``uint16`` grey exactly; JPEG is lossy and ``uint8`` only.
+    A PNG with an alpha channel decodes to its RGB part.
+``mono8``, ``rgb8``, ``bgr8``, ``mono16``
+    Raw (``foxglove.RawImage``): rows of ``step`` bytes (``step >= width * bytes per
+    pixel``; padding at the end of rows is honoured and dropped). ``mono16`` is
+    little-endian, as the Foxglove schema specifies. The aliases ``8UC1``, ``8UC3`` (BGR)
+    and ``16UC1`` are accepted on reading.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..camera import CameraModel
+from ..errors import ImageDecodeError
+from .model import ImageMessage
+
+__all__ = [
+    "COMPRESSED_ENCODINGS",
+    "RAW_ENCODINGS",
+    "normalize_encoding",
+    "encode_image",
+    "decode_image",
+    "decode_checked",
+]
+
+#: Compressed encodings robo3d writes (``foxglove.CompressedImage.format``).
+COMPRESSED_ENCODINGS = ("png", "jpeg")
+#: Raw encodings robo3d reads and writes (``foxglove.RawImage.encoding``).
+RAW_ENCODINGS = ("mono8", "rgb8", "bgr8", "mono16")
+
+_RAW_ALIASES = {"8uc1": "mono8", "8uc3": "bgr8", "16uc1": "mono16"}
+_BYTES_PER_PIXEL = {"mono8": 1, "rgb8": 3, "bgr8": 3, "mono16": 2}
+
+
+def normalize_encoding(encoding: str) -> str:
+    """Canonical name of an image encoding or compressed format string.
+
+    ``"png"``, ``"image/png"``, ``"PNG"`` give ``"png"``; ``"jpeg"``, ``"jpg"``,
+    ``"image/jpeg"`` give ``"jpeg"``; raw names and their aliases give the raw name
+    (``"8UC1"`` -> ``"mono8"``). ROS-style compressed formats such as
+    ``"rgb8; jpeg compressed bgr8"`` give the compression. Anything else is returned
+    lower-cased and stripped (and fails to decode later if OpenCV cannot read it).
+
+    Parameters
+    ----------
+    encoding : str
+        The ``format`` of a compressed image or the ``encoding`` of a raw one.
+
+    Returns
+    -------
+    str
+    """
+    e = str(encoding).strip().lower()
+    if e.startswith("image/"):
+        e = e[len("image/"):]
+    if e in _RAW_ALIASES:
+        return _RAW_ALIASES[e]
+    if e in RAW_ENCODINGS:
+        return e
+    if e in ("jpg", "jpeg"):
+        return "jpeg"
+    if e == "png":
+        return "png"
+    # ROS image_transport style: "<raw>; <codec> compressed <raw>"
+    if "compressed" in e:
+        if "png" in e:
+            return "png"
+        if "jpeg" in e or "jpg" in e:
+            return "jpeg"
+    return e
+
+
+def _check_image(image: np.ndarray, encoding: str) -> np.ndarray:
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"image must be a numpy array, got {type(image).__name__}")
+    shape, dtype = image.shape, image.dtype
+    desc = f"{shape} {dtype}"
+    if encoding in ("mono8", "mono16"):
+        want = np.uint8 if encoding == "mono8" else np.uint16
+        if image.ndim != 2 or dtype != want:
+            raise ValueError(f"{encoding} image must be (H, W) {np.dtype(want)}, got {desc}")
+    elif encoding in ("rgb8", "bgr8"):
+        if image.ndim != 3 or shape[2] != 3 or dtype != np.uint8:
+            raise ValueError(f"{encoding} image must be (H, W, 3) uint8 RGB, got {desc}")
+    elif encoding == "png":
+        ok = (image.ndim == 2 and dtype in (np.uint8, np.uint16)) or (
+            image.ndim == 3 and shape[2] == 3 and dtype in (np.uint8, np.uint16))
+        if not ok:
+            raise ValueError(f"png image must be (H, W) or (H, W, 3) uint8/uint16, got {desc}")
+    elif encoding == "jpeg":
+        ok = (image.ndim == 2 or (image.ndim == 3 and shape[2] == 3)) and dtype == np.uint8
+        if not ok:
+            raise ValueError(f"jpeg image must be (H, W) or (H, W, 3) uint8, got {desc}")
+    else:
+        raise ValueError(f"image encoding must be one of "
+                         f"{', '.join(COMPRESSED_ENCODINGS + RAW_ENCODINGS)}, got {encoding!r}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"image must not be empty, got {desc}")
+    return np.ascontiguousarray(image)
+
+
+def encode_image(image: np.ndarray, encoding: str, jpeg_quality: int = 95) -> bytes:
+    """Encode an image for a recording.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8 / uint16
+        Grey or RGB pixels (see the module docstring for which dtype each encoding takes).
+    encoding : str
+        ``png``, ``jpeg`` (compressed bytes) or ``mono8``, ``rgb8``, ``bgr8``, ``mono16``
+        (the raw row-major buffer, ``step = width * bytes per pixel``, no padding).
+    jpeg_quality : int
+        JPEG quality, 1..100.
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    ValueError
+        Wrong shape/dtype for the encoding, unknown encoding, bad quality.
+    """
+    enc = normalize_encoding(encoding)
+    image = _check_image(image, enc)
+    if enc == "mono8" or enc == "rgb8":
+        return image.tobytes()
+    if enc == "bgr8":
+        return np.ascontiguousarray(image[..., ::-1]).tobytes()
+    if enc == "mono16":
+        return image.astype("<u2", copy=False).tobytes()
+    bgr = image[..., ::-1] if image.ndim == 3 else image
+    if enc == "png":
+        ok, buf = cv2.imencode(".png", np.ascontiguousarray(bgr))
+    else:
+        q = int(jpeg_quality)
+        if not 1 <= q <= 100:
+            raise ValueError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(bgr), [cv2.IMWRITE_JPEG_QUALITY, q])
+    if not ok:  # pragma: no cover - OpenCV fails only on invalid input, checked above
+        raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as {enc}")
+    return buf.tobytes()
+
+
+def _fail(msg: ImageMessage, what: str) -> ImageDecodeError:
+    return ImageDecodeError(f"image ({msg.encoding}, frame_id {msg.frame_id!r}) {what}",
+                            path=msg.path or None, topic=msg.topic, time_ns=msg.timestamp_ns)
+
+
+def _decode_raw(msg: ImageMessage, enc: str) -> np.ndarray:
+    bpp = _BYTES_PER_PIXEL[enc]
+    w, h = int(msg.width), int(msg.height)
+    if w <= 0 or h <= 0:
+        raise _fail(msg, f"has an invalid size {w}x{h}")
+    step = int(msg.step) if msg.step else w * bpp
+    if step < w * bpp:
+        raise _fail(msg, f"has step {step} bytes, less than width {w} x {bpp} bytes per pixel")
+    need = step * (h - 1) + w * bpp
+    if len(msg.data) < need:
+        raise _fail(msg, f"has {len(msg.data)} bytes of data, {w}x{h} with step {step} "
+                         f"needs {need}")
+    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    if len(buf) < step * h:  # last row unpadded: pad to a whole number of rows
+        buf = np.concatenate([buf, np.zeros(step * h - len(buf), np.uint8)])
+    rows = buf[: step * h].reshape(h, step)[:, : w * bpp]
+    if enc == "mono16":
+        return np.ascontiguousarray(rows).view("<u2").astype(np.uint16).reshape(h, w)
+    if enc == "mono8":
+        return rows.copy()
+    img = rows.reshape(h, w, 3)
+    if enc == "bgr8":
+        img = img[..., ::-1]
+    return np.ascontiguousarray(img)
+
+
+def decode_image(msg: ImageMessage) -> np.ndarray:
+    """Decode a recorded image.
+
+    Parameters
+    ----------
+    msg : ImageMessage
+        A compressed (``png``/``jpeg``, or any format OpenCV sniffs from the bytes) or
+        raw (``mono8``, ``rgb8``, ``bgr8``, ``mono16``) image.
+
+    Returns
+    -------
+    (H, W) or (H, W, 3) uint8 or uint16
+        Grey or RGB pixels.
+
+    Raises
+    ------
+    ImageDecodeError
+        Bytes that do not decode, or a raw buffer inconsistent with its size; the
+        message names the file, topic and time.
+    """
+    enc = normalize_encoding(msg.encoding)
+    if enc in _BYTES_PER_PIXEL:
+        return _decode_raw(msg, enc)
+    if len(msg.data) == 0:
+        raise _fail(msg, "has no data")
+    try:
+        img = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise _fail(msg, f"does not decode: {exc}") from None
+    if img is None:
+        raise _fail(msg, f"does not decode ({len(msg.data)} bytes, first bytes "
+                         f"{bytes(msg.data[:8])!r})")
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            img = img[..., 0]
+        elif img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise _fail(msg, f"decodes to unsupported pixel type {img.dtype}")
+    return np.ascontiguousarray(img)
+
+
+def decode_checked(msg: ImageMessage, camera: CameraModel) -> np.ndarray:
+    """Decode an image and check that its size matches its camera's calibration.
+
+    Parameters
+    ----------
+    msg : ImageMessage
+    camera : CameraModel
+        The calibration of ``msg.frame_id``.
+
+    Returns
+    -------
+    (H, W) or (H, W, 3) uint8 or uint16
+        With ``H == camera.height`` and ``W == camera.width``.
+
+    Raises
+    ------
+    ImageDecodeError
+        The image does not decode, or its size differs from the calibration.
+    """
+    img = decode_image(msg)
+    h, w = img.shape[:2]
+    if (h, w) != (camera.height, camera.width):
+        raise _fail(msg, f"is {w}x{h} pixels but its calibration ({camera.frame_id!r}) is "
+                         f"{camera.width}x{camera.height}")
+    return img

@@ -1,0 +1,1104 @@
+"""Reading recordings (``recording-format.md``) into a :class:`~.model.Recording`.
+
+:func:`read_recording` reads any MCAP file that follows the contract, whoever wrote it;
+:func:`probe_recording` summarises one cheaply and never raises (the workflow calls it
+for every recording of a batch while it builds the DAG); :func:`read_ground_truth_tf`
+reads a simulated recording's true ``base -> flange`` samples.
+
+What is read
+------------
+- Foxglove schemas encoded as Protobuf (``protobuf``; decoded generically from the
+  schema's own ``FileDescriptorSet``, so other builds of the schemas read too) or as JSON
+  (``json`` / ``jsonschema``; ``bytes`` base64, timestamps ``{"sec", "nsec"}``; the
+  protobuf-style ``{"seconds", "nanos"}`` is accepted too).
+- ``foxglove.FrameTransforms`` / ``foxglove.FrameTransform`` on the tf topics,
+  ``foxglove.CameraCalibration`` on the calibration topic, ``foxglove.CompressedImage``
+  (png/jpeg) and ``foxglove.RawImage`` (mono8, rgb8, bgr8, mono16) on the image topics.
+  Other topics are skipped unread. A role topic with any other schema or encoding (ROS 2
+  CDR among them, for now) is a :class:`~robo3d.errors.RecordingError` naming the topic
+  and the schema.
+- The time of a message is its own ``timestamp`` field. A message without one (an unset
+  protobuf field, a JSON message without the key) falls back to its MCAP log time, with
+  a warning.
+
+Choices
+-------
+- The file is scanned record by record with robo3d's own framing loop (the record layout
+  of the MCAP specification; ``mcap``'s record classes parse the rare records), so that
+  damage is located to the byte:
+
+  * a file that ends early (truncated, or whose framing breaks) is read up to the last
+    intact record; a warning says how many bytes were lost, from which byte, and the log
+    time of the last intact message. If what remains lacks a required role, the
+    :class:`RecordingError` says the file was truncated.
+  * a chunk whose CRC does not match (or that does not decompress) is **skipped with a
+    warning** naming its byte offset and log-time range. Skipping is robust because a
+    chunk's framing (its length) is independent of its content, and the schemas and
+    channels it may have carried are repeated in the summary section. Anything the lost
+    messages leave missing is still caught: a role without messages, a pose gap wider
+    than ``max_pose_gap`` at lookup.
+  * an attachment whose CRC does not match is skipped with a warning.
+- Transforms: non-finite values, or a quaternion whose norm is off by more than 1e-3,
+  are errors naming topic, link and time; a smaller deviation is renormalised.
+  Timestamps out of order on a link are sorted with a warning; duplicated stamps keep
+  the last sample (with a warning when the values differ).
+- Images are kept encoded. Out-of-order timestamps on an image topic are sorted with a
+  warning; an exact duplicate (same topic, frame_id and stamp) keeps the last one.
+- Calibrations are keyed by ``frame_id``; when a frame is calibrated more than once
+  with different values, the last calibration is kept and a warning says so.
+  ``distortion_model``: ``plumb_bob`` (4 or 5 coefficients), ``rational_polynomial``
+  (k4..k6 must be zero: kept as plumb_bob, else unsupported), or empty with an empty or
+  all-zero ``D`` (no distortion; an empty model with 5 coefficients is read as
+  plumb_bob with a warning, as some ROS drivers leave the name empty). ``R`` and ``P``
+  are ignored: images are the raw (distorted, unrectified) images that ``K`` and ``D``
+  describe.
+- ``require=True`` checks completeness: each requested role has messages; when there
+  are images, a calibration for each image's ``frame_id`` and a transform chain from
+  ``base_frame`` to it (the chain's structure only: whether a pose exists at each
+  image's time is checked by :meth:`Recording.camera_poses`). ``require=False`` skips
+  these checks (damaged or non-finite data are errors either way).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import logging
+import math
+import os
+import struct
+import zlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Metadata,
+    MetadataIndex,
+    Statistics,
+)
+from mcap.records import Schema as McapSchema
+
+from ..camera import CameraModel
+from ..errors import CalibrationError, RecordingError, TransformError
+from ..transforms import TransformBuffer
+from .images import RAW_ENCODINGS, normalize_encoding
+from .model import ImageMessage, Recording, TopicMap
+
+__all__ = [
+    "RecordingSummary",
+    "read_recording",
+    "probe_recording",
+    "read_ground_truth_tf",
+    "GROUND_TRUTH_TF",
+]
+
+_log = logging.getLogger(__name__)
+
+MAGIC = b"\x89MCAP0\r\n"
+#: Name of the attachment holding the true ``base -> flange`` samples.
+GROUND_TRUTH_TF = "ground_truth/tf.json"
+
+_TF_SCHEMAS = ("foxglove.FrameTransforms", "foxglove.FrameTransform")
+_CALIB_SCHEMAS = ("foxglove.CameraCalibration",)
+_IMAGE_SCHEMAS = ("foxglove.CompressedImage", "foxglove.RawImage")
+_ROLES = ("views", "laser")
+_QUAT_TOL = 1e-3
+_DEFAULT_TOPICS = TopicMap()  # the contract's default topic names (frozen)
+
+
+# =========================================================================== scanning
+class _Schema(NamedTuple):
+    id: int
+    name: str
+    encoding: str
+    data: bytes
+
+
+class _Channel(NamedTuple):
+    id: int
+    schema_id: int
+    topic: str
+    message_encoding: str
+
+
+@dataclass
+class _Scan:
+    """What a record-by-record pass over a file found."""
+
+    path: str
+    size: int
+    schemas: dict[int, _Schema] = field(default_factory=dict)
+    channels: dict[int, _Channel] = field(default_factory=dict)
+    # (channel id, log time, data) in file order, for the kept channels
+    messages: list[tuple[int, int, bytes]] = field(default_factory=list)
+    counts: dict[int, int] = field(default_factory=dict)  # messages per channel id
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    attachments: dict[str, bytes] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    truncated: str | None = None  # description of what was lost, if anything
+    data_end_seen: bool = False
+    last_log_time: int | None = None
+
+
+class _Corrupt(Exception):
+    """A record whose framing is intact but whose content is not."""
+
+
+def _str(mv: memoryview, off: int) -> tuple[str, int]:
+    (n,) = struct.unpack_from("<I", mv, off)
+    off += 4
+    if off + n > len(mv):
+        raise _Corrupt("string runs past the end of its record")
+    return bytes(mv[off: off + n]).decode("utf-8"), off + n
+
+
+def _parse_schema(mv: memoryview) -> _Schema:
+    (sid,) = struct.unpack_from("<H", mv, 0)
+    name, off = _str(mv, 2)
+    enc, off = _str(mv, off)
+    (n,) = struct.unpack_from("<I", mv, off)
+    off += 4
+    if off + n > len(mv):
+        raise _Corrupt("schema data runs past the end of its record")
+    return _Schema(sid, name, enc, bytes(mv[off: off + n]))
+
+
+def _parse_channel(mv: memoryview) -> _Channel:
+    cid, sid = struct.unpack_from("<HH", mv, 0)
+    topic, off = _str(mv, 4)
+    enc, off = _str(mv, off)
+    return _Channel(cid, sid, topic, enc)
+
+
+def _opname(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name.lower()
+    except ValueError:
+        return f"unknown (opcode 0x{opcode:02x})"
+
+
+def _fmt_time(t: int | None) -> str:
+    return "none" if t is None else f"{t} ns ({t / 1e9:.6f} s)"
+
+
+class _Scanner:
+    """Record-by-record reader of one MCAP file (the framing of the MCAP spec)."""
+
+    def __init__(self, path: str, keep_topic: Callable[[str], bool],
+                 keep_attachment_data: bool = True) -> None:
+        self.keep_topic = keep_topic
+        self.keep_attachment_data = keep_attachment_data
+        self.scan = _Scan(path=path, size=0)
+        self._pending: list[tuple[int, int, bytes]] = []  # messages of not-yet-known channels
+        self._n_messages = 0
+
+    # ------------------------------------------------------------------ records
+    def _message(self, mv: memoryview) -> None:
+        if len(mv) < 22:
+            raise _Corrupt(f"message record of {len(mv)} bytes is shorter than its header")
+        cid, _seq, log_time, _pub = struct.unpack_from("<HIQQ", mv, 0)
+        s = self.scan
+        s.counts[cid] = s.counts.get(cid, 0) + 1
+        self._n_messages += 1
+        if s.last_log_time is None or log_time > s.last_log_time:
+            s.last_log_time = log_time
+        ch = s.channels.get(cid)
+        if ch is None:
+            self._pending.append((cid, log_time, bytes(mv[22:])))
+        elif self.keep_topic(ch.topic):
+            s.messages.append((cid, log_time, bytes(mv[22:])))
+
+    def _inner(self, opcode: int, mv: memoryview) -> None:
+        if opcode == Opcode.MESSAGE:
+            self._message(mv)
+        elif opcode == Opcode.SCHEMA:
+            sch = _parse_schema(mv)
+            self.scan.schemas[sch.id] = sch
+        elif opcode == Opcode.CHANNEL:
+            ch = _parse_channel(mv)
+            self.scan.channels[ch.id] = ch
+
+    def _chunk(self, mv: memoryview, pos: int) -> None:
+        start, end, usize, crc = struct.unpack_from("<QQQI", mv, 0)
+        compression, off = _str(mv, 28)
+        (n,) = struct.unpack_from("<Q", mv, off)
+        off += 8
+        if off + n > len(mv):
+            raise _Corrupt("chunk data runs past the end of its record")
+        raw = mv[off: off + n]
+        where = f"chunk at byte {pos} (messages logged {start} .. {end} ns)"
+        try:
+            if compression == "zstd":
+                import zstandard
+
+                data = zstandard.ZstdDecompressor().decompress(raw, max_output_size=usize)
+            elif compression == "lz4":
+                import lz4.frame
+
+                data = lz4.frame.decompress(raw)
+            elif compression == "":
+                data = bytes(raw)
+            else:
+                raise RecordingError(f"{where} uses compression {compression!r}, which this "
+                                     f"reader does not support (zstd, lz4 or none)",
+                                     path=self.scan.path)
+        except ImportError as exc:
+            raise RecordingError(f"{where} is {compression}-compressed and the module to "
+                                 f"decompress it is missing ({exc}); pip install zstandard lz4",
+                                 path=self.scan.path) from None
+        except RecordingError:
+            raise
+        except Exception as exc:
+            raise _Corrupt(f"{where} does not decompress ({type(exc).__name__}: {exc})") from None
+        if len(data) != usize:
+            raise _Corrupt(f"{where} decompresses to {len(data)} bytes, its header says {usize}")
+        if crc != 0 and zlib.crc32(data) != crc:
+            raise _Corrupt(f"{where} fails its CRC check (expected 0x{crc:08x}, "
+                           f"got 0x{zlib.crc32(data):08x})")
+        dmv = memoryview(data)
+        o = 0
+        records: list[tuple[int, memoryview]] = []
+        while o < len(dmv):
+            if o + 9 > len(dmv):
+                raise _Corrupt(f"{where}: a record header runs past the end of the chunk")
+            op, ln = struct.unpack_from("<BQ", dmv, o)
+            if o + 9 + ln > len(dmv):
+                raise _Corrupt(f"{where}: a {_opname(op)} record runs past the end of the chunk")
+            records.append((op, dmv[o + 9: o + 9 + ln]))
+            o += 9 + ln
+        for op, rec in records:  # all-or-nothing: framing checked first
+            self._inner(op, rec)
+
+    def _attachment(self, body: bytes, pos: int) -> None:
+        att = Attachment.read(_stream(body))
+        (crc,) = struct.unpack_from("<I", body, len(body) - 4)
+        if self.keep_attachment_data and crc != 0 and zlib.crc32(body[:-4]) != crc:
+            raise _Corrupt(f"attachment {att.name!r} at byte {pos} fails its CRC check")
+        self.scan.attachments[att.name] = att.data if self.keep_attachment_data else b""
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> _Scan:
+        s = self.scan
+        path = s.path
+        try:
+            s.size = os.path.getsize(path)
+            f = open(path, "rb")  # noqa: SIM115 - closed below
+        except OSError as exc:
+            raise RecordingError(f"cannot open the recording: {exc.strerror or exc}",
+                                 path=path) from None
+        with f:
+            magic = f.read(8)
+            if magic != MAGIC:
+                if magic and len(magic) < 8 and MAGIC.startswith(magic):
+                    raise RecordingError(f"truncated: the file has only {len(magic)} bytes, "
+                                         f"part of the MCAP magic", path=path)
+                raise RecordingError(f"not an MCAP file (it starts with {magic!r}, an MCAP "
+                                     f"file starts with {MAGIC!r})", path=path)
+            pos = 8
+            footer_seen = False
+            while pos < s.size:
+                hdr = f.read(9)
+                if len(hdr) < 9:
+                    self._truncated(pos, f"a record header needs 9 bytes, "
+                                         f"{len(hdr)} remain")
+                    break
+                opcode, length = struct.unpack("<BQ", hdr)
+                remain = s.size - pos - 9
+                if length > remain:
+                    self._truncated(pos, f"a {_opname(opcode)} record claims {length} bytes, "
+                                         f"{remain} remain")
+                    break
+                body = f.read(length)
+                try:
+                    self._record(opcode, body, pos)
+                except _Corrupt as exc:
+                    self._warn(f"{exc}; skipped it (its content is lost)")
+                except RecordingError:
+                    raise
+                except Exception as exc:  # struct/unicode/mcap errors of a damaged record
+                    self._warn(f"the {_opname(opcode)} record at byte {pos} is corrupt "
+                               f"({type(exc).__name__}: {exc}); skipped it")
+                pos += 9 + length
+                if opcode == Opcode.FOOTER:
+                    footer_seen = True
+                    tail = f.read(8)
+                    if tail != MAGIC:
+                        self._warn("the file ends without the closing MCAP magic after its "
+                                   "footer (truncated in the last bytes; no data lost)")
+                    break
+            else:
+                if not footer_seen:
+                    self._truncated(pos, "the file ends before its footer")
+        # messages whose channel record came later (or only in the summary section)
+        for cid, log_time, data in self._pending:
+            ch = s.channels.get(cid)
+            if ch is not None and self.keep_topic(ch.topic):
+                s.messages.append((cid, log_time, data))
+        lost = sorted({cid for cid, _, _ in self._pending if cid not in s.channels})
+        if lost:
+            n = sum(1 for cid, _, _ in self._pending if cid not in s.channels)
+            self._warn(f"{n} messages on channel ids {lost} have no channel record "
+                       f"(lost with a damaged chunk or summary); skipped them")
+        return s
+
+    def _record(self, opcode: int, body: bytes, pos: int) -> None:
+        s = self.scan
+        if opcode == Opcode.CHUNK:
+            self._chunk(memoryview(body), pos)
+        elif opcode in (Opcode.MESSAGE, Opcode.SCHEMA, Opcode.CHANNEL):
+            self._inner(opcode, memoryview(body))
+        elif opcode == Opcode.METADATA:
+            md = Metadata.read(_stream(body))
+            s.metadata.setdefault(md.name, {}).update(md.metadata)
+        elif opcode == Opcode.ATTACHMENT:
+            self._attachment(body, pos)
+        elif opcode == Opcode.DATA_END:
+            s.data_end_seen = True
+
+    def _warn(self, text: str) -> None:
+        self.scan.warnings.append(text)
+
+    def _truncated(self, pos: int, what: str) -> None:
+        s = self.scan
+        lost = s.size - pos
+        if s.data_end_seen:
+            text = (f"the file is truncated in its summary section at byte {pos} of {s.size} "
+                    f"({what}); every message is intact")
+            self._warn(text)
+            return
+        text = (f"the file is truncated or damaged at byte {pos} of {s.size} ({what}): its "
+                f"last {lost} bytes are unusable and at least one record and the summary "
+                f"section are lost; read {self._n_messages} intact messages, the last logged "
+                f"at {_fmt_time(s.last_log_time)}")
+        s.truncated = text
+        self._warn(text)
+
+
+def _stream(body: bytes) -> Any:
+    from mcap.data_stream import ReadDataStream
+
+    return ReadDataStream(io.BytesIO(body))
+
+
+def _scan_file(path: str, keep_topic: Callable[[str], bool],
+               keep_attachment_data: bool = True) -> _Scan:
+    return _Scanner(path, keep_topic, keep_attachment_data).run()
+
+
+# =========================================================================== decoding
+def _decoder_for(scan: _Scan, ch: _Channel, factory: Any) -> tuple[Callable[[bytes], Any], bool]:
+    sch = scan.schemas.get(ch.schema_id)
+    sname = sch.name if sch is not None else "(no schema)"
+    senc = sch.encoding if sch is not None else ""
+    if ch.message_encoding == "protobuf" and sch is not None and senc == "protobuf":
+        try:
+            dec = factory.decoder_for("protobuf", McapSchema(id=sch.id, name=sch.name,
+                                                             encoding=sch.encoding,
+                                                             data=sch.data))
+        except Exception as exc:
+            raise RecordingError(f"the protobuf schema {sname!r} does not load "
+                                 f"({type(exc).__name__}: {exc})", path=scan.path,
+                                 topic=ch.topic) from None
+        if dec is None:  # pragma: no cover - the factory handles every protobuf schema
+            raise RecordingError(f"no protobuf decoder for schema {sname!r}", path=scan.path,
+                                 topic=ch.topic)
+        return dec, False
+    if ch.message_encoding == "json" and senc in ("jsonschema", ""):
+        return json.loads, True
+    raise RecordingError(
+        f"unsupported message encoding {ch.message_encoding!r} (schema {sname!r}, schema "
+        f"encoding {senc!r}): robo3d reads Foxglove schemas encoded as protobuf or json "
+        f"(ROS 2 CDR is not supported yet)", path=scan.path, topic=ch.topic)
+
+
+def _get(obj: Any, is_json: bool, name: str, default: Any = None) -> Any:
+    if is_json:
+        return obj.get(name, default) if isinstance(obj, dict) else default
+    return getattr(obj, name, default)
+
+
+def _stamp(obj: Any, is_json: bool) -> int | None:
+    """The ``timestamp`` field in nanoseconds, or None when absent."""
+    if is_json:
+        ts = obj.get("timestamp") if isinstance(obj, dict) else None
+        if ts is None:
+            return None
+        if isinstance(ts, dict):
+            sec = ts.get("sec", ts.get("seconds"))
+            nsec = ts.get("nsec", ts.get("nanos", 0))
+            if isinstance(sec, int | float) and isinstance(nsec, int | float):
+                return int(sec) * 1_000_000_000 + int(nsec)
+        raise ValueError(f"timestamp must be {{'sec': int, 'nsec': int}}, got {ts!r}")
+    if not obj.HasField("timestamp"):
+        return None
+    return obj.timestamp.seconds * 1_000_000_000 + obj.timestamp.nanos
+
+
+def _bytes(obj: Any, is_json: bool, name: str) -> bytes:
+    v = _get(obj, is_json, name, b"" if not is_json else "")
+    if is_json:
+        if not isinstance(v, str):
+            raise ValueError(f"field {name!r} must be a base64 string, got {type(v).__name__}")
+        return base64.b64decode(v, validate=True)
+    return bytes(v)
+
+
+def _vec(obj: Any, is_json: bool, keys: str) -> list[float]:
+    if obj is None:
+        return [math.nan] * len(keys)
+    out = []
+    for k in keys:
+        v = _get(obj, is_json, k, 0.0)
+        out.append(float(v) if v is not None else math.nan)
+    return out
+
+
+@dataclass
+class _TfSamples:
+    topic: str
+    parent: str
+    child: str
+    stamps: list[int] = field(default_factory=list)
+    values: list[list[float]] = field(default_factory=list)  # tx ty tz qx qy qz qw
+
+
+class _Reader:
+    def __init__(self, path: str, topics: TopicMap, roles: tuple[str, ...],
+                 max_pose_gap_ns: int, base_frame: str) -> None:
+        self.path = path
+        self.topics = topics
+        self.roles = roles
+        self.max_gap = max_pose_gap_ns
+        self.base_frame = base_frame
+        self.warnings: list[str] = []
+        self.tf_links: dict[tuple[str, str, str], _TfSamples] = {}
+        self.calibs: dict[str, tuple[CameraModel, str, int]] = {}
+        self.n_calib_msgs = 0
+        self.images: dict[str, list[ImageMessage]] = {}
+        self.no_stamp: dict[str, int] = {}
+
+    def warn(self, text: str) -> None:
+        self.warnings.append(text)
+
+    # ------------------------------------------------------------------ per message
+    def _time(self, obj: Any, is_json: bool, topic: str, log_time: int) -> int:
+        st = _stamp(obj, is_json)
+        if st is None:
+            self.no_stamp[topic] = self.no_stamp.get(topic, 0) + 1
+            return log_time
+        return st
+
+    def tf(self, obj: Any, is_json: bool, schema: str, topic: str, log_time: int) -> None:
+        if schema == "foxglove.FrameTransforms":
+            items = _get(obj, is_json, "transforms", []) or []
+        else:
+            items = [obj]
+        for tr in items:
+            if is_json:
+                st = self._time(tr, is_json, topic, log_time)
+                parent = _get(tr, is_json, "parent_frame_id", "")
+                child = _get(tr, is_json, "child_frame_id", "")
+                t = _vec(_get(tr, is_json, "translation"), is_json, "xyz")
+                q = _vec(_get(tr, is_json, "rotation"), is_json, "xyzw")
+            else:  # the hot path (up to 1 kHz): plain attribute access
+                if tr.HasField("timestamp"):
+                    ts = tr.timestamp
+                    st = ts.seconds * 1_000_000_000 + ts.nanos
+                else:
+                    st = self._time(tr, is_json, topic, log_time)
+                parent, child = tr.parent_frame_id, tr.child_frame_id
+                v, r = tr.translation, tr.rotation
+                t = [v.x, v.y, v.z]
+                q = [r.x, r.y, r.z, r.w]
+            if not parent or not child:
+                raise TransformError(f"a transform has an empty frame name (parent "
+                                     f"{parent!r}, child {child!r})", path=self.path,
+                                     topic=topic, time_ns=st)
+            key = (topic, parent, child)
+            link = self.tf_links.get(key)
+            if link is None:
+                link = self.tf_links[key] = _TfSamples(topic, parent, child)
+            link.stamps.append(st)
+            link.values.append(t + q)
+
+    def calibration(self, obj: Any, is_json: bool, topic: str, log_time: int) -> None:
+        st = self._time(obj, is_json, topic, log_time)
+        self.n_calib_msgs += 1
+        fid = _get(obj, is_json, "frame_id", "") or ""
+
+        def fail(what: str) -> CalibrationError:
+            return CalibrationError(f"calibration of frame_id {fid!r}: {what}", path=self.path,
+                                    topic=topic, time_ns=st)
+
+        try:
+            k = np.array([float(x) for x in (_get(obj, is_json, "K", []) or [])])
+            d = np.array([float(x) for x in (_get(obj, is_json, "D", []) or [])])
+        except (TypeError, ValueError) as exc:
+            raise fail(f"K and D must be numbers ({exc})") from None
+        width = int(_get(obj, is_json, "width", 0) or 0)
+        height = int(_get(obj, is_json, "height", 0) or 0)
+        model = str(_get(obj, is_json, "distortion_model", "") or "").strip()
+        if not fid:
+            raise fail("frame_id is empty")
+        if k.size != 9:
+            raise fail(f"K must have 9 values, got {k.size}")
+        if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
+            raise fail(f"non-finite values (K={k.tolist()}, D={d.tolist()})")
+        if k[0] == 0:
+            raise fail("K[0] is 0: the camera is uncalibrated")
+        if model == "":
+            if d.size == 0 or not np.any(d):
+                d = np.zeros(5)
+            elif d.size == 5:
+                self.warn(f"{topic}: calibration of {fid!r} has an empty distortion_model "
+                          f"with 5 coefficients; read as plumb_bob")
+            else:
+                raise fail(f"empty distortion_model with {d.size} non-zero coefficients")
+        elif model == "plumb_bob":
+            if d.size == 0:
+                d = np.zeros(5)
+            elif d.size not in (4, 5):
+                raise fail(f"plumb_bob needs 5 coefficients (k1 k2 p1 p2 k3), got {d.size}")
+        elif model == "rational_polynomial":
+            if d.size < 5 or np.any(d[5:] != 0):
+                raise fail(f"distortion_model rational_polynomial with non-zero k4..k6 "
+                           f"(D={d.tolist()}) is unsupported; robo3d models plumb_bob "
+                           f"(k1 k2 p1 p2 k3)")
+            d = d[:5]
+        else:
+            raise fail(f"distortion_model {model!r} is unsupported (plumb_bob, "
+                       f"rational_polynomial with k4..k6 = 0, or empty for none)")
+        try:
+            cam = CameraModel(fid, width, height, k.reshape(3, 3), d)
+        except CalibrationError as exc:
+            raise fail(exc.reason) from None
+        old = self.calibs.get(fid)
+        if old is not None:
+            o = old[0]
+            if not ((o.width, o.height) == (cam.width, cam.height)
+                    and np.array_equal(o.K, cam.K) and np.array_equal(o.D, cam.D)):
+                self.warn(f"{topic}: frame_id {fid!r} is calibrated more than once with "
+                          f"different values (t={old[2]} and t={st} ns); kept the latest")
+                if st < old[2]:
+                    return
+        self.calibs[fid] = (cam, topic, st)
+
+    def image(self, obj: Any, is_json: bool, schema: str, topic: str, log_time: int) -> None:
+        st = self._time(obj, is_json, topic, log_time)
+        fid = _get(obj, is_json, "frame_id", "") or ""
+        data = _bytes(obj, is_json, "data")
+        if schema == "foxglove.CompressedImage":
+            fmt = _get(obj, is_json, "format", "") or ""
+            msg = ImageMessage(topic=topic, timestamp_ns=st, frame_id=fid,
+                               encoding=normalize_encoding(fmt) if fmt else "", data=data,
+                               path=self.path)
+        else:
+            enc = normalize_encoding(_get(obj, is_json, "encoding", "") or "")
+            if enc not in RAW_ENCODINGS:
+                from ..errors import ImageDecodeError
+
+                raise ImageDecodeError(f"raw image encoding {enc!r} is unsupported "
+                                       f"({', '.join(RAW_ENCODINGS)})", path=self.path,
+                                       topic=topic, time_ns=st)
+            msg = ImageMessage(topic=topic, timestamp_ns=st, frame_id=fid, encoding=enc,
+                               data=data, width=int(_get(obj, is_json, "width", 0) or 0),
+                               height=int(_get(obj, is_json, "height", 0) or 0),
+                               step=int(_get(obj, is_json, "step", 0) or 0), path=self.path)
+        self.images.setdefault(topic, []).append(msg)
+
+    # ------------------------------------------------------------------ assembling
+    def build_tf(self) -> TransformBuffer:
+        buf = TransformBuffer(max_gap_ns=self.max_gap, path=self.path)
+        for (topic, parent, child), link in self.tf_links.items():
+            stamps = np.asarray(link.stamps, dtype=np.int64)
+            v = np.asarray(link.values, dtype=np.float64).reshape(-1, 7)
+            what = f"transform {parent} -> {child}"
+            finite = np.all(np.isfinite(v), axis=1)
+            if not np.all(finite):
+                i = int(np.argmin(finite))
+                raise TransformError(f"{what} is not finite (translation {v[i, :3].tolist()}, "
+                                     f"rotation {v[i, 3:].tolist()})", path=self.path,
+                                     topic=topic, time_ns=int(stamps[i]))
+            norm = np.linalg.norm(v[:, 3:], axis=1)
+            bad = np.abs(norm - 1.0) > _QUAT_TOL
+            if np.any(bad):
+                i = int(np.argmax(bad))
+                raise TransformError(f"{what}: rotation {v[i, 3:].tolist()} is not a unit "
+                                     f"quaternion (norm {norm[i]:.6g}, tolerance {_QUAT_TOL})",
+                                     path=self.path, topic=topic, time_ns=int(stamps[i]))
+            v[:, 3:] /= norm[:, None]
+            if len(stamps) > 1:
+                dif = np.diff(stamps)
+                n_back = int(np.sum(dif < 0))
+                if n_back:
+                    self.warn(f"{topic}: {n_back} timestamps of {what} are out of order "
+                              f"(e.g. t={int(stamps[1:][dif < 0][0])} ns after a later one); "
+                              f"sorted them")
+                order = np.argsort(stamps, kind="stable")
+                ss, vs = stamps[order], v[order]
+                dup = ss[1:] == ss[:-1]
+                if np.any(dup):
+                    differ = dup & np.any(vs[1:] != vs[:-1], axis=1)
+                    if np.any(differ):
+                        self.warn(f"{topic}: {int(np.sum(differ))} duplicated timestamps of "
+                                  f"{what} carry different values (e.g. t="
+                                  f"{int(ss[1:][differ][0])} ns); kept the last")
+            static = topic == self.topics.tf_static
+            if static and len(stamps) > 1 and np.ptp(v, axis=0).max() > 1e-12:
+                self.warn(f"{topic}: static {what} is published {len(stamps)} times with "
+                          f"different values; kept the first")
+            buf.add(parent, child, stamps, v[:, :3], v[:, 3:], static=static, topic=topic)
+        return buf
+
+    def sorted_images(self, topic: str) -> list[ImageMessage]:
+        msgs = self.images.get(topic, [])
+        if not msgs:
+            return []
+        stamps = np.array([m.timestamp_ns for m in msgs], dtype=np.int64)
+        dif = np.diff(stamps)
+        if np.any(dif < 0):
+            self.warn(f"{topic}: {int(np.sum(dif < 0))} image timestamps are out of order; "
+                      f"sorted them")
+        order = np.argsort(stamps, kind="stable")
+        msgs = [msgs[i] for i in order]
+        out: list[ImageMessage] = []
+        n_dup = 0
+        for m in msgs:  # a loop over images (views/frames), not pixels
+            if out and out[-1].timestamp_ns == m.timestamp_ns and out[-1].frame_id == m.frame_id:
+                out[-1] = m
+                n_dup += 1
+            else:
+                out.append(m)
+        if n_dup:
+            self.warn(f"{topic}: {n_dup} images repeat the timestamp and frame_id of another; "
+                      f"kept the last of each")
+        return out
+
+
+def _chain_problem(tf: TransformBuffer, parent: str, child: str) -> str | None:
+    """Why ``child`` cannot be expressed in ``parent`` (structure only), or None."""
+    parents = {c: p for p, c, _, _ in tf.links()}
+    frames = tf.frames
+    for f in (parent, child):
+        if f not in frames:
+            return (f"frame {f!r} is not in the transform tree (frames: "
+                    f"{', '.join(sorted(frames)) or 'none'})")
+
+    def up(f: str) -> list[str]:
+        chain, seen = [f], {f}
+        while chain[-1] in parents and parents[chain[-1]] not in seen:
+            chain.append(parents[chain[-1]])
+            seen.add(chain[-1])
+        return chain
+
+    a, b = up(child), up(parent)
+    if set(a) & set(b):
+        return None
+    return (f"the chain does not connect: {' -> '.join(reversed(a))} and "
+            f"{' -> '.join(reversed(b))} have no common frame (missing link between "
+            f"{a[-1]!r} and {b[-1]!r})")
+
+
+def _role_topics(topics: TopicMap, roles: Iterable[str]) -> dict[str, str]:
+    return {r: getattr(topics, r) for r in roles}
+
+
+def _check_roles(roles: Iterable[str]) -> tuple[str, ...]:
+    if isinstance(roles, str):
+        roles = (roles,)
+    out = tuple(roles)
+    bad = [r for r in out if r not in _ROLES]
+    if bad:
+        raise ValueError(f"roles must be among {_ROLES}, got {out!r}")
+    return out
+
+
+def read_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAULT_TOPICS,
+                   roles: Iterable[str] = ("views", "laser"),
+                   max_pose_gap_ns: int = 50_000_000, base_frame: str = "base",
+                   require: bool = True) -> Recording:
+    """Read a recording into memory, images still encoded.
+
+    Parameters
+    ----------
+    path : str or path-like
+        An MCAP file following ``recording-format.md``.
+    topics : TopicMap
+        Which topic carries which role.
+    roles : iterable of {"views", "laser"}
+        Image roles to load. Calibration and transforms are always read.
+    max_pose_gap_ns : int
+        Widest gap between two pose samples to interpolate across, nanoseconds (the
+        config's ``max_pose_gap``), given to the :class:`TransformBuffer`.
+    base_frame : str
+        The fixed frame poses are expressed in.
+    require : bool
+        Check completeness (see the module docstring): every requested role has
+        messages, every image a calibration and a transform chain to ``base_frame``.
+
+    Returns
+    -------
+    Recording
+        With ``warnings`` listing everything accepted but suspicious (truncation, skipped
+        chunks, sorted timestamps, ...); each is also logged.
+
+    Raises
+    ------
+    RecordingError
+        Not an MCAP file, unsupported schema/encoding on a role topic, undecodable message,
+        a required role without messages (saying so when the file is truncated).
+    TransformError
+        Non-finite or non-unit transforms, a chain from ``base_frame`` to an image's
+        frame that does not connect, no transforms at all.
+    CalibrationError
+        Missing, unsupported or non-finite calibration.
+    ImageDecodeError
+        A raw image encoding that is not supported.
+    """
+    path = os.fspath(path)
+    roles = _check_roles(roles)
+    if max_pose_gap_ns <= 0:
+        raise ValueError(f"max_pose_gap_ns must be positive, got {max_pose_gap_ns}")
+    role_topics = _role_topics(topics, roles)
+    tf_topics = {topics.tf, topics.tf_static}
+    wanted = tf_topics | {topics.calibration} | set(role_topics.values())
+    scan = _scan_file(path, wanted.__contains__)
+
+    from mcap_protobuf.decoder import DecoderFactory
+
+    factory = DecoderFactory()
+    rd = _Reader(path, topics, roles, max_pose_gap_ns, base_frame)
+    rd.warnings.extend(scan.warnings)
+    decoders: dict[int, tuple[Callable[[bytes], Any], bool, str, str]] = {}
+    image_topics = set(role_topics.values())
+    for cid, log_time, data in scan.messages:
+        dec = decoders.get(cid)
+        ch = scan.channels[cid]
+        if dec is None:
+            fn, is_json = _decoder_for(scan, ch, factory)
+            sch = scan.schemas.get(ch.schema_id)
+            sname = sch.name if sch is not None else ""
+            if not sname and is_json and ch.topic in tf_topics:
+                sname = "foxglove.FrameTransforms"
+            allowed = (_TF_SCHEMAS if ch.topic in tf_topics else
+                       _CALIB_SCHEMAS if ch.topic == topics.calibration else _IMAGE_SCHEMAS)
+            if sname not in allowed:
+                raise RecordingError(f"schema {sname or '(none)'!r} ({ch.message_encoding}) "
+                                     f"is not supported on this topic (expected "
+                                     f"{' or '.join(allowed)})", path=path, topic=ch.topic)
+            dec = decoders[cid] = (fn, is_json, sname, ch.topic)
+        fn, is_json, sname, topic = dec
+        try:
+            obj = fn(data)
+            if is_json and not isinstance(obj, dict):
+                raise ValueError(f"a JSON message must be an object, got {type(obj).__name__}")
+            if topic in tf_topics:
+                rd.tf(obj, is_json, sname, topic, log_time)
+            elif topic == topics.calibration:
+                rd.calibration(obj, is_json, topic, log_time)
+            if topic in image_topics:
+                rd.image(obj, is_json, sname, topic, log_time)
+        except RecordingError:
+            raise
+        except Exception as exc:  # protobuf DecodeError, JSON errors, base64, bad types
+            raise RecordingError(f"a {sname} message does not decode "
+                                 f"({type(exc).__name__}: {exc}); time is its log time",
+                                 path=path, topic=topic, time_ns=log_time) from None
+    for topic, n in rd.no_stamp.items():
+        rd.warn(f"{topic}: {n} messages have no timestamp field; used their log time")
+
+    tf = rd.build_tf()
+    rec = Recording(path=path, metadata=scan.metadata,
+                    calibrations={fid: c[0] for fid, c in rd.calibs.items()}, tf=tf,
+                    views=rd.sorted_images(topics.views) if "views" in roles else [],
+                    laser_frames=rd.sorted_images(topics.laser) if "laser" in roles else [],
+                    attachments=scan.attachments, warnings=rd.warnings, base_frame=base_frame)
+    if require:
+        _check_complete(rec, scan, topics, role_topics)
+    for w in rec.warnings:
+        _log.warning("%s: %s", path, w)
+    return rec
+
+
+def _check_complete(rec: Recording, scan: _Scan, topics: TopicMap,
+                    role_topics: dict[str, str]) -> None:
+    path = rec.path
+    trunc = f" (the file is truncated: {scan.truncated})" if scan.truncated else ""
+    present = sorted({ch.topic for cid, ch in scan.channels.items() if scan.counts.get(cid)})
+    for role, topic in role_topics.items():
+        n = len(rec.views if role == "views" else rec.laser_frames)
+        if n == 0:
+            raise RecordingError(f"required topic {topic} has no messages ({role}; topics "
+                                 f"with messages: {', '.join(present) or 'none'}){trunc}",
+                                 path=path, topic=topic)
+    images = rec.views + rec.laser_frames
+    if not images:
+        return
+    if not rec.calibrations:
+        raise CalibrationError(f"no calibration: topic {topics.calibration} has no messages, "
+                               f"but the recording has {len(images)} images{trunc}",
+                               path=path, topic=topics.calibration)
+    if not rec.tf.links():
+        raise TransformError(f"no transforms: topics {topics.tf} and {topics.tf_static} have "
+                             f"no messages, but the recording has {len(images)} images{trunc}",
+                             path=path, topic=topics.tf)
+    checked: set[str] = set()
+    for m in images:  # a loop over images, stopping at each new frame_id
+        if m.frame_id in checked:
+            continue
+        rec.camera_for(m)  # CalibrationError naming topic, time and frame_id
+        problem = _chain_problem(rec.tf, rec.base_frame, m.frame_id)
+        if problem:
+            raise TransformError(f"no pose for images of frame_id {m.frame_id!r} in "
+                                 f"{rec.base_frame!r}: {problem}{trunc}", path=path,
+                                 topic=m.topic, time_ns=m.timestamp_ns)
+        checked.add(m.frame_id)
+
+
+# =========================================================================== probing
+@dataclass
+class RecordingSummary:
+    """What :func:`probe_recording` learnt about a recording without reading it all.
+
+    Attributes
+    ----------
+    path : str
+    readable : bool
+        False when the file cannot be used at all (then ``problem`` says why).
+    problem : str or None
+        Why it is unreadable, or a warning about a readable file (e.g. truncated).
+    n_views, n_laser_frames, n_calibrations, n_tf : int
+        Messages on the views, laser, calibration and tf (+ tf_static) topics.
+    has_ground_truth : bool
+        Some attachment's name starts with ``ground_truth/``.
+    kind : str or None
+        ``kind`` of the ``robo3d.recording`` metadata (``scan`` or ``calibration``).
+    metadata : dict
+        Every metadata record, name to dict.
+    topics : dict
+        Topic to ``(schema name, message encoding, message count)``.
+    attachments : list of str
+        Attachment names.
+    """
+
+    path: str
+    readable: bool
+    problem: str | None = None
+    n_views: int = 0
+    n_laser_frames: int = 0
+    n_calibrations: int = 0
+    n_tf: int = 0
+    has_ground_truth: bool = False
+    kind: str | None = None
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    topics: dict[str, tuple[str, str, int]] = field(default_factory=dict)
+    attachments: list[str] = field(default_factory=list)
+
+
+def _read_summary(path: str) -> _Scan | None:
+    """The summary section of an intact file as a :class:`_Scan` without messages, or None
+    when the file has no usable summary (no statistics, or anything amiss)."""
+    size = os.path.getsize(path)
+    footer_len = 1 + 8 + 20
+    if size < 8 + footer_len + 8:
+        return None
+    with open(path, "rb") as f:
+        f.seek(size - 8 - footer_len)
+        tail = f.read(footer_len + 8)
+        if tail[-8:] != MAGIC or tail[0] != Opcode.FOOTER:
+            return None
+        summary_start, _offsets, _crc = struct.unpack_from("<QQI", tail, 9)
+        if summary_start == 0 or summary_start >= size - 8 - footer_len:
+            return None
+        f.seek(summary_start)
+        body = f.read(size - 8 - footer_len - summary_start)
+        scan = _Scan(path=path, size=size)
+        stats = None
+        md_index: list[MetadataIndex] = []
+        o = 0
+        mv = memoryview(body)
+        while o < len(body):
+            op, ln = struct.unpack_from("<BQ", body, o)
+            if o + 9 + ln > len(body):
+                return None
+            rec = bytes(mv[o + 9: o + 9 + ln])
+            if op == Opcode.SCHEMA:
+                s = _parse_schema(memoryview(rec))
+                scan.schemas[s.id] = s
+            elif op == Opcode.CHANNEL:
+                c = _parse_channel(memoryview(rec))
+                scan.channels[c.id] = c
+            elif op == Opcode.STATISTICS:
+                stats = Statistics.read(_stream(rec))
+            elif op == Opcode.ATTACHMENT_INDEX:
+                ai = AttachmentIndex.read(_stream(rec))
+                scan.attachments[ai.name] = b""
+            elif op == Opcode.METADATA_INDEX:
+                md_index.append(MetadataIndex.read(_stream(rec)))
+            o += 9 + ln
+        if stats is None:
+            return None
+        scan.counts = dict(stats.channel_message_counts)
+        for mi in md_index:
+            f.seek(mi.offset)
+            hdr = f.read(9)
+            op, ln = struct.unpack("<BQ", hdr)
+            if op != Opcode.METADATA:
+                return None
+            md = Metadata.read(_stream(f.read(ln)))
+            scan.metadata.setdefault(md.name, {}).update(md.metadata)
+        return scan
+
+
+def probe_recording(path: str | os.PathLike[str],
+                    topics: TopicMap = _DEFAULT_TOPICS) -> RecordingSummary:
+    """Summarise a recording cheaply; never raises.
+
+    Uses the MCAP summary section (statistics, channels, attachment and metadata indexes)
+    when the file has an intact one, and a record-by-record scan (no message decoding)
+    otherwise.
+
+    Parameters
+    ----------
+    path : str or path-like
+    topics : TopicMap
+
+    Returns
+    -------
+    RecordingSummary
+        ``readable=False`` with ``problem`` set for a file that is missing, not MCAP,
+        carries an unsupported schema or encoding on a role topic, or has no images.
+    """
+    spath = os.fspath(path)
+    try:
+        return _probe(spath, topics)
+    except Exception as exc:  # the contract: one bad file must not stop a batch
+        reason = str(exc) if isinstance(exc, RecordingError) else \
+            f"{spath}: {type(exc).__name__}: {exc}"
+        return RecordingSummary(path=spath, readable=False, problem=reason)
+
+
+def _probe(path: str, topics: TopicMap) -> RecordingSummary:
+    if not os.path.isfile(path):
+        return RecordingSummary(path=path, readable=False, problem=f"{path}: no such file")
+    scan = None
+    try:
+        scan = _read_summary(path)
+    except Exception:  # damaged summary: scan instead
+        scan = None
+    if scan is None:
+        scan = _scan_file(path, lambda _t: False, keep_attachment_data=False)
+    by_topic: dict[str, tuple[str, str, int]] = {}
+    for cid, ch in scan.channels.items():
+        sch = scan.schemas.get(ch.schema_id)
+        name = sch.name if sch is not None else ""
+        n = scan.counts.get(cid, 0)
+        old = by_topic.get(ch.topic)
+        by_topic[ch.topic] = (name, ch.message_encoding, n + (old[2] if old else 0))
+
+    def count(t: str) -> int:
+        return by_topic.get(t, ("", "", 0))[2]
+
+    summary = RecordingSummary(
+        path=path, readable=True,
+        n_views=count(topics.views), n_laser_frames=count(topics.laser),
+        n_calibrations=count(topics.calibration),
+        n_tf=count(topics.tf) + count(topics.tf_static),
+        has_ground_truth=any(a.startswith("ground_truth/") for a in scan.attachments),
+        kind=scan.metadata.get("robo3d.recording", {}).get("kind"),
+        metadata=scan.metadata, topics=by_topic, attachments=sorted(scan.attachments))
+    problems = []
+    expect = {topics.tf: _TF_SCHEMAS, topics.tf_static: _TF_SCHEMAS,
+              topics.calibration: _CALIB_SCHEMAS, topics.views: _IMAGE_SCHEMAS,
+              topics.laser: _IMAGE_SCHEMAS}
+    for topic, allowed in expect.items():
+        if topic not in by_topic or by_topic[topic][2] == 0:
+            continue
+        name, enc, _ = by_topic[topic]
+        if enc not in ("protobuf", "json") or (name not in allowed and not
+                                               (enc == "json" and name == "")):
+            problems.append(f"topic {topic} carries {name or '(no schema)'!r} encoded as "
+                            f"{enc!r}; supported: {' or '.join(allowed)} as protobuf or json")
+    if problems:
+        summary.readable = False
+        summary.problem = f"{path}: " + "; ".join(problems)
+        return summary
+    if summary.n_views == 0 and summary.n_laser_frames == 0:
+        summary.readable = False
+        summary.problem = (f"{path}: no images on {topics.views} or {topics.laser}"
+                           + (f" ({scan.truncated})" if scan.truncated else ""))
+        return summary
+    if scan.warnings:
+        summary.problem = f"{path}: " + "; ".join(scan.warnings)
+    return summary
+
+
+# =========================================================================== ground truth
+def read_ground_truth_tf(recording: Recording) -> TransformBuffer:
+    """The true transforms of a simulated recording (attachment ``ground_truth/tf.json``).
+
+    The attachment is ``{"transforms": [{"parent", "child", "stamps_ns": [N],
+    "translations": [[x, y, z]] * N, "quaternions": [[x, y, z, w]] * N}, ...]}`` (metres,
+    nanoseconds; an optional ``"static": true`` marks a fixed link). Evaluation only:
+    the pipeline must never use it to measure.
+
+    Parameters
+    ----------
+    recording : Recording
+
+    Returns
+    -------
+    TransformBuffer
+        With the same ``max_gap_ns`` as ``recording.tf``.
+
+    Raises
+    ------
+    RecordingError
+        The attachment is absent or malformed (non-finite, non-unit quaternions, ragged
+        arrays).
+    """
+    path = recording.path
+    data = recording.attachments.get(GROUND_TRUTH_TF)
+    if data is None:
+        raise RecordingError(f"no {GROUND_TRUTH_TF} attachment (attachments: "
+                             f"{', '.join(sorted(recording.attachments)) or 'none'})", path=path)
+
+    def fail(what: str) -> RecordingError:
+        return RecordingError(f"attachment {GROUND_TRUTH_TF}: {what}", path=path)
+
+    try:
+        doc = json.loads(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise fail(f"is not valid JSON ({exc})") from None
+    entries = doc.get("transforms") if isinstance(doc, dict) else None
+    if not isinstance(entries, list):
+        raise fail('must be {"transforms": [...]}')
+    buf = TransformBuffer(max_gap_ns=recording.tf.max_gap_ns, path=path)
+    for i, e in enumerate(entries):
+        try:
+            parent, child = str(e["parent"]), str(e["child"])
+            stamps = np.asarray(e["stamps_ns"], dtype=np.int64).reshape(-1)
+            tr = np.asarray(e["translations"], dtype=np.float64)
+            q = np.asarray(e["quaternions"], dtype=np.float64)
+            static = bool(e.get("static", False))
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise fail(f"transforms[{i}] needs parent, child, stamps_ns, translations, "
+                       f"quaternions ({type(exc).__name__}: {exc})") from None
+        n = len(stamps)
+        if n == 0 or tr.shape != (n, 3) or q.shape != (n, 4):
+            raise fail(f"transforms[{i}] ({parent} -> {child}): expected {n} stamps, (N, 3) "
+                       f"translations and (N, 4) quaternions, got {tr.shape} and {q.shape}")
+        if not (np.all(np.isfinite(tr)) and np.all(np.isfinite(q))):
+            raise fail(f"transforms[{i}] ({parent} -> {child}) has non-finite values")
+        norm = np.linalg.norm(q, axis=1)
+        if np.any(np.abs(norm - 1) > _QUAT_TOL):
+            raise fail(f"transforms[{i}] ({parent} -> {child}) has non-unit quaternions "
+                       f"(norms {norm.min():.6g} .. {norm.max():.6g})")
+        buf.add(parent, child, stamps, tr, q, static=static, topic=GROUND_TRUTH_TF)
+    return buf

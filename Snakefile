@@ -1,10 +1,12 @@
 # robo3d: recordings in, measured meshes out. See README.md and workflow/rules/.
+import os
+
 from snakemake.utils import min_version
 
 min_version("9.0")
 
 
-configfile: "config/config.yaml"
+configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
 include: "workflow/rules/common.smk"

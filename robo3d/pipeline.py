@@ -31,6 +31,7 @@ from .errors import Robo3dError, StageError
 __all__ = [
     "RecordingEntry",
     "find_recordings",
+    "export_library_path",
     "recording_stages",
     "topic_map",
     "stage_silhouettes",
@@ -117,6 +118,16 @@ def recording_stages(entry: RecordingEntry) -> set[str]:
     if s.n_laser_frames > 0:
         out.add("laser")
     return out
+
+
+def export_library_path(repo_root: str) -> None:
+    """Put the checkout on ``PYTHONPATH`` so that every job imports this robo3d, also in
+    ``--use-conda`` environments that install only the dependencies."""
+    import os
+
+    parts = [str(repo_root)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+                                if p and p != str(repo_root)]
+    os.environ["PYTHONPATH"] = os.pathsep.join(parts)
 
 
 # ---------------------------------------------------------------------------- helpers

@@ -1,8 +1,10 @@
 # Validation and the small helpers the rules use. Logic lives in robo3d/, not here.
 from robo3d.config import validate_config
-from robo3d.pipeline import find_recordings, recording_stages
+from robo3d.pipeline import export_library_path, find_recordings, recording_stages
 
 config.update(validate_config(config))
+
+export_library_path(workflow.basedir)
 
 RECORDINGS = find_recordings(config["recordings"], topics=config["topics"])
 

@@ -12,6 +12,8 @@ rule evaluate:
         "logs/evaluate/{rec}.log",
     benchmark:
         "benchmarks/evaluate/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=4000,

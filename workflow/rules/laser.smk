@@ -12,6 +12,8 @@ rule stripes:
         "logs/stripes/{rec}.log",
     benchmark:
         "benchmarks/stripes/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=2000,
@@ -31,6 +33,8 @@ rule triangulate:
         "logs/triangulate/{rec}.log",
     benchmark:
         "benchmarks/triangulate/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=2000,
@@ -50,6 +54,8 @@ rule align:
         "logs/align/{rec}.log",
     benchmark:
         "benchmarks/align/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=4000,

@@ -12,6 +12,8 @@ rule fuse:
         "logs/fuse/{rec}.log",
     benchmark:
         "benchmarks/fuse/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=6000,
@@ -30,6 +32,8 @@ rule simplify:
         "logs/simplify/{rec}.log",
     benchmark:
         "benchmarks/simplify/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=2000,

@@ -12,6 +12,8 @@ rule silhouettes:
         "logs/silhouettes/{rec}.log",
     benchmark:
         "benchmarks/silhouettes/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=2000,
@@ -31,6 +33,8 @@ rule carve:
         "logs/carve/{rec}.log",
     benchmark:
         "benchmarks/carve/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
     threads: 1
     resources:
         mem_mb=4000,

@@ -1,0 +1,397 @@
+"""Tests of robo3d.triangulation: seed §4.1 (eqs. 11-17) and per-sweep clouds.
+
+Ground truth is analytic: points on the laser sheet and on a known plane, projected into
+a (distorted) camera, must come back exactly; a swept plane must give its own normal.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from robo3d.camera import CameraModel
+from robo3d.errors import StageError
+from robo3d.stripes import StripePoints
+from robo3d.transforms import make_transform, rotation_angle_deg, transform_points
+from robo3d.triangulation import (
+    DROP_REASONS,
+    SweepCloud,
+    laser_params_from_transform,
+    laser_plane_in_camera,
+    laser_transform_from_params,
+    load_clouds_npz,
+    save_clouds_npz,
+    split_sweeps,
+    triangulate_pixels,
+    triangulate_pixels_eq17,
+    triangulate_sweep,
+)
+
+K = np.array([[520.0, 0.0, 322.5], [0.0, 515.0, 241.0], [0.0, 0.0, 1.0]])
+D = np.array([-0.21, 0.09, 0.0012, -0.0008, -0.015])
+CAM_D = CameraModel("camera", 640, 480, K, D)
+CAM = CameraModel("camera", 640, 480, K)
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _rig_laser(baseline: float = 0.08, aim: float = 0.35) -> np.ndarray:
+    """T_camera_laser of our rig: laser above the camera (camera -y), sheet spanning the
+    camera x, beam aimed at the optical axis at ``aim`` metres."""
+    z_l = np.array([0.0, baseline, aim])
+    z_l /= np.linalg.norm(z_l)
+    x_l = np.array([1.0, 0.0, 0.0])
+    y_l = np.cross(z_l, x_l)
+    return make_transform(np.stack([x_l, y_l, z_l], axis=1), [0.0, -baseline, 0.0])
+
+
+def _plane_line_points(n_cam, d_cam, T_camera_laser, s):
+    """Points of the line where the target plane n.x = d meets the laser sheet."""
+    n_s, d_s = laser_plane_in_camera(T_camera_laser)
+    b = np.cross(n_cam, n_s)
+    b /= np.linalg.norm(b)
+    A = np.stack([n_cam, n_s, b])
+    a = np.linalg.solve(A, [d_cam, d_s, 0.0])
+    return a + np.asarray(s)[:, None] * b
+
+
+# ---------------------------------------------------------------------------- eq. 11
+def test_eq11_equals_the_motions_applied_in_order():
+    dx, dy, dz, phi, theta, psi = 0.03, -0.08, 0.01, 0.2, -0.15, 0.4
+
+    def trans(v):
+        return make_transform(np.eye(3), v)
+
+    def rot(r):
+        return make_transform(r, np.zeros(3))
+
+    # move a frame, starting at the camera, about the camera's fixed axes, in order
+    pose = np.eye(4)
+    for motion in (trans([dx, 0, 0]), trans([0, dy, 0]), trans([0, 0, dz]),
+                   rot(_rz(phi)), rot(_ry(theta)), rot(_rx(psi))):
+        pose = motion @ pose
+    T = laser_transform_from_params(dx, dy, dz, phi, theta, psi)
+    np.testing.assert_allclose(T, pose, atol=1e-15)
+    # the seed's product, literally
+    seed = (rot(_rx(psi)) @ rot(_ry(theta)) @ rot(_rz(phi)) @ trans([0, 0, dz])
+            @ trans([0, dy, 0]) @ trans([dx, 0, 0]))
+    np.testing.assert_allclose(T, seed, atol=1e-15)
+    # translations first: the rotations swing the laser origin
+    np.testing.assert_allclose(T[:3, 3], T[:3, :3] @ [dx, dy, dz], atol=1e-15)
+
+
+@pytest.mark.parametrize("params", [
+    (0.03, -0.08, 0.01, 0.2, -0.15, 0.4),
+    (-0.1, 0.02, 0.3, -2.9, 1.2, 3.0),
+    (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+])
+def test_eq11_round_trip(params):
+    T = laser_transform_from_params(*params)
+    back = laser_params_from_transform(T)
+    np.testing.assert_allclose(back, params, atol=1e-12)
+    np.testing.assert_allclose(laser_transform_from_params(*back), T, atol=1e-12)
+
+
+def test_eq11_round_trip_at_gimbal_lock():
+    T = laser_transform_from_params(0.01, 0.02, 0.03, 0.3, np.pi / 2, -0.2)
+    np.testing.assert_allclose(laser_transform_from_params(*laser_params_from_transform(T)),
+                               T, atol=1e-9)
+
+
+# ---------------------------------------------------------------------------- eq. 12-15
+def test_laser_plane_is_the_xz_plane_of_the_laser():
+    T = laser_transform_from_params(0.03, -0.08, 0.01, 0.2, -0.15, 0.4)
+    n, d = laser_plane_in_camera(T)
+    np.testing.assert_allclose(n, T[:3, 1], atol=1e-15)  # the laser's +y axis
+    rng = np.random.default_rng(0)
+    on_sheet = rng.normal(size=(50, 3)) * [1.0, 0.0, 1.0]  # y_L = 0
+    off_sheet = on_sheet + [0.0, 0.25, 0.0]
+    np.testing.assert_allclose(transform_points(T, on_sheet) @ n - d, 0.0, atol=1e-14)
+    np.testing.assert_allclose(transform_points(T, off_sheet) @ n - d, 0.25, atol=1e-14)
+
+
+# ---------------------------------------------------------------------------- eq. 16-17
+def _target_points(T_camera_laser, n_pts=200):
+    """Points on the sheet and on a tilted target plane, in view of the camera."""
+    n_t = np.array([0.1, -0.25, -1.0])
+    n_t /= np.linalg.norm(n_t)
+    point_on_target = np.array([0.0, 0.0, 0.42])
+    pts = _plane_line_points(n_t, n_t @ point_on_target, T_camera_laser,
+                             np.linspace(-0.2, 0.2, n_pts))
+    return pts
+
+
+def test_triangulate_round_trip_through_distorted_camera():
+    T_cl = _rig_laser()
+    pts = _target_points(T_cl)
+    uv, front = CAM_D.project(pts)
+    inside = front & (uv[:, 0] > 0) & (uv[:, 0] < 639) & (uv[:, 1] > 0) & (uv[:, 1] < 479)
+    assert inside.sum() > 100
+    pts, uv = pts[inside], uv[inside]
+    back, keep, dropped = triangulate_pixels(uv, CAM_D, T_cl)
+    assert keep.all() and sum(dropped.values()) == 0 and set(dropped) == set(DROP_REASONS)
+    err = np.linalg.norm(back - pts, axis=1)
+    assert err.max() < 1e-9, err.max()
+
+
+def test_seed_eq17_equals_ray_plane_form():
+    T_cl = laser_transform_from_params(0.02, -0.09, 0.005, 0.05, 0.03, -0.22)
+    rng = np.random.default_rng(1)
+    uv = rng.uniform([0, 0], [639, 479], size=(300, 2))
+    generic, keep, _ = triangulate_pixels(uv, CAM_D, T_cl, min_angle_deg=0.0)
+    seed = triangulate_pixels_eq17(uv, CAM_D, T_cl)
+    np.testing.assert_allclose(seed[keep], generic[keep], rtol=1e-10, atol=1e-12)
+    assert keep.sum() > 100
+
+
+def test_grazing_behind_range_and_nan_are_dropped_and_counted():
+    T_cl = make_transform(np.eye(3), [0.0, 0.05, 0.0])  # sheet y = 0.05 in the camera
+    angles = np.radians([0.5, 1.0, 1.5, 3.0, 10.0, 30.0, -5.0, -10.0])
+    v = CAM.cy + CAM.fy * np.tan(angles)
+    uv = np.stack([np.full(angles.size, CAM.cx), v], axis=1)
+    uv = np.vstack([uv, [[np.nan, 10.0]]])
+    pts, keep, dropped = triangulate_pixels(uv, CAM, T_cl, min_angle_deg=2.0, max_range=0.5)
+    assert dropped == {"non_finite": 1, "grazing": 3, "behind": 2, "out_of_range": 1}
+    np.testing.assert_array_equal(np.flatnonzero(keep), [4, 5])
+    assert np.all(np.isnan(pts[~keep]))
+    # a kept point lies on the sheet, at range 0.05 / sin(angle)
+    np.testing.assert_allclose(pts[keep][:, 1], 0.05, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(pts[keep], axis=1),
+                               0.05 / np.sin(angles[[4, 5]]), rtol=1e-12)
+
+
+def test_triangulate_input_errors():
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        triangulate_pixels(np.zeros((3, 3)), CAM, np.eye(4))
+    with pytest.raises(ValueError, match=r"\(4, 4\)"):
+        triangulate_pixels(np.zeros((3, 2)), CAM, np.eye(3))
+
+
+# ---------------------------------------------------------------------------- sweeps
+def test_split_sweeps():
+    s = np.array([0, 10, 20, 2_000, 2_010, 5_000, 5_005], dtype=np.int64) * 1_000_000
+    np.testing.assert_array_equal(split_sweeps(s, 1_000_000_000), [0, 0, 0, 1, 1, 2, 2])
+    np.testing.assert_array_equal(split_sweeps(s, 10_000_000_000), np.zeros(7))
+    # unsorted input: sweeps follow time order, row for row
+    perm = np.array([4, 0, 6, 2, 1, 5, 3])
+    np.testing.assert_array_equal(split_sweeps(s[perm], 1_000_000_000),
+                                  np.array([0, 0, 0, 1, 1, 2, 2])[perm])
+    assert split_sweeps(np.zeros(0, np.int64), 1).shape == (0,)
+    with pytest.raises(ValueError, match="gap_ns"):
+        split_sweeps(s, 0)
+
+
+def _plane_sweep(n_frames=24, step=0.002, T_cl=None):
+    """The rig moving along base y over a tilted plane; exact stripe pixels per column."""
+    T_cl = _rig_laser() if T_cl is None else T_cl
+    n_true = np.array([0.2, -0.1, 1.0])
+    n_true /= np.linalg.norm(n_true)
+    R_bc = np.diag([1.0, -1.0, -1.0])  # looking down at the plane
+    poses, stripes = [], []
+    u = np.arange(0, 640, dtype=np.float64)
+    for i in range(n_frames):
+        T_bc = make_transform(R_bc, [0.01, -0.02 + step * i, 0.40])
+        poses.append(T_bc)
+        R, t = T_bc[:3, :3], T_bc[:3, 3]
+        n_c = R.T @ n_true
+        d_c = n_true @ np.zeros(3) - n_true @ t  # plane through the base origin
+        line = _plane_line_points(n_c, d_c, T_cl, np.zeros(1))
+        a, b = line[0], _plane_line_points(n_c, d_c, T_cl, np.ones(1))[0] - line[0]
+        x = (u - CAM.cx) / CAM.fx
+        s = (x * a[2] - a[0]) / (b[0] - x * b[2])
+        p = a + s[:, None] * b
+        v = CAM.fy * p[:, 1] / p[:, 2] + CAM.cy
+        ok = (v >= 0) & (v <= 479)
+        stripes.append(StripePoints(u=u[ok], v=v[ok], confidence=np.full(ok.sum(), 0.9)))
+    return stripes, np.stack(poses), T_cl, n_true
+
+
+def test_sweep_of_a_plane_points_and_normals():
+    stripes, poses, T_cl, n_true = _plane_sweep()
+    cloud = triangulate_sweep(stripes, CAM, poses, T_cl, frame_indices=np.arange(24) + 100,
+                              sweep=3)
+    n_pix = sum(len(s) for s in stripes)
+    assert len(cloud) == n_pix and cloud.report["n_points"] == n_pix
+    assert cloud.sweep == 3 and set(cloud.frame_index) == set(range(100, 124))
+    # on the plane
+    np.testing.assert_allclose(cloud.points_base @ n_true, 0.0, atol=1e-12)
+    # normals: the true normal (it faces the camera above), within 1 degree
+    ang = np.degrees(np.arccos(np.clip(cloud.normals_base @ n_true, -1, 1)))
+    assert ang.max() < 1.0, ang.max()
+    to_cam = cloud.sensor_origin_base - cloud.points_base
+    assert np.all(np.einsum("ni,ni->n", cloud.normals_base, to_cam) > 0)
+    assert cloud.report["normals"]["from_grid"] > 0.9 * n_pix
+    # the sensor origins are the camera centres of the frames
+    np.testing.assert_allclose(cloud.sensor_origin_base,
+                               poses[cloud.frame_index - 100][:, :3, 3])
+    assert np.all((cloud.confidence > 0) & (cloud.confidence <= 0.9 + 1e-12))
+
+
+def test_sweep_with_a_laser_pose_per_frame():
+    # T_camera_laser given per frame (F, 4, 4), tangents over +-1 line
+    stripes, poses, T_cl, n_true = _plane_sweep(n_frames=6)
+    cloud = triangulate_sweep(stripes, CAM, poses, np.broadcast_to(T_cl, (6, 4, 4)),
+                              normal_span=1)
+    assert np.degrees(np.arccos(np.clip(cloud.normals_base @ n_true, -1, 1))).max() < 1.0
+
+
+def test_sweep_normals_fall_back_to_knn_on_holes():
+    stripes, poses, T_cl, n_true = _plane_sweep(n_frames=12)
+    rng = np.random.default_rng(5)
+    holed = []
+    for sp in stripes:  # drop 60 % of each profile at random
+        keep = rng.random(len(sp)) < 0.4
+        holed.append(StripePoints(u=sp.u[keep], v=sp.v[keep]))
+    cloud = triangulate_sweep(holed, CAM, poses, T_cl)
+    assert cloud.report["normals"]["from_knn"] > 0.05 * len(cloud)
+    ang = np.degrees(np.arccos(np.clip(cloud.normals_base @ n_true, -1, 1)))
+    assert ang.max() < 1.0, ang.max()
+
+
+def test_sweep_normals_under_stripe_noise():
+    # 0.03 px of stripe noise is ~0.1 mm of depth noise here; the grid normals are
+    # averaged over 5 x 5 cells, the raw cross products (normal_smooth=0) are not
+    stripes, poses, T_cl, n_true = _plane_sweep(n_frames=12)
+    rng = np.random.default_rng(7)
+    noisy = [StripePoints(u=sp.u, v=sp.v + rng.normal(0.0, 0.03, len(sp))) for sp in stripes]
+
+    def err(**kw):
+        c = triangulate_sweep(noisy, CAM, poses, T_cl, **kw)
+        return np.degrees(np.arccos(np.clip(c.normals_base @ n_true, -1, 1)))
+
+    smooth, raw = err(), err(normal_smooth=0)
+    assert np.median(smooth) < 1.0
+    assert np.median(raw) > 2.0 * np.median(smooth)
+    # inside the sweep (not its first/last two profiles) the 5 x 5 average is complete
+    interior = np.isin(triangulate_sweep(noisy, CAM, poses, T_cl).frame_index, range(2, 10))
+    assert np.percentile(smooth[interior], 95) < 2.5
+
+
+def _cylinder_sweep(axis: str, radius=0.05, n_frames=30, step=0.002):
+    """The rig moving along base y over a cylinder lying on z = 0 (axis along base x or
+    y); exact stripe pixels per column from the ray-plane-cylinder intersection."""
+    T_cl = _rig_laser()
+    R_bc = np.diag([1.0, -1.0, -1.0])
+    n_s, d_s = laser_plane_in_camera(T_cl)
+    u = np.arange(0, 640, dtype=np.float64)
+    x_n = (u - CAM.cx) / CAM.fx
+    # points of the sheet on column u: x = x_n z, n_s . p = d_s -> a line a + s b
+    b = np.cross(np.stack([np.ones_like(x_n), np.zeros_like(x_n), -x_n], 1), n_s)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    a = np.stack([x_n, np.zeros_like(x_n), np.ones_like(x_n)], 1)
+    a = a * (d_s / (a @ n_s))[:, None]  # the point of the column plane on the sheet at y = 0
+    keep_axes = [1, 2] if axis == "x" else [0, 2]
+    poses, stripes = [], []
+    for i in range(n_frames):
+        T_bc = make_transform(R_bc, [0.003, -0.04 + step * i, 0.40])
+        poses.append(T_bc)
+        ab = transform_points(T_bc, a)[:, keep_axes]
+        bb = (b @ R_bc.T)[:, keep_axes]
+        # |ab + s bb|^2 = r^2, the upper (visible) root
+        qa = np.sum(bb * bb, 1)
+        qb = 2 * np.sum(ab * bb, 1)
+        qc = np.sum(ab * ab, 1) - radius**2
+        disc = qb * qb - 4 * qa * qc
+        ok = disc > 0
+        sq = np.sqrt(np.where(ok, disc, 0.0))
+        roots = np.stack([(-qb - sq) / (2 * qa), (-qb + sq) / (2 * qa)], 1)
+        z = ab[:, 1:2] + roots * bb[:, 1:2]
+        sel = np.take_along_axis(roots, np.argmax(z, axis=1)[:, None], 1)[:, 0]
+        p_cam = a + sel[:, None] * b
+        v = CAM.fy * p_cam[:, 1] / p_cam[:, 2] + CAM.cy
+        ok &= (v >= 0) & (v <= 479) & (np.take_along_axis(z, np.argmax(z, 1)[:, None], 1)[:, 0]
+                                      > 0.2 * radius)
+        stripes.append(StripePoints(u=u[ok], v=v[ok]))
+    return stripes, np.stack(poses), T_cl
+
+
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_sweep_normals_on_a_cylinder(axis):
+    # curvature across the profiles (axis x) or along them (axis y), noise-free: the
+    # sweep's first and last profiles and the profile ends must not be biased
+    radius = 0.05
+    stripes, poses, T_cl = _cylinder_sweep(axis, radius)
+    cloud = triangulate_sweep(stripes, CAM, poses, T_cl)
+    p = cloud.points_base.copy()
+    p[:, 0 if axis == "x" else 1] = 0.0
+    np.testing.assert_allclose(np.linalg.norm(p, axis=1), radius, atol=1e-12)
+    n_true = p / radius
+    ang = np.degrees(np.arccos(np.clip(np.sum(cloud.normals_base * n_true, 1), -1, 1)))
+    slope = np.degrees(np.arccos(np.clip(np.abs(n_true[:, 2]), 0, 1)))
+    assert np.median(ang) < 0.3
+    assert ang[slope < 45].max() < 1.0  # first/last profiles and profile ends included
+    assert ang.max() < 2.5  # up to ~75 deg of slope, where the samples are sparse
+
+
+def test_sweep_workspace_cropping():
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=8)
+    full = triangulate_sweep(stripes, CAM, poses, T_cl)
+    box = (np.array([-1.0, -1.0, -1.0]), np.array([0.0, 1.0, 1.0]))  # keep x <= 0
+    expect_out = int((full.points_base[:, 0] > 0).sum())
+    assert 0 < expect_out < len(full)
+    crop = triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box)
+    assert crop.report["dropped"]["outside_workspace"] == expect_out
+    assert len(crop) == len(full) - expect_out
+    assert np.all(crop.points_base[:, 0] <= 0)
+
+
+def test_empty_sweep_is_a_stage_error():
+    empty = [StripePoints.empty(n_lines=640, rejected={"too_weak": 640})] * 3
+    poses = np.broadcast_to(np.eye(4), (3, 4, 4))
+    with pytest.raises(StageError, match=r"sweep 7: no point .* too_weak=1920"):
+        triangulate_sweep(empty, CAM, poses, _rig_laser(), sweep=7)
+    with pytest.raises(StageError, match="no laser frame"):
+        triangulate_sweep([], CAM, np.zeros((0, 4, 4)), _rig_laser())
+    # everything outside the workspace is empty too
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=3)
+    with pytest.raises(StageError, match="outside_workspace"):
+        triangulate_sweep(stripes, CAM, poses, T_cl,
+                          workspace=(np.full(3, 5.0), np.full(3, 6.0)))
+
+
+def test_sweep_from_rotated_rig_and_pose_errors():
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=4)
+    with pytest.raises(ValueError, match="F=4"):
+        triangulate_sweep(stripes, CAM, poses[:3], T_cl)
+    # a rigid motion of the whole scene moves the cloud with it
+    M = make_transform(_rz(0.7) @ _rx(0.3), [0.5, -0.2, 0.1])
+    a = triangulate_sweep(stripes, CAM, poses, T_cl)
+    b = triangulate_sweep(stripes, CAM, M @ poses, T_cl)
+    np.testing.assert_allclose(b.points_base, transform_points(M, a.points_base), atol=1e-12)
+    np.testing.assert_allclose(b.normals_base, a.normals_base @ M[:3, :3].T, atol=1e-9)
+    assert rotation_angle_deg(M[:3, :3]) > 10
+
+
+def test_save_load_round_trip(tmp_path):
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=5)
+    c0 = triangulate_sweep(stripes[:3], CAM, poses[:3], T_cl, sweep=0)
+    c1 = triangulate_sweep(stripes[3:], CAM, poses[3:], T_cl, sweep=1,
+                           frame_indices=[3, 4])
+    path = tmp_path / "clouds.npz"
+    save_clouds_npz(path, [c0, c1])
+    assert os.listdir(tmp_path) == ["clouds.npz"]  # no temporary file left behind
+    back = load_clouds_npz(path)
+    assert [c.sweep for c in back] == [0, 1]
+    for a, b in zip([c0, c1], back, strict=True):
+        assert isinstance(b, SweepCloud) and len(a) == len(b)
+        for name in ("points_base", "normals_base", "frame_index", "confidence",
+                     "sensor_origin_base"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert a.report == b.report
+    save_clouds_npz(path, [])
+    assert load_clouds_npz(path) == []

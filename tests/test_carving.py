@@ -1,0 +1,516 @@
+"""Tests of robo3d.carving: the box, dense carving, the hull mesh and the resolution check.
+
+Ground truth is analytic: a sphere seen by calibrated synthetic cameras. Its silhouettes
+are rasterised exactly (each pixel centre's ray tested against the sphere), and its
+visual hull is known in closed form: a point is inside view i's silhouette cone when the
+angle between its direction and the sphere centre's, seen from the camera centre, is at
+most ``asin(R / distance)``. Carving samples that hull at voxel centres and pixel
+centres, so it must agree with it everywhere except within a pixel of a cone's boundary.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from robo3d.camera import CameraModel, pixel_rays
+from robo3d.carving import (
+    VoxelGrid,
+    box_from_silhouettes,
+    carve_dense,
+    hull_to_mesh,
+    make_grid,
+    resolution_report,
+)
+from robo3d.errors import StageError
+from robo3d.silhouettes import _distortion_limit_r2
+from robo3d.transforms import invert_transform
+
+CENTRE = np.array([0.1, -0.05, 0.3])
+RADIUS = 0.05
+DIST = 0.4
+F = 300.0
+SPHERE_VOLUME = 4.0 / 3.0 * np.pi * RADIUS**3
+
+
+# ---------------------------------------------------------------------- synthetic scene
+def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """T_base_camera of an optical-frame camera at ``eye`` looking at ``target``."""
+    eye = np.asarray(eye, float)
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, float)
+    if abs(z @ up) > 0.99:
+        up = np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
+
+
+def _fib_dirs(n: int) -> np.ndarray:
+    """n unit vectors spread evenly over the sphere (Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    th = np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
+
+
+def _render_sphere(camera: CameraModel, T: np.ndarray, centre, radius) -> np.ndarray:
+    """Exact silhouette: pixels whose centre ray (distortion undone) meets the sphere."""
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    o, d = pixel_rays(uv, camera, T)
+    oc = o - centre
+    b = d @ oc
+    disc = b * b - (oc @ oc - radius * radius)
+    hit = (disc >= 0) & (-b - np.sqrt(np.maximum(disc, 0.0)) > 0)
+    return hit.reshape(camera.height, camera.width)
+
+
+def _cone_margin(points, Ts, centre, radius) -> np.ndarray:
+    """min over views of (cone half-angle - angle off the cone axis), radians.
+
+    >= 0 exactly for the points of the analytic visual hull of the sphere.
+    """
+    margin = np.full(len(points), np.inf)
+    for T in Ts:
+        o = T[:3, 3]
+        a = points - o
+        dc = centre - o
+        cosang = a @ dc / np.linalg.norm(a, axis=1) / np.linalg.norm(dc)
+        ang = np.arccos(np.clip(cosang, -1.0, 1.0))
+        margin = np.minimum(margin, np.arcsin(radius / np.linalg.norm(dc)) - ang)
+    return margin
+
+
+def _cv2_pixels(points, camera: CameraModel, T_base_camera) -> np.ndarray:
+    """Independent projection with OpenCV (distortion included), (N, 2)."""
+    t_cb = invert_transform(T_base_camera)
+    rvec, _ = cv2.Rodrigues(t_cb[:3, :3])
+    uv, _ = cv2.projectPoints(np.asarray(points, float).reshape(-1, 1, 3), rvec,
+                              t_cb[:3, 3].copy(), camera.K, camera.D)
+    return uv.reshape(-1, 2)
+
+
+def _camera(D=None, size=(320, 240)) -> CameraModel:
+    w, h = size
+    K = [[F, 0, (w - 1) / 2], [0, F, (h - 1) / 2], [0, 0, 1]]
+    return CameraModel("camera", w, h, K, np.zeros(5) if D is None else np.asarray(D))
+
+
+@pytest.fixture(scope="module")
+def sphere_views():
+    cam = _camera()
+    Ts = np.stack([_look_at(CENTRE + DIST * d, CENTRE) for d in _fib_dirs(24)])
+    masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
+    return cam, Ts, masks
+
+
+@pytest.fixture(scope="module")
+def sphere_hull(sphere_views):
+    cam, Ts, masks = sphere_views
+    grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=80)
+    carved, report = carve_dense(grid, masks, cam, Ts)
+    return grid, carved, report
+
+
+# ---------------------------------------------------------------------- carving: feature
+def test_carve_sphere_matches_analytic_visual_hull(sphere_views, sphere_hull):
+    cam, Ts, _ = sphere_views
+    grid, carved, _ = sphere_hull
+    margin = _cone_margin(grid.centres(occupied_only=False), Ts, CENTRE, RADIUS)
+    truth = margin >= 0
+    got = carved.occupancy.reshape(-1)
+    wrong = got != truth
+    # every disagreement is a voxel centre within one pixel (angle 1/f) of a cone's
+    # boundary: pixel rounding (at most 0.71 px) decides those
+    assert np.abs(margin[wrong]).max() * F < 1.0
+    assert wrong.sum() < 0.03 * truth.sum()
+    # and the analytic hull itself is only a little larger than the sphere
+    hull_volume = truth.sum() * grid.voxel_size**3
+    assert 1.0 <= hull_volume / SPHERE_VOLUME < 1.02
+
+
+def test_carve_sphere_volume(sphere_hull):
+    grid, carved, report = sphere_hull
+    ratio = carved.volume_m3 / SPHERE_VOLUME
+    # measured 0.993: the visual hull of 24 views exceeds the sphere by 0.3 %, and
+    # sampling each cone at rounded pixels erodes the surface by about a tenth of a pixel
+    assert abs(ratio - 1.0) < 0.03, ratio
+    assert report["volume_m3"] == pytest.approx(carved.volume_m3)
+    assert carved.origin == pytest.approx(grid.origin)
+    assert carved.voxel_size == grid.voxel_size
+    assert grid.n_occupied == 80**3  # the input is not modified
+
+
+def test_carve_report_counts_chain(sphere_hull):
+    grid, carved, report = sphere_hull
+    views = report["views"]
+    assert report["voxels_before"] == grid.n_occupied
+    assert report["voxels_after"] == carved.n_occupied
+    assert views[0]["tested"] == grid.n_occupied
+    for a, b in zip(views[:-1], views[1:], strict=True):
+        assert a["after"] == b["tested"]  # only survivors go on to the next view
+        assert b["tested"] <= a["tested"]
+    assert views[-1]["after"] == carved.n_occupied
+    assert sum(v["carved"] for v in views) == grid.n_occupied - carved.n_occupied
+    # the whole grid is in every view and in front of every camera
+    assert all(v["outside_image"] == 0 and v["behind_camera"] == 0 for v in views)
+    assert report["time_s"] > 0
+
+
+def test_carve_chunked_equals_whole(sphere_views, sphere_hull):
+    cam, Ts, masks = sphere_views
+    grid, carved, report = sphere_hull
+    again, rep2 = carve_dense(grid, masks, cam, Ts, chunk_voxels=40_009)
+    assert np.array_equal(again.occupancy, carved.occupancy)
+    keys = ("tested", "carved", "after", "outside_image", "behind_camera")
+    for a, b in zip(report["views"], rep2["views"], strict=True):
+        assert all(a[k] == b[k] for k in keys)
+
+
+def test_carve_with_distortion_matches_truth():
+    """Masks rendered through a distorted lens carve the true hull only if the carver
+    projects with the same distortion; ignoring it carves far off the truth."""
+    D = np.array([-0.3, 0.1, 0.002, -0.001, 0.0])
+    cam = _camera(D, size=(320, 320))
+    rng = np.random.default_rng(7)
+    Ts = []
+    for d in _fib_dirs(16):
+        # aim beside the sphere so it appears ~80 px off-centre, where the lens bends it
+        side = np.cross(d, rng.normal(size=3))
+        side /= np.linalg.norm(side)
+        Ts.append(_look_at(CENTRE + DIST * d, CENTRE + 0.11 * side))
+    Ts = np.stack(Ts)
+    masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
+    assert not any(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()
+                   for m in masks)
+    grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=48)
+    margin = _cone_margin(grid.centres(occupied_only=False), Ts, CENTRE, RADIUS)
+    truth = margin >= 0
+
+    carved, report = carve_dense(grid, masks, cam, Ts, outside_image="carve")
+    wrong = carved.occupancy.reshape(-1) != truth
+    # barrel distortion makes an edge pixel span up to ~1.15 pixels' worth of angle
+    assert np.abs(margin[wrong]).max() * F < 1.2
+    assert wrong.sum() < 0.03 * truth.sum()
+    assert all(v["outside_image"] == 0 for v in report["views"])
+
+    pinhole = _camera(None, size=(320, 320))
+    naive, _ = carve_dense(grid, masks, pinhole, Ts, outside_image="carve")
+    wrong_naive = naive.occupancy.reshape(-1) != truth
+    assert np.abs(margin[wrong_naive]).max() * F > 3.0
+    assert wrong_naive.sum() > 3 * wrong.sum()
+
+
+def test_voxel_pixels_match_opencv():
+    """The carver's pixel of a voxel is OpenCV's projection rounded (distortion on)."""
+    D = np.array([-0.25, 0.08, 0.001, 0.002, -0.01])
+    cam = _camera(D)
+    T = _look_at([0.0, -0.5, 0.2], [0.02, 0.0, 0.0])
+    grid = make_grid([-0.08, -0.08, -0.08], [0.08, 0.08, 0.08], resolution=24)
+    uv = _cv2_pixels(grid.centres(False), cam, T)
+    pix = np.floor(uv + 0.5).astype(int)
+    inside = ((pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0)
+              & (pix[:, 1] < cam.height))
+    # a random mask keeps exactly the voxels whose OpenCV pixel is set in it
+    mask = np.random.default_rng(11).random((cam.height, cam.width)) < 0.5
+    carved, rep = carve_dense(grid, [mask], cam, T[None], outside_image="carve")
+    expect = np.zeros(len(pix), bool)
+    expect[inside] = mask[pix[inside, 1], pix[inside, 0]]
+    assert inside.sum() > 1000
+    assert np.array_equal(carved.occupancy.reshape(-1), expect)
+
+
+# ------------------------------------------------------- outside the image, behind the camera
+def _partial_view():
+    """A narrow camera that sees only the middle of a grid in front of it."""
+    cam = CameraModel("narrow", 64, 48, [[100, 0, 31.5], [0, 100, 23.5], [0, 0, 1]])
+    T = _look_at([0.0, 0.0, -0.3], [0.0, 0.0, 0.0], up=(0.0, -1.0, 0.0))
+    grid = make_grid([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1], resolution=20)
+    uv = _cv2_pixels(grid.centres(False), cam, T)
+    pix = np.floor(uv + 0.5).astype(int)
+    inside = ((pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0)
+              & (pix[:, 1] < cam.height))
+    return cam, T, grid, pix, inside
+
+
+def test_outside_image_keep_vs_carve():
+    cam, T, grid, pix, inside = _partial_view()
+    assert 0.1 < inside.mean() < 0.9  # the view sees part of the grid only
+    mask = np.zeros((cam.height, cam.width), bool)
+    mask[10:30, 20:50] = True
+    in_sil = np.zeros(len(pix), bool)
+    in_sil[inside] = mask[pix[inside, 1], pix[inside, 0]]
+
+    kept, rep = carve_dense(grid, [mask], cam, T[None], outside_image="keep")
+    assert np.array_equal(kept.occupancy.reshape(-1), in_sil | ~inside)
+    v = rep["views"][0]
+    assert v["outside_image"] == v["kept_outside_image"] == int((~inside).sum())
+    assert v["after"] == int((in_sil | ~inside).sum())
+
+    strict, rep = carve_dense(grid, [mask], cam, T[None], outside_image="carve")
+    assert np.array_equal(strict.occupancy.reshape(-1), in_sil)
+    assert rep["views"][0]["kept_outside_image"] == 0
+    assert rep["views"][0]["outside_image"] == int((~inside).sum())
+
+
+def test_behind_camera_keep_vs_carve():
+    cam = _camera()
+    grid = make_grid([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1], resolution=20)
+    T = _look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], up=(0.0, -1.0, 0.0))  # inside the grid
+    z = grid.centres(False)[:, 2]
+    assert not np.any(z == 0)
+    full = np.ones((cam.height, cam.width), bool)
+    # every voxel in front is either in the (all-foreground) silhouette or outside the
+    # image (kept); so only the behind-camera policy decides
+    carved, rep = carve_dense(grid, [full], cam, T[None], behind_camera="carve")
+    assert np.array_equal(carved.occupancy.reshape(-1), z > 0)
+    assert rep["views"][0]["behind_camera"] == int((z < 0).sum())
+    kept, rep = carve_dense(grid, [full], cam, T[None], behind_camera="keep")
+    assert kept.n_occupied == grid.n_occupied
+    assert rep["views"][0]["kept_behind_camera"] == int((z < 0).sum())
+
+
+def test_folded_distortion_counts_as_outside_image():
+    """Far off-axis, a strong barrel model folds back into the image; such voxels are
+    outside the view and must not be carved when the policy keeps them."""
+    cam = _camera([-0.4, 0.0, 0.0, 0.0, 0.0])
+    assert _distortion_limit_r2(cam) == pytest.approx(1.0 / 1.2)
+    T = np.eye(4)
+    # a slab of voxels at normalised x = 1.5 (56 deg off-axis), z = 0.2 m
+    grid = VoxelGrid(origin=np.array([0.3, -0.01, 0.2]), voxel_size=0.002,
+                     occupancy=np.ones((3, 10, 3), bool))
+    uv, in_front = cam.project(grid.centres())
+    assert np.all(in_front)
+    folded = ((uv[:, 0] >= -0.5) & (uv[:, 0] < cam.width - 0.5)
+              & (uv[:, 1] >= -0.5) & (uv[:, 1] < cam.height - 0.5))
+    assert folded.all()  # the naive projection lands in the image
+    empty = np.zeros((cam.height, cam.width), bool)
+    kept, rep = carve_dense(grid, [empty], cam, T[None], outside_image="keep")
+    assert kept.n_occupied == grid.n_occupied
+    assert rep["views"][0]["outside_image"] == grid.n_occupied
+    strict, _ = carve_dense(grid, [empty], cam, T[None], outside_image="carve")
+    assert strict.n_occupied == 0
+
+
+# ---------------------------------------------------------------------- carving: exceptions
+def test_carve_input_errors(sphere_views):
+    cam, Ts, masks = sphere_views
+    grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=8)
+    with pytest.raises(ValueError, match="outside_image must be one of"):
+        carve_dense(grid, masks, cam, Ts, outside_image="maybe")
+    with pytest.raises(ValueError, match="behind_camera must be one of"):
+        carve_dense(grid, masks, cam, Ts, behind_camera="drop")
+    bad = [m.astype(np.uint8) for m in masks]
+    with pytest.raises(ValueError, match=r"mask 0 must be \(240, 320\) bool.*uint8"):
+        carve_dense(grid, bad, cam, Ts)
+    with pytest.raises(ValueError, match=r"mask 3 must be \(240, 320\) bool.*\(240, 319\)"):
+        carve_dense(grid, masks[:3] + [masks[3][:, :-1]] + masks[4:], cam, Ts)
+    with pytest.raises(ValueError, match="got 23 masks for 24 poses"):
+        carve_dense(grid, masks[:-1], cam, Ts)
+    with pytest.raises(ValueError, match=r"T_base_cameras must be \(N, 4, 4\)"):
+        carve_dense(grid, masks, cam, Ts[:, :3])
+    skewed = Ts.copy()
+    skewed[5, :3, :3] *= 1.01
+    with pytest.raises(ValueError, match=r"T_base_cameras\[5\] is not a rigid transform"):
+        carve_dense(grid, masks, cam, skewed)
+    with pytest.raises(StageError, match="at least one view"):
+        carve_dense(grid, [], cam, np.zeros((0, 4, 4)))
+
+
+# ---------------------------------------------------------------------- the hull mesh
+def _edges_closed_and_oriented(faces: np.ndarray) -> bool:
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    _, n_dir = np.unique(directed, axis=0, return_counts=True)
+    _, n_und = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    return bool(np.all(n_und == 2) and np.all(n_dir == 1))
+
+
+def _signed_volume(v, f) -> float:
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def test_hull_mesh_watertight_on_sphere(sphere_hull):
+    import open3d as o3d
+
+    _, carved, _ = sphere_hull
+    V, Fc = hull_to_mesh(carved)
+    assert V.dtype == np.float64 and V.shape[1] == 3
+    assert Fc.dtype == np.int32 and Fc.shape[1] == 3
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V),
+                                     o3d.utility.Vector3iVector(Fc))
+    # watertight = closed 2-manifold. (Open3D's is_watertight adds a self-intersection
+    # test that is slow here and flags touching, non-intersecting marching-cubes
+    # triangles: isl-org/Open3D#1171.)
+    assert mesh.is_edge_manifold(allow_boundary_edges=False)
+    assert mesh.is_vertex_manifold()
+    assert _edges_closed_and_oriented(Fc)
+    n_edges = 3 * len(Fc) // 2
+    assert len(V) - n_edges + len(Fc) == 2  # one sphere-like surface (genus 0)
+    # on the sphere within a voxel (measured: within 0.7 voxel)
+    err = np.linalg.norm(V - CENTRE, axis=1) - RADIUS
+    assert np.abs(err).max() < carved.voxel_size
+    # outward normals; the enclosed volume is the voxels' volume
+    vol = _signed_volume(V, Fc)
+    assert vol == pytest.approx(carved.volume_m3, rel=0.02)
+
+
+def test_hull_mesh_closes_at_grid_side_and_lies_on_voxel_faces():
+    occ = np.ones((5, 6, 7), bool)
+    grid = VoxelGrid(origin=np.array([0.1, 0.2, 0.3]), voxel_size=0.01, occupancy=occ)
+    V, Fc = hull_to_mesh(grid, smooth_sigma_vox=0.0)
+    assert _edges_closed_and_oriented(Fc)
+    lo, hi = grid.bounds
+    assert V.min(axis=0) == pytest.approx(lo, abs=1e-9)
+    assert V.max(axis=0) == pytest.approx(hi, abs=1e-9)
+    assert _signed_volume(V, Fc) > 0
+
+
+def test_hull_mesh_thin_hull_falls_back_to_unsmoothed(caplog):
+    occ = np.zeros((5, 5, 5), bool)
+    occ[2, 2, 2] = True  # one voxel: a blur of sigma 1 leaves nothing above 0.5
+    grid = VoxelGrid(origin=np.zeros(3), voxel_size=0.01, occupancy=occ)
+    V, Fc = hull_to_mesh(grid, smooth_sigma_vox=1.0)
+    assert "meshing the unsmoothed voxels" in caplog.text
+    assert _edges_closed_and_oriented(Fc)
+    assert np.abs(V - 0.02).max() <= 0.005 + 1e-12
+
+
+def test_hull_mesh_empty_raises():
+    grid = VoxelGrid(np.zeros(3), 0.01, np.zeros((4, 4, 4), bool))
+    with pytest.raises(StageError, match="empty"):
+        hull_to_mesh(grid)
+    with pytest.raises(ValueError, match="smooth_sigma_vox"):
+        hull_to_mesh(make_grid(np.zeros(3), np.ones(3), resolution=2), smooth_sigma_vox=-1)
+
+
+# ---------------------------------------------------------------------- the box
+def test_box_from_silhouettes_recovers_sphere_centre():
+    cam = _camera()
+    rng = np.random.default_rng(3)
+    dirs = _fib_dirs(12)
+    # the cameras aim up to 2 cm beside the sphere: its silhouette is off-centre and
+    # perspective shifts the silhouette centroid off the centre's projection
+    Ts = np.stack([_look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.02, 0.02, 3))
+                   for d in dirs])
+    masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
+    centroids = np.array([np.argwhere(m)[:, ::-1].mean(axis=0) for m in masks])
+    box_min, box_max, rep = box_from_silhouettes(centroids, masks, cam, Ts, margin=0.1)
+    assert np.linalg.norm(np.asarray(rep["centre"]) - CENTRE) < 1e-3
+    assert np.all(box_min <= CENTRE - RADIUS) and np.all(box_max >= CENTRE + RADIUS)
+    # not much bigger than needed: the silhouette at the centre depth is ~R D/sqrt(D^2-R^2)
+    assert rep["half_size_m"] < 1.1 * RADIUS * 1.05
+    assert rep["n_views"] == 12 and len(rep["ray_residual_m"]) == 12
+    assert max(rep["ray_residual_m"]) < 2e-3
+    assert rep["ray_spread_deg"] > 60
+    # without centroids, the masks' own mean pixels are used
+    b2_min, b2_max, _ = box_from_silhouettes(None, masks, cam, Ts, margin=0.1)
+    assert b2_min == pytest.approx(box_min) and b2_max == pytest.approx(box_max)
+
+
+def test_box_from_silhouettes_errors(sphere_views):
+    cam, Ts, masks = sphere_views
+    c = np.array([np.argwhere(m)[:, ::-1].mean(axis=0) for m in masks])
+    with pytest.raises(StageError, match="at least 2 views"):
+        box_from_silhouettes(c[:1], masks[:1], cam, Ts[:1])
+    # two cameras 1 cm apart looking the same way: rays ~1.4 deg apart
+    T0 = _look_at(CENTRE + [0.0, -DIST, 0.0], CENTRE)
+    T1 = T0.copy()
+    T1[:3, 3] += [0.01, 0.0, 0.0]
+    pair = np.stack([T0, T1])
+    pm = [_render_sphere(cam, T, CENTRE, RADIUS) for T in pair]
+    pc = np.array([np.argwhere(m)[:, ::-1].mean(axis=0) for m in pm])
+    with pytest.raises(StageError, match="nearly parallel"):
+        box_from_silhouettes(pc, pm, cam, pair)
+    with pytest.raises(ValueError, match="got 3 centroids for 24 poses"):
+        box_from_silhouettes(c[:3], masks, cam, Ts)
+    empty = [np.zeros_like(masks[0])] + masks[1:]
+    with pytest.raises(StageError, match="silhouette 0 is empty"):
+        box_from_silhouettes(c, empty, cam, Ts)
+
+
+# ---------------------------------------------------------------------- the grid
+def test_make_grid_resolution_and_voxel_size():
+    g = make_grid([0.0, 0.0, 0.0], [0.3, 0.15, 0.1], resolution=60)
+    assert g.voxel_size == pytest.approx(0.005)
+    assert g.shape == (60, 30, 20)
+    lo, hi = g.bounds
+    assert lo == pytest.approx([0, 0, 0]) and hi == pytest.approx([0.3, 0.15, 0.1])
+    assert g.n_occupied == 60 * 30 * 20
+    assert g.volume_m3 == pytest.approx(0.3 * 0.15 * 0.1)
+    # a voxel size that does not divide the box: the grid covers it, centred
+    g = make_grid([0.0, 0.0, 0.0], [0.1, 0.1, 0.1], voxel_size=0.03)
+    assert g.shape == (4, 4, 4)
+    lo, hi = g.bounds
+    assert lo == pytest.approx([-0.01] * 3) and hi == pytest.approx([0.11] * 3)
+    assert g.centre == pytest.approx([0.05] * 3)
+
+
+def test_make_grid_errors():
+    with pytest.raises(ValueError, match="exactly one of resolution and voxel_size"):
+        make_grid(np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError, match="exactly one of resolution and voxel_size"):
+        make_grid(np.zeros(3), np.ones(3), resolution=4, voxel_size=0.1)
+    with pytest.raises(ValueError, match="box_max must exceed box_min"):
+        make_grid(np.zeros(3), [1.0, 0.0, 1.0], resolution=4)
+    with pytest.raises(ValueError, match="exceeds the dense limit"):
+        make_grid(np.zeros(3), np.ones(3), resolution=2000)
+    with pytest.raises(ValueError, match="resolution must be a positive integer"):
+        make_grid(np.zeros(3), np.ones(3), resolution=0)
+
+
+def test_voxel_grid_index_round_trip_and_validation():
+    g = make_grid([-0.1, 0.0, 0.2], [0.1, 0.1, 0.3], resolution=20)
+    ijk = np.argwhere(g.occupancy)[::97]
+    back, inside = g.points_to_index(g.index_to_points(ijk))
+    assert np.array_equal(back, ijk) and inside.all()
+    _, inside = g.points_to_index(np.array([[5.0, 5.0, 5.0]]))
+    assert not inside[0]
+    assert g.centres().shape == (g.n_occupied, 3)
+    with pytest.raises(ValueError, match=r"occupancy must be \(nx, ny, nz\) bool.*uint8"):
+        VoxelGrid(np.zeros(3), 0.01, np.ones((2, 2, 2), np.uint8))
+    with pytest.raises(ValueError, match="voxel_size must be a positive"):
+        VoxelGrid(np.zeros(3), 0.0, np.ones((2, 2, 2), bool))
+
+
+def test_grid_npz_round_trip(tmp_path):
+    g = make_grid([0.0, 0.0, 0.0], [0.1, 0.2, 0.3], resolution=16)
+    g.occupancy[::2, 1::3] = False
+    path = tmp_path / "sub" / "hull.npz"
+    g.save_npz(path, report={"voxels_after": 12, "views": [1, 2]}, weights=np.arange(3.0))
+    assert sorted(p.name for p in path.parent.iterdir()) == ["hull.npz"]  # no temp left
+    h, extra = VoxelGrid.load_npz(path, return_extra=True)
+    assert np.array_equal(h.occupancy, g.occupancy)
+    assert h.origin == pytest.approx(g.origin) and h.voxel_size == g.voxel_size
+    assert h.frame == "base"
+    assert extra["report"] == {"voxels_after": 12, "views": [1, 2]}
+    assert np.array_equal(extra["weights"], np.arange(3.0))
+    assert isinstance(VoxelGrid.load_npz(path), VoxelGrid)
+    with pytest.raises(ValueError, match="reserved"):
+        g.save_npz(path, origin=np.zeros(3))
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, something=np.zeros(2))
+    with pytest.raises(ValueError, match="missing"):
+        VoxelGrid.load_npz(bad)
+
+
+# ---------------------------------------------------------------------- resolution
+def test_resolution_report(sphere_views):
+    cam, Ts, _ = sphere_views
+    fine = make_grid(CENTRE - 0.06, CENTRE + 0.06, voxel_size=0.001)
+    rep = resolution_report(fine, cam, Ts)
+    # every camera looks at the grid centre from DIST: footprint = DIST / f (eq. 8)
+    assert rep["pixel_footprint_m"] == pytest.approx([DIST / F] * len(Ts))
+    assert rep["depth_m"] == pytest.approx([DIST] * len(Ts))
+    assert rep["axis_resolution_m"] == pytest.approx([0.001] * 3)  # eq. 7
+    assert rep["finer_than_cameras"] is True and "finer than" in rep["warning"]
+    assert rep["voxel_over_footprint"] == pytest.approx(0.001 / (DIST / F))
+    coarse = make_grid(CENTRE - 0.06, CENTRE + 0.06, voxel_size=0.002)
+    rep = resolution_report(coarse, cam, Ts)
+    assert rep["finer_than_cameras"] is False and rep["warning"] is None

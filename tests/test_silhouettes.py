@@ -1,0 +1,256 @@
+"""Tests of robo3d.silhouettes: thresholding segmentation (seed §3.2) and the box ROI.
+
+Ground truth: a disc rasterised at pixel centres, drawn bright on a dark, textured, noisy
+background, with dark "holes" inside it (texture the segmentation must fill).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from robo3d.camera import CameraModel
+from robo3d.errors import StageError
+from robo3d.silhouettes import (
+    Silhouette,
+    _distortion_limit_r2,
+    roi_from_box,
+    segment_silhouette,
+    to_grey,
+)
+from robo3d.transforms import invert_transform
+
+H, W = 160, 200
+CX, CY, R = 110.3, 75.6, 40.0
+HOLES = [(-15, -10, 6), (12, 5, 5), (0, 20, 4), (18, -18, 5)]
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.count_nonzero(a & b) / np.count_nonzero(a | b))
+
+
+def _disc(cx=CX, cy=CY, r=R) -> np.ndarray:
+    v, u = np.mgrid[0:H, 0:W]
+    return (u - cx) ** 2 + (v - cy) ** 2 <= r * r
+
+
+def _scene(seed: int = 0, cx=CX, cy=CY) -> tuple[np.ndarray, np.ndarray]:
+    """(image uint8, true disc mask): bright textured disc with dark holes."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:H, 0:W].astype(float)
+    disc = _disc(cx, cy)
+    bg = 60 + 15 * np.sin(u / 7.0) * np.cos(v / 11.0) + rng.normal(0, 6, (H, W))
+    obj = 190 + 12 * np.sin((u + v) / 5.0) + rng.normal(0, 6, (H, W))
+    img = np.where(disc, obj, bg)
+    for dx, dy, hr in HOLES:
+        hole = (u - cx - dx) ** 2 + (v - cy - dy) ** 2 <= hr * hr
+        img[hole] = 35 + rng.normal(0, 6, int(hole.sum()))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), disc
+
+
+# ---------------------------------------------------------------------- feature
+@pytest.mark.parametrize("threshold", [None, 125.0])
+def test_bright_disc(threshold):
+    img, disc = _scene()
+    sil = segment_silhouette(img, polarity="brighter", threshold=threshold)
+    assert isinstance(sil, Silhouette)
+    assert sil.mask.dtype == np.bool_ and sil.mask.shape == (H, W)
+    assert _iou(sil.mask, disc) >= 0.99
+    assert sil.polarity == "brighter"
+    if threshold is None:
+        assert 90 < sil.threshold < 160  # Otsu between the two populations
+    else:
+        assert sil.threshold == threshold
+    assert sil.area_px == np.count_nonzero(sil.mask)
+    assert np.abs(sil.centroid_uv - [CX, CY]).max() < 0.3
+    vs, us = np.nonzero(disc)
+    assert abs(sil.bbox[0] - us.min()) <= 1 and abs(sil.bbox[2] - (us.max() + 1)) <= 1
+    assert abs(sil.bbox[1] - vs.min()) <= 1 and abs(sil.bbox[3] - (vs.max() + 1)) <= 1
+    assert sil.n_components == 1 and not sil.touches_border
+
+
+@pytest.mark.parametrize("threshold", [None, 130.0])
+def test_dark_disc(threshold):
+    img, disc = _scene(seed=1)
+    sil = segment_silhouette(255 - img, polarity="darker", threshold=threshold)
+    assert _iou(sil.mask, disc) >= 0.99
+    assert sil.polarity == "darker"
+
+
+def test_holes_filled_only_when_asked():
+    img, disc = _scene()
+    holed = segment_silhouette(img, fill_holes=False)
+    assert _iou(holed.mask, disc) < 0.98  # the dark texture does punch holes
+    assert _iou(segment_silhouette(img).mask, disc) >= 0.99
+
+
+def test_rgb_uint16_and_float_inputs_agree():
+    img, disc = _scene(seed=2)
+    ref = segment_silhouette(img).mask
+    rgb = np.stack([img, img, img], axis=-1)
+    assert np.array_equal(segment_silhouette(rgb).mask, ref)
+    wide = img.astype(np.uint16) * 257
+    assert np.array_equal(segment_silhouette(wide).mask, ref)
+    assert _iou(segment_silhouette(img / 255.0).mask, disc) >= 0.99
+    tinted = np.stack([img, (img * 0.8).astype(np.uint8), (img * 0.6).astype(np.uint8)], -1)
+    assert _iou(segment_silhouette(tinted).mask, disc) >= 0.99
+    assert to_grey(rgb) == pytest.approx(img.astype(np.float32), abs=1e-3)
+
+
+def test_roi_excludes_a_distractor():
+    img, disc = _scene(seed=3)
+    img[5:25, 5:35] = 200  # a bright thing beside the object (600 px)
+    whole = segment_silhouette(img)
+    assert whole.n_components == 2 and _iou(whole.mask, disc) < 0.95
+    vs, us = np.nonzero(disc)
+    roi = (us.min() - 10, vs.min() - 10, us.max() + 11, vs.max() + 11)
+    sil = segment_silhouette(img, roi=roi)
+    assert _iou(sil.mask, disc) >= 0.99
+    assert sil.n_components == 1 and not sil.touches_border
+    # an ROI that cuts the object: nothing outside it, and the cut is reported
+    cut = segment_silhouette(img, roi=(0, 0, int(CX), H))
+    assert not cut.mask[:, int(CX):].any() and cut.touches_border
+
+
+def test_specks_removed():
+    img, disc = _scene(seed=4)
+    rng = np.random.default_rng(5)
+    placed = 0
+    while placed < 10:
+        u, v = rng.integers(3, W - 6), rng.integers(3, H - 6)
+        if not _disc(CX, CY, R + 8)[v:v + 3, u:u + 3].any():
+            img[v:v + 3, u:u + 3] = 255
+            placed += 1
+    sil = segment_silhouette(img)
+    assert sil.n_components == 11
+    assert _iou(sil.mask, disc) >= 0.99
+    kept = segment_silhouette(img, min_component_px=0, min_component_fraction=0.0)
+    assert _iou(kept.mask, disc) < 0.99
+
+
+def test_background_subtraction():
+    rng = np.random.default_rng(6)
+    v, u = np.mgrid[0:H, 0:W]
+    background = np.where((u // 10) % 2 == 0, 30.0, 220.0)  # stripes: both brighter and
+    disc = _disc()                                           # darker than the object
+    img = background.copy()
+    img[disc] = 125 + 8 * np.sin(u[disc] / 3.0)
+    hole = (u - CX - 10) ** 2 + (v - CY) ** 2 <= 36  # object matching the scene: a hole
+    img[hole] = background[hole]
+    noisy = lambda a: np.clip(np.rint(a + rng.normal(0, 4, a.shape)), 0, 255).astype(np.uint8)  # noqa: E731
+    img, background = noisy(img), noisy(background)
+    plain = segment_silhouette(img)
+    assert _iou(plain.mask, disc) < 0.9  # thresholding alone cannot do it
+    sil = segment_silhouette(img, background=background)
+    assert sil.polarity == "difference"
+    assert _iou(sil.mask, disc) >= 0.99
+
+
+def test_touches_border():
+    img, disc = _scene(cx=30.0, cy=80.0)  # cut by the left side; the holes stay inside
+    sil = segment_silhouette(img)
+    assert sil.touches_border and sil.bbox[0] == 0
+    assert _iou(sil.mask, disc) >= 0.99
+    assert sil.summary()["touches_border"] is True
+
+
+# ---------------------------------------------------------------------- exceptions
+def test_empty_and_full_silhouettes_raise():
+    dark = np.full((H, W), 40, np.uint8)
+    with pytest.raises(StageError, match="silhouette is empty"):
+        segment_silhouette(dark, threshold=128)
+    bright = np.full((H, W), 230, np.uint8)
+    with pytest.raises(StageError, match="covers every pixel"):
+        segment_silhouette(bright, threshold=128)
+    with pytest.raises(StageError, match="uniform"):
+        segment_silhouette(dark)
+    img, _ = _scene()
+    with pytest.raises(StageError, match="covers every pixel"):
+        segment_silhouette(img, threshold=125, roi=(75, 65, 85, 75))  # ROI inside the disc
+    specks = dark.copy()
+    specks[10:13, 10:13] = 250
+    with pytest.raises(StageError, match="smaller than 50 px"):
+        segment_silhouette(specks, threshold=128)
+
+
+def test_bad_inputs_raise():
+    img, _ = _scene()
+    with pytest.raises(ValueError, match=r"uint8, uint16 or float32/float64.*int32"):
+        segment_silhouette(img.astype(np.int32))
+    with pytest.raises(ValueError, match=r"\(H, W\) grey or \(H, W, 3\) RGB.*\(160, 200, 4\)"):
+        segment_silhouette(np.zeros((H, W, 4), np.uint8))
+    with pytest.raises(ValueError, match=r"\(H, W\) grey.*\(200,\)"):
+        segment_silhouette(np.zeros(200, np.uint8))
+    with pytest.raises(ValueError, match="polarity must be one of"):
+        segment_silhouette(img, polarity="lighter")
+    with pytest.raises(ValueError, match="leaves no pixel"):
+        segment_silhouette(img, roi=(300, 0, 400, 50))
+    with pytest.raises(ValueError, match="background must have the image's size"):
+        segment_silhouette(img, background=img[:-1])
+    with pytest.raises(ValueError, match="non-finite"):
+        segment_silhouette(np.full((H, W), np.nan))
+
+
+# ---------------------------------------------------------------------- the box ROI
+def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    eye = np.asarray(eye, float)
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
+    return T
+
+
+def _cam(D=(0.0, 0.0, 0.0, 0.0, 0.0)) -> CameraModel:
+    return CameraModel("camera", 320, 240, [[300, 0, 159.5], [0, 300, 119.5], [0, 0, 1]],
+                       np.asarray(D, float))
+
+
+def test_roi_from_box_contains_the_box_image():
+    cam = _cam([-0.3, 0.1, 0.002, -0.001, 0.0])
+    T = _look_at([0.05, -0.5, 0.2], [0.0, 0.0, 0.0])
+    lo, hi = np.array([-0.05, -0.04, -0.03]), np.array([0.05, 0.04, 0.06])
+    roi = roi_from_box(lo, hi, cam, T, margin_px=10)
+    t_cb = invert_transform(T)
+    rvec, _ = cv2.Rodrigues(t_cb[:3, :3])
+    pts = lo + np.random.default_rng(0).random((2000, 3)) * (hi - lo)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    uv, _ = cv2.projectPoints(np.concatenate([pts, corners])[:, None], rvec,
+                              t_cb[:3, 3].copy(), cam.K, cam.D)
+    pix = np.floor(uv.reshape(-1, 2) + 0.5)
+    assert np.all(pix[:, 0] >= roi[0] + 10) and np.all(pix[:, 0] < roi[2] - 10)
+    assert np.all(pix[:, 1] >= roi[1] + 10) and np.all(pix[:, 1] < roi[3] - 10)
+    # and not much looser than the corners' bounds (the edges may bulge a little)
+    c = pix[-8:]
+    assert roi[0] >= c[:, 0].min() - 10 - 3 and roi[2] <= c[:, 0].max() + 11 + 3
+    assert roi[1] >= c[:, 1].min() - 10 - 3 and roi[3] <= c[:, 1].max() + 11 + 3
+    assert 0 <= roi[0] < roi[2] <= 320 and 0 <= roi[1] < roi[3] <= 240
+
+
+def test_roi_from_box_special_cases():
+    cam = _cam()
+    lo, hi = np.array([-0.05, -0.05, -0.05]), np.array([0.05, 0.05, 0.05])
+    away = _look_at([0.0, -0.5, 0.0], [0.0, -1.0, 0.0])
+    with pytest.raises(StageError, match="entirely behind camera"):
+        roi_from_box(lo, hi, cam, away)
+    inside = _look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    assert roi_from_box(lo, hi, cam, inside) == (0, 0, 320, 240)
+    aside = _look_at([0.0, -0.5, 0.0], [0.6, 0.1, 0.0])
+    with pytest.raises(StageError, match="projects outside"):
+        roi_from_box(lo, hi, cam, aside, margin_px=0)
+    with pytest.raises(ValueError, match="box_max must exceed box_min"):
+        roi_from_box(hi, lo, cam, inside)
+
+
+def test_distortion_limit():
+    assert _distortion_limit_r2(_cam()) == np.inf
+    assert _distortion_limit_r2(_cam([-0.4, 0, 0, 0, 0])) == pytest.approx(1 / 1.2)
+    # k1 = -0.3, k2 = 0.1: 1 - 0.9 s + 0.5 s^2 has no real root: monotonic everywhere
+    assert _distortion_limit_r2(_cam([-0.3, 0.1, 0, 0, 0])) == np.inf
+    # the limit is where d r_d / d r = 0
+    s = _distortion_limit_r2(_cam([-0.2, -0.05, 0, 0, 0.01]))
+    assert 1 + 3 * -0.2 * s + 5 * -0.05 * s**2 + 7 * 0.01 * s**3 == pytest.approx(0, abs=1e-9)

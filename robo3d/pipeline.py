@@ -222,7 +222,8 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
             sil = segment_silhouette(image, polarity=seg["polarity"], threshold=seg["threshold"],
                                      roi=roi, blur_sigma_px=seg["blur_sigma_px"],
                                      min_component_px=seg["min_component_px"],
-                                     fill_holes=seg["fill_holes"])
+                                     fill_holes=seg["fill_holes"],
+                                     max_hole_fraction=seg["max_hole_fraction"])
         except StageError as exc:
             raise StageError(f"{inputs['recording']}: topic {msg.topic}, view {i} "
                              f"(t={msg.timestamp_ns} ns): {exc}") from None

@@ -24,7 +24,10 @@ that pixel meets the object. It is obtained by thresholding a grey image (seed ย
    background region that does not reach the image border (4-connected, the dual of the
    8-connected foreground) is set to foreground: dark texture inside a bright object
    does not punch holes into the visual hull. A notch that reaches the outline is not a
-   hole and is not filled.
+   hole and is not filled. The seed fills every hole; we keep as background the enclosed
+   regions larger than ``max_hole_fraction`` of the silhouette's area: those are
+   see-through gaps (between a temple's columns, inside a handle), and filling them would
+   keep the voxels behind them for good. Dark markings on an object are small holes.
 7. **Specks removed.** Of the 8-connected foreground components, those smaller than
    ``min_component_px`` pixels, or smaller than ``min_component_fraction`` of the largest
    one, are dropped. The default keeps generously: a missing silhouette pixel carves a
@@ -189,13 +192,14 @@ def _otsu(values: np.ndarray) -> float:
     return float(edges[i + 1])
 
 
-def _fill_holes(mask: np.ndarray) -> np.ndarray:
-    """Foreground plus every 4-connected background region not touching the border."""
+def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0) -> np.ndarray:
+    """Foreground plus every 4-connected background region not touching the border and
+    no larger than ``max_hole_fraction`` of the foreground's area."""
     bg = (~mask).view(np.uint8)
-    n, labels = cv2.connectedComponents(bg, connectivity=4)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(bg, connectivity=4)
     if n <= 1:
         return mask.copy()
-    border = np.zeros(n, dtype=bool)
+    border = stats[:, cv2.CC_STAT_AREA] > max_hole_fraction * np.count_nonzero(mask)
     border[labels[0, :]] = True
     border[labels[-1, :]] = True
     border[labels[:, 0]] = True
@@ -215,6 +219,7 @@ def segment_silhouette(
     min_component_px: int = 50,
     min_component_fraction: float = 0.01,
     fill_holes: bool = True,
+    max_hole_fraction: float = 1.0,
     background: np.ndarray | None = None,
 ) -> Silhouette:
     """Segment the object's silhouette in one view by thresholding (seed ยง3.2).
@@ -240,6 +245,9 @@ def segment_silhouette(
     fill_holes : bool
         Fill the background regions enclosed by the object (the silhouette is the whole
         projected region).
+    max_hole_fraction : float
+        Enclosed background regions larger than this fraction of the silhouette's area are
+        see-through gaps and stay background (1.0 fills every hole, as the seed does).
     background : array like ``image``, optional
         The empty scene under the same light and pose; the feature becomes
         ``|grey(image) - grey(background)|`` and the object is where it exceeds ``s``.
@@ -268,6 +276,8 @@ def segment_silhouette(
     if not 0.0 <= float(min_component_fraction) <= 1.0:
         raise ValueError(f"min_component_fraction must be in [0, 1], "
                          f"got {min_component_fraction}")
+    if not 0.0 <= float(max_hole_fraction):
+        raise ValueError(f"max_hole_fraction must be >= 0, got {max_hole_fraction}")
     if threshold is not None and not np.isfinite(threshold):
         raise ValueError(f"threshold must be finite, got {threshold}")
 
@@ -305,7 +315,7 @@ def segment_silhouette(
     mask = np.zeros((height, width), dtype=bool)
     mask[v0:v1, u0:u1] = fg_roi
     if fill_holes:
-        mask = _fill_holes(mask)
+        mask = _fill_holes(mask, max_hole_fraction)
 
     n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8),
                                                                connectivity=8)

@@ -254,3 +254,21 @@ def test_distortion_limit():
     # the limit is where d r_d / d r = 0
     s = _distortion_limit_r2(_cam([-0.2, -0.05, 0, 0, 0.01]))
     assert 1 + 3 * -0.2 * s + 5 * -0.05 * s**2 + 7 * 0.01 * s**3 == pytest.approx(0, abs=1e-9)
+
+
+def test_large_enclosed_gap_stays_background_small_marking_is_filled():
+    """A see-through gap (an annulus' inside, a temple's columns) is not a hole to fill;
+    a dark marking on the object is."""
+    h, w = 200, 240
+    vv, uu = np.mgrid[0:h, 0:w]
+    r = np.hypot(uu - 120, vv - 100)
+    image = np.full((h, w), 20, np.uint8)
+    image[(r < 80) & (r > 40)] = 200          # a ring: its inside (r < 40) is background
+    image[(np.abs(uu - 120) < 4) & (np.abs(vv - 40) < 4)] = 20   # a small dark marking on it
+    sil = segment_silhouette(image, threshold=100, blur_sigma_px=0, max_hole_fraction=0.05)
+    assert not sil.mask[100, 120]              # the gap stays background
+    assert sil.mask[40, 120]                   # the marking is filled
+    truth = (r < 80) & (r > 40)
+    assert (sil.mask ^ truth).sum() < 0.01 * truth.sum()
+    every = segment_silhouette(image, threshold=100, blur_sigma_px=0, max_hole_fraction=1.0)
+    assert every.mask[100, 120]                # the seed's rule fills every hole

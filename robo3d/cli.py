@@ -1,0 +1,186 @@
+"""The ``robo3d`` command line.
+
+Each subcommand is a pair of functions registered in :data:`COMMANDS`: one that adds
+its arguments to an ``argparse`` subparser, one that runs it and returns the exit
+status. To add a command (``robo3d info``, ...), write the pair and append it.
+
+``robo3d simulate OBJECT OUT.mcap [options]``
+    Simulate a scan recording (see :mod:`robo3d.simulate`).
+``robo3d simulate --demo DIR``
+    Regenerate the demo recordings into ``DIR``, deterministically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from .errors import Robo3dError
+
+__all__ = ["main", "build_parser", "Command", "COMMANDS"]
+
+_log = logging.getLogger("robo3d")
+
+
+@dataclass(frozen=True)
+class Command:
+    """A subcommand: its name, one-line help, argument builder and runner."""
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+# --------------------------------------------------------------------------- simulate
+def _add_simulate(p: argparse.ArgumentParser) -> None:
+    from .simulate import OBJECT_NAMES, SimulationParams
+
+    d = SimulationParams()
+    p.add_argument("object", nargs="?", choices=OBJECT_NAMES, help="object to scan")
+    p.add_argument("out", nargs="?", help="output .mcap file")
+    p.add_argument("--demo", metavar="DIR",
+                   help="regenerate the demo recordings into DIR (other options ignored)")
+    p.add_argument("--no-views", action="store_true", help="laser sweeps only")
+    p.add_argument("--no-laser", action="store_true", help="views only (a photo set)")
+    p.add_argument("--encoding", choices=("protobuf", "json"), default="protobuf",
+                   help="message encoding (default %(default)s)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="ray-casting threads, 0 for all cores (default %(default)s)")
+    # every option below defaults to SimulationParams' value (shown), so that a bare
+    # command line gives exactly the library's defaults
+    g = p.add_argument_group("simulation parameters")
+    for flag, field, kind, unit, text in _SIM_OPTIONS:
+        default = getattr(d, field)
+        shown = default if not isinstance(default, tuple) else " ".join(map(str, default))
+        kw: dict = {"dest": field, "default": None, "metavar": unit or None,
+                    "help": f"{text} (default {shown})"}
+        if kind == "range":
+            kw.update(type=float, nargs=2, metavar=("LO", "HI"),
+                      help=f"{text}, {unit}: magnitude uniform in [LO, HI] "
+                           f"(default {shown})")
+        elif kind == "floats":
+            kw.update(type=float, nargs="+")
+        elif isinstance(kind, tuple):
+            kw.update(choices=kind)
+            kw.pop("metavar")
+        else:
+            kw["type"] = kind
+        g.add_argument(flag, **kw)
+
+
+#: (flag, SimulationParams field, type / choices / "range" / "floats", unit)
+_SIM_OPTIONS: list[tuple[str, str, object, str, str]] = [
+    ("--seed", "seed", int, "N",
+     "random seed"),
+    ("--views", "views", int, "N",
+     "silhouette views"),
+    ("--sweeps", "sweeps", int, "N",
+     "laser sweeps (the last from above)"),
+    ("--width", "width", int, "PX",
+     "image width"),
+    ("--height", "height", int, "PX",
+     "image height"),
+    ("--view-elevations", "view_elevations_deg", "floats", "DEG",
+     "one ring of views per elevation"),
+    ("--view-distance", "view_distance", float, "M",
+     "camera-to-object distance of the views"),
+    ("--sweep-elevation", "sweep_elevation_deg", float, "DEG",
+     "elevation of the side sweeps"),
+    ("--sweep-spacing", "sweep_spacing", float, "M",
+     "camera travel per laser frame"),
+    ("--sweep-frames", "sweep_frames", int, "N",
+     "frames per sweep (overrides --sweep-spacing)"),
+    ("--sweep-speed", "sweep_speed", float, "M_PER_S",
+     "camera speed during a sweep"),
+    ("--sweep-gap", "sweep_gap_s", float, "S",
+     "pause between sweeps"),
+    ("--tf-rate", "tf_rate_hz", float, "HZ",
+     "/tf rate while sweeping"),
+    ("--view-encoding", "view_encoding", ("jpeg", "png", "rgb8", "bgr8"), "",
+     "encoding of the views"),
+    ("--laser-encoding", "laser_encoding", ("png", "mono8", "jpeg"), "",
+     "encoding of the laser frames"),
+    ("--jpeg-quality", "jpeg_quality", int, "Q",
+     "JPEG quality"),
+    ("--view-noise", "view_read_noise_dn", float, "DN",
+     "read noise of the views"),
+    ("--laser-noise", "laser_read_noise_dn", float, "DN",
+     "read noise of the laser frames"),
+    ("--gain", "gain_dn_per_electron", float, "DN_PER_E",
+     "shot noise: DN per electron (0: none)"),
+    ("--sweep-error-mm", "sweep_error_mm", "range", "mm",
+     "robot translation error per sweep"),
+    ("--sweep-error-deg", "sweep_error_deg", "range", "degrees",
+     "robot rotation error per sweep"),
+    ("--view-error-mm", "view_error_mm", "range", "mm",
+     "robot translation error per view"),
+    ("--view-error-deg", "view_error_deg", "range", "degrees",
+     "robot rotation error per view"),
+    ("--mesh-faces", "mesh_faces", int, "N",
+     "triangles of the truth mesh"),
+]
+
+
+def _run_simulate(args: argparse.Namespace) -> int:
+    from .simulate import simulate_recording, write_demos
+
+    if args.demo:  # each recording is logged by the library as it is written
+        write_demos(args.demo, threads=args.threads)
+        return 0
+    if not args.object or not args.out:
+        raise Robo3dError("simulate needs OBJECT and OUT.mcap (or --demo DIR)")
+    overrides = {field: getattr(args, field) for _, field, _, _, _ in _SIM_OPTIONS
+                 if getattr(args, field) is not None}
+    if args.no_views:
+        overrides["views"] = 0
+    if args.no_laser:
+        overrides["sweeps"] = 0
+    simulate_recording(args.out, args.object, threads=args.threads,
+                       message_encoding=args.encoding, **overrides)
+    return 0
+
+
+#: The registered subcommands, in the order ``robo3d --help`` lists them.
+COMMANDS: list[Command] = [
+    Command("simulate", "simulate a scan recording with ground truth (or the demos)",
+            _add_simulate, _run_simulate),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``robo3d`` argument parser with every registered subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="robo3d", description="Measured 3D models from a robot-carried camera and "
+                                   "line laser.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for cmd in COMMANDS:
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        cmd.add_arguments(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``robo3d`` console script; returns the exit status.
+
+    Errors robo3d raises on purpose (:class:`~robo3d.errors.Robo3dError`, bad
+    parameters) are reported in one line with status 1; anything else is a bug and
+    keeps its traceback.
+    """
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        return int(args._run(args))
+    except (Robo3dError, ValueError, FileNotFoundError) as exc:
+        _log.error("%s", exc)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

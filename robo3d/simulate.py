@@ -1,0 +1,515 @@
+"""The simulator: synthetic scan recordings with ground truth (``robo3d simulate``).
+
+A robot carries a camera and a line laser around an object resting on a table. The
+simulator writes one MCAP recording that follows ``recording-format.md``:
+
+- ``/camera/calibration`` (once), ``/tf_static`` (``flange -> camera`` hand-eye,
+  ``flange -> laser`` mount), ``/tf`` (``base -> flange`` as the robot reports it);
+- ``/camera/image``: ``views`` ambient-lit views on rings around the object (laser off),
+  the robot stop-and-go (four ``/tf`` samples 20 ms apart around each image);
+- ``/camera/laser_image``: ``sweeps`` straight constant-velocity passes of the laser
+  sheet across the object (``/tf`` streamed at ``tf_rate_hz`` while moving, image stamps
+  between samples), separated by ``sweep_gap_s`` seconds;
+- metadata ``robo3d.recording`` (kind, object, units, workspace box) and
+  ``robo3d.simulation`` (the seed and every parameter, JSON-encoded values);
+- attachments ``ground_truth/mesh.ply`` (the object in ``base``, the very mesh the
+  images were rendered from) and ``ground_truth/tf.json`` (the true ``base -> flange``
+  samples, one per ``/tf`` sample, which carries the simulated robot error; plus the
+  true ``flange -> camera`` and ``flange -> laser`` as entries with ``"static": true``,
+  so the file alone resolves true camera poses).
+
+Choices
+-------
+- Deterministic: every random draw comes from ``numpy.random.default_rng`` seeded with
+  ``[seed, stream, index...]`` (one stream per purpose, so changing the number of views
+  does not change the sweeps' errors or noise), and time starts at a constant
+  ``start_time_ns`` (1 700 000 000 s); the same arguments give a byte-identical file.
+- Robot error: each sweep's reported flange pose is ``T_true @ E`` with one constant
+  random rigid ``E`` per sweep (``sweep_error_mm``, ``sweep_error_deg`` ranges); each
+  view gets its own much smaller ``E`` (``view_error_mm``, ``view_error_deg``). The
+  injected errors are listed in ``robo3d.simulation`` (``sweep_errors``, ``view_errors``:
+  translation mm and rotation degrees).
+- The workspace box is the object's bounding box grown by ``workspace_margin`` (10 mm),
+  except its floor, ``workspace_floor`` (0.5 mm) above the table so the table is out.
+- Sweeps: ``sweeps - 1`` passes at ``sweep_elevation_deg`` on evenly spaced azimuths
+  plus one from straight above (``sweep_top``), each moving along the laser sheet's
+  normal by ``sweep_spacing`` per frame at ``sweep_speed``; ``sweep_frames`` (tests)
+  instead fixes the number of frames and stretches the spacing to cover the object.
+- Laser frames are quiet by design (object ``laser_ambient_dn`` = 1 DN, read noise
+  0.12 DN, shot noise at 0.025 DN per electron), so their PNGs compress to a few kB.
+- Ray casting runs on ``threads`` Open3D threads (1 by default; 0 for all cores) with
+  BLAS limited to one thread (its idle spinning otherwise costs more than it gives on
+  these small matrix products); the output does not depend on either.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .sim.render import Appearance, SimScene, render_laser_frame, render_view, sensor_noise
+from .sim.rig import (
+    default_camera,
+    default_hand_eye,
+    default_laser_mount,
+    random_rigid_error,
+    sweep_poses,
+    view_poses,
+)
+from .sim.shapes import OBJECTS, TriangleMesh, make_object, mesh_to_ply_bytes
+from .transforms import invert_transform, matrix_to_quat, rotation_angle_deg
+
+__all__ = [
+    "SimulationParams",
+    "SimulationResult",
+    "DEMOS",
+    "OBJECT_NAMES",
+    "simulate_recording",
+    "write_demos",
+    "object_mesh",
+]
+
+_log = logging.getLogger(__name__)
+
+#: Objects the simulator knows.
+OBJECT_NAMES: tuple[str, ...] = tuple(OBJECTS)
+
+_VIEW_TOPIC = "/camera/image"
+_LASER_TOPIC = "/camera/laser_image"
+_CAL_TOPIC = "/camera/calibration"
+
+
+@dataclass(frozen=True)
+class SimulationParams:
+    """Every parameter of a simulated recording (defaults: the demo recordings).
+
+    Lengths in metres, angles in degrees, times in seconds unless the name says
+    otherwise; error ranges are ``(lo, hi)`` magnitudes (uniform).
+
+    Attributes
+    ----------
+    seed : int
+        Seeds every random draw (view jitter, robot errors, sensor noise).
+    width, height : int
+        Image size, pixels (the focal length scales with the width).
+    views, view_elevations_deg, view_distance, view_jitter, view_period_s
+        Number of silhouette views, their rings, camera-to-object distance, random
+        perturbation scale (0: exact rings) and time between views.
+    view_encoding, jpeg_quality, view_read_noise_dn
+        Views' encoding (``jpeg``, ``png``, ``rgb8``, ``bgr8``), JPEG quality, read noise.
+    sweeps, sweep_elevation_deg, sweep_azimuth0_deg, sweep_top
+        Number of laser sweeps, elevation and first azimuth of the side sweeps, whether
+        the last sweep looks from straight above.
+    sweep_spacing, sweep_frames, sweep_speed, sweep_margin, sweep_gap_s, tf_rate_hz
+        Camera travel per frame (or ``sweep_frames`` per sweep), speed (m/s), overshoot
+        past the object's box, pause between sweeps, ``/tf`` rate while moving.
+    laser_encoding, laser_read_noise_dn, gain_dn_per_electron
+        Laser frames' encoding (``png``, ``mono8``, ``jpeg``), read noise, shot noise gain.
+    baseline, crossing
+        Camera-to-laser distance; depth where the sheet crosses the optical axis.
+    sweep_error_mm, sweep_error_deg, view_error_mm, view_error_deg
+        Ranges of the robot's pose error per sweep and per view.
+    mesh_faces, mesh_voxel
+        Truth mesh: triangles after decimation, marching-cubes grid spacing.
+    workspace_margin, workspace_floor
+        Workspace box: margin around the object; floor height above the table.
+    start_time_ns : int
+        Time of the first message (calibration, static transforms).
+    appearance : Appearance
+        Materials, lights, laser and supersampling (:class:`robo3d.sim.render.Appearance`).
+    """
+
+    seed: int = 0
+    width: int = 640
+    height: int = 480
+    # silhouette views
+    views: int = 24
+    view_elevations_deg: tuple[float, ...] = (20.0, 42.0, 65.0)
+    view_distance: float = 0.30
+    view_jitter: float = 1.0
+    view_period_s: float = 1.5
+    view_encoding: str = "jpeg"
+    jpeg_quality: int = 92
+    view_read_noise_dn: float = 1.0
+    # laser sweeps
+    sweeps: int = 5
+    sweep_elevation_deg: float = 45.0
+    sweep_azimuth0_deg: float = 20.0
+    sweep_top: bool = True
+    sweep_spacing: float = 0.0018
+    sweep_frames: int | None = None
+    sweep_speed: float = 0.02
+    sweep_margin: float = 0.006
+    sweep_gap_s: float = 2.0
+    tf_rate_hz: float = 125.0
+    laser_encoding: str = "png"
+    laser_read_noise_dn: float = 0.12
+    gain_dn_per_electron: float = 0.025
+    # rig
+    baseline: float = 0.08
+    crossing: float = 0.27
+    # robot error
+    sweep_error_mm: tuple[float, float] = (0.2, 0.4)
+    sweep_error_deg: tuple[float, float] = (0.1, 0.3)
+    view_error_mm: tuple[float, float] = (0.01, 0.03)
+    view_error_deg: tuple[float, float] = (0.005, 0.015)
+    # truth mesh
+    mesh_faces: int = 40_000
+    mesh_voxel: float = 0.0006
+    # metadata
+    workspace_margin: float = 0.01
+    workspace_floor: float = 0.0005
+    start_time_ns: int = 1_700_000_000_000_000_000
+    appearance: Appearance = field(default_factory=Appearance)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first parameter out of range."""
+        checks = [
+            ("width", self.width >= 16), ("height", self.height >= 16),
+            ("views", self.views >= 0), ("sweeps", self.sweeps >= 0),
+            ("views", self.views + self.sweeps > 0),  # views and sweeps both zero
+            ("view_distance", self.view_distance > 0), ("sweep_spacing", self.sweep_spacing > 0),
+            ("sweep_speed", self.sweep_speed > 0), ("tf_rate_hz", self.tf_rate_hz >= 20),
+            ("sweep_gap_s", self.sweep_gap_s > 0), ("view_period_s", self.view_period_s >= 0.1),
+            ("jpeg_quality", 1 <= self.jpeg_quality <= 100),
+            ("sweep_frames", self.sweep_frames is None or self.sweep_frames >= 2),
+            ("view_elevations_deg", len(self.view_elevations_deg) >= 1
+             and all(0 < e < 90 for e in self.view_elevations_deg)),
+            ("view_encoding", self.view_encoding in ("jpeg", "png", "rgb8", "bgr8")),
+            ("laser_encoding", self.laser_encoding in ("png", "jpeg", "mono8")),
+            ("view_read_noise_dn", self.view_read_noise_dn >= 0),
+            ("laser_read_noise_dn", self.laser_read_noise_dn >= 0),
+            ("gain_dn_per_electron", self.gain_dn_per_electron >= 0),
+            ("sweep_error_mm", 0 <= self.sweep_error_mm[0] <= self.sweep_error_mm[1]),
+            ("sweep_error_deg", 0 <= self.sweep_error_deg[0] <= self.sweep_error_deg[1]),
+            ("view_error_mm", 0 <= self.view_error_mm[0] <= self.view_error_mm[1]),
+            ("view_error_deg", 0 <= self.view_error_deg[0] <= self.view_error_deg[1]),
+            ("start_time_ns", self.start_time_ns >= 10_000_000_000),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise ValueError(f"simulation parameter {name} out of range: "
+                                 f"{getattr(self, name)!r}")
+
+    def to_metadata(self) -> dict[str, str]:
+        """Every parameter as ``{name: JSON string}`` (appearance fields prefixed)."""
+        out: dict[str, str] = {}
+        for k, v in dataclasses.asdict(self).items():
+            if k == "appearance":
+                for ka, va in v.items():
+                    out[f"appearance.{ka}"] = json.dumps(va)
+            else:
+                out[k] = json.dumps(v)
+        return out
+
+
+@dataclass
+class SimulationResult:
+    """What :func:`simulate_recording` wrote.
+
+    Attributes
+    ----------
+    path : Path
+    object_name : str
+    n_views, n_laser_frames : int
+    frames_per_sweep : list of int
+    sweep_errors : (K, 4, 4) float64
+        The injected flange-frame error ``E`` of each sweep.
+    view_errors : (N, 4, 4) float64
+    T_flange_camera, T_flange_laser : (4, 4) float64
+    size_bytes : int
+    seconds : float
+        Wall time of the run (not written into the file).
+    """
+
+    path: Path
+    object_name: str
+    n_views: int
+    n_laser_frames: int
+    frames_per_sweep: list[int]
+    sweep_errors: np.ndarray
+    view_errors: np.ndarray
+    T_flange_camera: np.ndarray
+    T_flange_laser: np.ndarray
+    size_bytes: int
+    seconds: float
+
+
+#: The demo recordings: file stem -> (object, parameter overrides).
+DEMOS: dict[str, tuple[str, dict[str, Any]]] = {
+    "dimple_block": ("dimple_block", {"seed": 1}),
+    "vase": ("vase", {"seed": 2}),
+}
+
+
+@lru_cache(maxsize=8)
+def object_mesh(name: str, voxel: float = 0.0006, faces: int = 40_000) -> TriangleMesh:
+    """The ground-truth mesh of a named object (cached; arrays read-only).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`OBJECT_NAMES`.
+    voxel : float, metres
+    faces : int
+    """
+    mesh = make_object(name, voxel=voxel, faces=faces)
+    mesh.vertices.setflags(write=False)
+    mesh.faces.setflags(write=False)
+    return mesh
+
+
+def _blas_one_thread() -> contextlib.AbstractContextManager[Any]:
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - optional speed-up
+        return contextlib.nullcontext()
+    return threadpool_limits(1, user_api="blas")
+
+
+def _error_summary(errors: np.ndarray) -> list[dict[str, float]]:
+    return [{"translation_mm": round(float(np.linalg.norm(e[:3, 3])) * 1e3, 6),
+             "rotation_deg": round(float(rotation_angle_deg(e[:3, :3])), 6)} for e in errors]
+
+
+def _sweep_plan(p: SimulationParams) -> list[tuple[float, float]]:
+    """(azimuth, elevation) in degrees of each sweep."""
+    if p.sweeps == 0:
+        return []
+    n_side = p.sweeps - 1 if (p.sweep_top and p.sweeps >= 2) else p.sweeps
+    plan = [(p.sweep_azimuth0_deg + 360.0 * k / n_side, p.sweep_elevation_deg)
+            for k in range(n_side)]
+    if n_side < p.sweeps:
+        plan.append((p.sweep_azimuth0_deg, 90.0))
+    return plan
+
+
+def simulate_recording(path: str | os.PathLike[str], object_name: str = "dimple_block", *,
+                       params: SimulationParams | None = None, threads: int = 1,
+                       message_encoding: str = "protobuf", **overrides: Any,
+                       ) -> SimulationResult:
+    """Simulate a scan of one object and write it as an MCAP recording.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The ``.mcap`` file to write (atomically).
+    object_name : str
+        One of :data:`OBJECT_NAMES`.
+    params : SimulationParams, optional
+        All parameters (defaults: the demo settings).
+    threads : int
+        Ray-casting threads (0: all cores); the output does not depend on it.
+    message_encoding : {"protobuf", "json"}
+    **overrides
+        Any :class:`SimulationParams` field, e.g. ``views=8, sweeps=2, width=320``;
+        ``appearance`` fields may be given as ``appearance=Appearance(...)``.
+
+    Returns
+    -------
+    SimulationResult
+
+    Examples
+    --------
+    >>> simulate_recording("s.mcap", "sphere", width=320, height=240, views=8,
+    ...                    sweeps=2, sweep_frames=20)                  # doctest: +SKIP
+    """
+    if object_name not in OBJECTS:
+        raise ValueError(f"unknown object {object_name!r}; expected one of "
+                         f"{', '.join(OBJECT_NAMES)}")
+    p = params or SimulationParams()
+    unknown = set(overrides) - {f.name for f in dataclasses.fields(SimulationParams)}
+    if unknown:
+        raise ValueError(f"unknown simulation parameter(s): {', '.join(sorted(unknown))}")
+    p = dataclasses.replace(p, **overrides)
+    for name in ("view_elevations_deg", "sweep_error_mm", "sweep_error_deg",
+                 "view_error_mm", "view_error_deg"):  # lists from JSON/CLI -> tuples
+        p = dataclasses.replace(p, **{name: tuple(float(x) for x in getattr(p, name))})
+    p.validate()
+    wall = time.perf_counter()
+    with _blas_one_thread():
+        result = _simulate(Path(path), object_name, p, threads, message_encoding)
+    result.seconds = time.perf_counter() - wall
+    _log.info("simulated %s (%s): %d views, %d laser frames in %d sweeps (%s frames), "
+              "%.2f MB, %.1f s", result.path, object_name, result.n_views,
+              result.n_laser_frames, len(result.frames_per_sweep),
+              ", ".join(map(str, result.frames_per_sweep)) or "no", result.size_bytes / 1e6,
+              result.seconds)
+    return result
+
+
+def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
+              message_encoding: str) -> SimulationResult:
+    from .recording.writer import RecordingWriter
+
+    mesh = object_mesh(object_name, p.mesh_voxel, p.mesh_faces)
+    scene = SimScene(mesh, p.appearance, threads=threads)
+    camera = default_camera(p.width, p.height)
+    t_flange_camera = default_hand_eye()
+    t_camera_laser = default_laser_mount(p.baseline, p.crossing)
+    t_flange_laser = t_flange_camera @ t_camera_laser
+    t_camera_flange = invert_transform(t_flange_camera)
+    lo, hi = mesh.bounds
+    target = 0.5 * (lo + hi)
+    t0 = int(p.start_time_ns)
+    ms = 1_000_000
+
+    # ---------------------------------------------------------------- views
+    view_cams = (view_poses(p.views, target, p.view_distance, p.view_elevations_deg,
+                            np.random.default_rng([p.seed, 1]), p.view_jitter)
+                 if p.views else np.zeros((0, 4, 4)))
+    rng_ve = np.random.default_rng([p.seed, 3])
+    view_err = np.stack([random_rigid_error(rng_ve, tuple(np.array(p.view_error_mm) * 1e-3),
+                                            p.view_error_deg) for _ in range(p.views)]) \
+        if p.views else np.zeros((0, 4, 4))
+    view_stamps = t0 + 1000 * ms + np.arange(p.views, dtype=np.int64) * int(p.view_period_s * 1e9)
+    tf_true: list[tuple[int, np.ndarray]] = []
+    tf_reported: list[tuple[int, np.ndarray]] = []
+    for i in range(p.views):
+        t_true = view_cams[i] @ t_camera_flange
+        for off in (-27, -7, 13, 33):  # stop-and-go: a few samples around the image
+            tf_true.append((int(view_stamps[i]) + off * ms, t_true))
+            tf_reported.append((int(view_stamps[i]) + off * ms, t_true @ view_err[i]))
+    t_next = int(view_stamps[-1]) + 1000 * ms if p.views else t0 + 1000 * ms
+
+    # ---------------------------------------------------------------- sweeps
+    rng_se = np.random.default_rng([p.seed, 2])
+    plan = _sweep_plan(p)
+    sweep_err = np.stack([random_rigid_error(rng_se, tuple(np.array(p.sweep_error_mm) * 1e-3),
+                                             p.sweep_error_deg) for _ in plan]) \
+        if plan else np.zeros((0, 4, 4))
+    tf_period = int(round(1e9 / p.tf_rate_hz))
+    laser_frames: list[tuple[int, int, int, np.ndarray]] = []  # (stamp, sweep, frame, T_cam)
+    frames_per_sweep: list[int] = []
+    for k, (az, el) in enumerate(plan):
+        t_start_cam, direction, length = sweep_poses(az, el, target, p.crossing, t_camera_laser,
+                                                     lo, hi, p.sweep_spacing, p.sweep_margin)
+        if p.sweep_frames is not None:
+            n = int(p.sweep_frames)
+        else:
+            n = int(round(length / p.sweep_spacing)) + 1
+        spacing = length / (n - 1) if p.sweep_frames is not None else p.sweep_spacing
+        frame_period = int(round(spacing / p.sweep_speed * 1e9))
+        ts = t_next
+        frame_t = ts + np.arange(n, dtype=np.int64) * frame_period
+        # /tf from 40 ms before the first frame to 40 ms after the last, on a grid a
+        # third of a period off the frames' (so every image falls between two samples)
+        tf_t = np.arange(ts - 40 * ms - tf_period // 3, frame_t[-1] + 40 * ms, tf_period,
+                         dtype=np.int64)
+        for j, tj in enumerate(frame_t):
+            cam = t_start_cam.copy()
+            cam[:3, 3] += direction * p.sweep_speed * (tj - ts) * 1e-9
+            laser_frames.append((int(tj), k, j, cam))
+        for tj in tf_t:
+            cam = t_start_cam.copy()
+            cam[:3, 3] += direction * p.sweep_speed * (tj - ts) * 1e-9
+            t_true = cam @ t_camera_flange
+            tf_true.append((int(tj), t_true))
+            tf_reported.append((int(tj), t_true @ sweep_err[k]))
+        frames_per_sweep.append(n)
+        t_next = int(tf_t[-1]) + int(p.sweep_gap_s * 1e9)
+
+    # ---------------------------------------------------------------- events in time order
+    events: list[tuple[int, int, int]] = []  # (stamp, priority, index)
+    events += [(s, 0, i) for i, (s, _) in enumerate(tf_reported)]
+    events += [(int(s), 1, i) for i, s in enumerate(view_stamps)]
+    events += [(f[0], 2, i) for i, f in enumerate(laser_frames)]
+    events.sort()
+
+    ws_lo = lo - p.workspace_margin
+    ws_hi = hi + p.workspace_margin
+    ws_lo[2] = p.workspace_floor
+    info = {"kind": "scan", "object": object_name, "units": "m",
+            "workspace_min": " ".join(f"{x:.4f}" for x in ws_lo),
+            "workspace_max": " ".join(f"{x:.4f}" for x in ws_hi)}
+    sim_meta = {"generator": f"robo3d {__version__} simulate", "object": object_name,
+                **p.to_metadata(),
+                "sweep_plan_deg": json.dumps([[round(a, 6), round(e, 6)] for a, e in plan]),
+                "frames_per_sweep": json.dumps(frames_per_sweep),
+                "sweep_errors": json.dumps(_error_summary(sweep_err)),
+                "view_errors": json.dumps(_error_summary(view_err)),
+                "robot_error_model": "T_base_flange_reported = T_base_flange_true @ E "
+                                     "(E constant per sweep / per view)"}
+    order = np.argsort([s for s, _ in tf_true], kind="stable")
+    truth = {"transforms": [{
+        "parent": "base", "child": "flange",
+        "stamps_ns": [tf_true[i][0] for i in order],
+        # nanometre / 1e-12 resolution keeps the JSON short and far below any error
+        "translations": [[round(float(x), 9) for x in tf_true[i][1][:3, 3]] for i in order],
+        "quaternions": [[round(float(x), 12) for x in matrix_to_quat(tf_true[i][1][:3, :3])]
+                        for i in order]}]}
+    for child, t_fc in (("camera", t_flange_camera), ("laser", t_flange_laser)):
+        # the true mounts (the simulated cell has no hand-eye error: equal to /tf_static)
+        truth["transforms"].append({
+            "parent": "flange", "child": child, "static": True, "stamps_ns": [t0],
+            "translations": [[round(float(x), 9) for x in t_fc[:3, 3]]],
+            "quaternions": [[round(float(x), 12) for x in matrix_to_quat(t_fc[:3, :3])]]})
+
+    with RecordingWriter(path, message_encoding=message_encoding) as w:
+        w.add_metadata("robo3d.recording", info)
+        w.add_metadata("robo3d.simulation", sim_meta)
+        w.add_attachment("ground_truth/mesh.ply", mesh_to_ply_bytes(mesh), "application/x-ply")
+        w.add_attachment("ground_truth/tf.json",
+                         json.dumps(truth, separators=(",", ":")).encode(), "application/json")
+        w.write_calibration(_CAL_TOPIC, t0, camera)
+        w.write_transforms("/tf_static", t0, [("flange", "camera", t_flange_camera),
+                                              ("flange", "laser", t_flange_laser)])
+        for stamp, kind, i in events:
+            if kind == 0:
+                w.write_transforms("/tf", stamp, [("base", "flange", tf_reported[i][1])])
+            elif kind == 1:
+                signal = render_view(scene, camera, view_cams[i])
+                img = sensor_noise(signal, np.random.default_rng([p.seed, 10, i]),
+                                   p.gain_dn_per_electron, p.view_read_noise_dn)
+                w.write_image(_VIEW_TOPIC, stamp, camera.frame_id, img, p.view_encoding,
+                              p.jpeg_quality)
+            else:
+                _, k, j, cam = laser_frames[i]
+                signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
+                img = sensor_noise(signal, np.random.default_rng([p.seed, 11, k, j]),
+                                   p.gain_dn_per_electron, p.laser_read_noise_dn)
+                w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
+                              p.jpeg_quality)
+    return SimulationResult(path=path, object_name=object_name, n_views=p.views,
+                            n_laser_frames=len(laser_frames), frames_per_sweep=frames_per_sweep,
+                            sweep_errors=sweep_err, view_errors=view_err,
+                            T_flange_camera=t_flange_camera, T_flange_laser=t_flange_laser,
+                            size_bytes=path.stat().st_size, seconds=0.0)
+
+
+def write_demos(directory: str | os.PathLike[str], *, threads: int = 1,
+                names: list[str] | None = None) -> list[SimulationResult]:
+    """Regenerate the demo recordings (:data:`DEMOS`) into ``directory``.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        Created if missing.
+    threads : int
+        Ray-casting threads (0: all cores).
+    names : list of str, optional
+        A subset of :data:`DEMOS` (default: all).
+
+    Returns
+    -------
+    list of SimulationResult
+    """
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    todo = names or list(DEMOS)
+    bad = [n for n in todo if n not in DEMOS]
+    if bad:
+        raise ValueError(f"unknown demo(s) {', '.join(bad)}; expected {', '.join(DEMOS)}")
+    return [simulate_recording(d / f"{n}.mcap", DEMOS[n][0], threads=threads, **DEMOS[n][1])
+            for n in todo]

@@ -1,0 +1,303 @@
+"""Tests of the simulator (robo3d.simulate, robo3d.sim) against analytic ground truth.
+
+The sphere object is a subdivided icosahedron whose vertices lie on the sphere of radius
+40 mm centred at (0, 0, 40 mm) (facets within 15 micrometres of it), so rays can be
+checked against the analytic sphere.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from robo3d.camera import CameraModel
+from robo3d.cli import main
+from robo3d.sim.render import (
+    Appearance,
+    SimScene,
+    pixel_grid_rays,
+    render_laser_frame,
+    render_view,
+    sensor_noise,
+)
+from robo3d.sim.rig import (
+    default_camera,
+    default_hand_eye,
+    default_laser_mount,
+    look_at,
+    sweep_poses,
+)
+from robo3d.sim.shapes import TriangleMesh, make_object, mesh_to_ply_bytes, sdf_dimple_block
+from robo3d.simulate import object_mesh, simulate_recording
+from robo3d.transforms import invert_transform, make_transform, rotation_angle_deg
+
+CENTRE = np.array([0.0, 0.0, 0.04])
+RADIUS = 0.04
+SMALL = dict(width=320, height=240, views=8, sweeps=2, sweep_frames=20, seed=7)
+
+
+def _ray_sphere(origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Analytic first hit distance along unit rays (inf on a miss) and ray-centre distance."""
+    oc = origin - CENTRE
+    b = dirs @ oc
+    c = oc @ oc - RADIUS**2
+    disc = b * b - c
+    t = np.where(disc >= 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf)
+    closest = np.sqrt(np.maximum(oc @ oc - b * b, 0.0))
+    return t, closest
+
+
+def _segment_sphere_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from the sphere centre to segments a -> b ((N, 3) each)."""
+    ab = b - a
+    s = np.clip(np.einsum("ij,ij->i", CENTRE - a, ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
+    return np.linalg.norm(a + s[:, None] * ab - CENTRE, axis=1)
+
+
+@pytest.fixture(scope="module")
+def sphere_scene() -> SimScene:
+    return SimScene(object_mesh("sphere"))
+
+
+@pytest.fixture(scope="module")
+def small_recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sim") / "sphere.mcap"
+    result = simulate_recording(path, "sphere", **SMALL)
+    return path, result
+
+
+# --------------------------------------------------------------------------- objects
+def test_sphere_mesh_is_on_the_analytic_sphere():
+    mesh = object_mesh("sphere")
+    r = np.linalg.norm(mesh.vertices - CENTRE, axis=1)
+    assert np.abs(r - RADIUS).max() < 1e-8  # float32-rounded vertices
+    assert mesh.vertices[:, 2].min() == pytest.approx(0.0, abs=1e-9)
+    assert mesh.volume() == pytest.approx(4 / 3 * np.pi * RADIUS**3, rel=2e-3)
+
+
+def test_dimple_block_sdf_has_hidden_concavities():
+    # inside the block's outer box but carved out: dimple centre, groove, pocket
+    carved = np.array([[-0.018, 0.0, 0.055], [0.028, 0.0, 0.057], [0.018, -0.035, 0.03]])
+    solid = np.array([[0.0, 0.0, 0.03], [-0.04, 0.03, 0.055]])
+    assert np.all(sdf_dimple_block(carved) > 0)
+    assert np.all(sdf_dimple_block(solid) < 0)
+
+
+def test_make_object_coarse_is_closed_and_rests_on_table():
+    mesh = make_object("dimple_block", voxel=0.002, faces=3000)
+    f = mesh.faces
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # closed 2-manifold edges
+    lo, hi = mesh.bounds
+    assert lo[2] == 0.0
+    np.testing.assert_allclose(hi - lo, [0.1, 0.08, 0.06], atol=1.5e-3)
+    assert 0.8 * 0.1 * 0.08 * 0.06 < mesh.volume() < 0.1 * 0.08 * 0.06
+
+
+def test_ply_bytes_round_trip(tmp_path):
+    import open3d as o3d
+
+    mesh = object_mesh("sphere")
+    data = mesh_to_ply_bytes(mesh)
+    (tmp_path / "m.ply").write_bytes(data)
+    m = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
+    np.testing.assert_array_equal(np.asarray(m.vertices), mesh.vertices)
+    np.testing.assert_array_equal(np.asarray(m.triangles), mesh.faces)
+
+
+# --------------------------------------------------------------------------- rig
+def test_laser_sheet_crosses_optical_axis_at_working_distance():
+    t_cl = default_laser_mount(baseline=0.08, crossing=0.27)
+    origin, normal = t_cl[:3, 3], t_cl[:3, 1]
+    assert 0.07 < np.linalg.norm(origin) < 0.09 and origin[1] < -0.07  # along camera -y
+    assert abs(t_cl[:3, 0] @ [1.0, 0.0, 0.0]) > 0.999  # laser x ~ camera x
+    z_cross = (normal @ origin) / normal[2]  # the optical axis meets the sheet here
+    assert z_cross == pytest.approx(0.27, abs=0.01)
+    assert 0.06 < np.linalg.norm(default_hand_eye()[:3, 3]) < 0.08
+
+
+# --------------------------------------------------------------------------- rendering
+def test_view_object_pixels_are_the_projection_of_the_truth(sphere_scene):
+    camera = default_camera(320, 240)
+    t_bc = look_at(np.array([0.2, -0.15, 0.2]), CENTRE, roll=0.1)
+    signal = render_view(sphere_scene, camera, t_bc)
+    image = sensor_noise(signal, np.random.default_rng(0), 0.025, 1.0)
+    dirs = pixel_grid_rays(camera) @ t_bc[:3, :3].T
+    t_hit, closest = _ray_sphere(t_bc[:3, 3], dirs)
+    truth = np.isfinite(t_hit).reshape(240, 320)
+    mask = image.mean(axis=2) > 40  # object >= 56 DN, table <= 24 DN
+    wrong = mask != truth
+    assert truth.sum() > 5000
+    # a pixel may differ only where its ray grazes the sphere within the facets' sagitta
+    assert np.all(np.abs(closest.reshape(240, 320)[wrong] - RADIUS) < 3e-5), wrong.sum()
+    assert wrong.sum() <= 3
+
+
+def test_laser_stripe_back_projects_onto_sheet_and_surface(sphere_scene):
+    camera = default_camera()
+    t_cl = default_laser_mount()
+    lo, hi = sphere_scene.mesh.bounds
+    t0, direction, length = sweep_poses(30.0, 45.0, CENTRE, 0.27, t_cl, lo, hi, 0.002)
+    t_bc = t0.copy()
+    t_bc[:3, 3] += direction * 0.45 * length
+    t_bl = t_bc @ t_cl
+    img = render_laser_frame(sphere_scene, camera, t_bc, t_bl)
+    h, w = img.shape
+    # one centre per column: brightest pixel, refined by the centroid of its 5 rows
+    v = np.argmax(img, axis=0)
+    peak = img[v, np.arange(w)]
+    v5 = np.clip(v[None, :] + np.arange(-2, 3)[:, None], 0, h - 1)
+    prof = np.maximum(img[v5, np.arange(w)] - sphere_scene.appearance.laser_ambient_dn, 0)
+    cols = np.nonzero(peak > 60)[0]
+    v_sub = (prof * v5).sum(axis=0)[cols] / prof.sum(axis=0)[cols]
+    uv = np.stack([cols.astype(float), v_sub], axis=1)
+    dirs = camera.rays(uv) @ t_bc[:3, :3].T
+    t_hit, _ = _ray_sphere(t_bc[:3, 3], dirs)
+    on_sphere = np.isfinite(t_hit)
+    assert on_sphere.sum() > 100  # the stripe crosses the sphere over > 100 columns
+    x = t_bc[:3, 3] + t_hit[on_sphere, None] * dirs[on_sphere]
+    d_sheet = np.abs((x - t_bl[:3, 3]) @ t_bl[:3, 1])
+    w_laser = sphere_scene.appearance.laser_width
+    assert np.median(d_sheet) < 0.1 * w_laser  # 30 micrometres
+    assert np.percentile(d_sheet, 95) < 0.3 * w_laser
+    # the brightest pixel itself lies within the stripe's half-width
+    dirs_px = camera.rays(np.stack([cols.astype(float), v[cols].astype(float)], 1))
+    t_px, _ = _ray_sphere(t_bc[:3, 3], dirs_px @ t_bc[:3, :3].T)
+    ok = np.isfinite(t_px)
+    x_px = t_bc[:3, 3] + t_px[ok, None] * (dirs_px @ t_bc[:3, :3].T)[ok]
+    assert np.all(np.abs((x_px - t_bl[:3, 3]) @ t_bl[:3, 1]) < w_laser)
+    # and the stripe is the right brightness (peak ~200 DN, not saturated) and width
+    # (2-3 px between its 1/e^2 points)
+    assert 150 < peak.max() < 250
+    signal = img[:, cols] - sphere_scene.appearance.laser_ambient_dn
+    wide = (signal > np.exp(-2) * signal.max(axis=0)).sum(axis=0)
+    assert 2.0 <= np.median(wide) <= 3.0
+
+
+def test_laser_shadow_stays_dark(sphere_scene):
+    # laser 300 mm above the sphere, beam down, sheet = plane y = 0: the sphere shadows
+    # the table along the sheet out to |x| = 46.7 mm, which the camera sees from the side
+    camera = default_camera(320, 240)
+    t_bl = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.30])
+    t_bc = look_at(np.array([0.12, 0.12, 0.10]), np.array([0.045, 0.0, 0.0]))
+    img = render_laser_frame(sphere_scene, camera, t_bc, t_bl)
+    dirs = pixel_grid_rays(camera) @ t_bc[:3, :3].T
+    hits = sphere_scene.cast(t_bc[:3, 3], dirs)
+    on_sheet_table = (hits.kind == 2) & (np.abs(hits.points[:, 1]) < 0.1e-3)
+    idx = np.flatnonzero(on_sheet_table)
+    seg = _segment_sphere_distance(np.broadcast_to(t_bl[:3, 3], (len(idx), 3)),
+                                   hits.points[idx])
+    shadowed = idx[seg < RADIUS - 3e-4]
+    lit = idx[seg > RADIUS + 3e-4]
+    flat = img.ravel()
+    assert len(shadowed) >= 4 and len(lit) >= 20
+    ambient_table = 1.0 * 0.07 / np.mean(Appearance().object_albedo) * 1.01
+    assert flat[shadowed].max() <= ambient_table  # nothing but the dimmed ambient
+    assert flat[lit].min() > 5.0
+
+
+def test_sensor_noise_statistics():
+    rng = np.random.default_rng(3)
+    signal = np.full((200, 200), 100.0)
+    img = sensor_noise(signal, rng, gain=0.04, read_noise=1.0)
+    assert img.dtype == np.uint8
+    assert img.mean() == pytest.approx(100.0, abs=0.1)
+    assert img.std() == pytest.approx(np.sqrt(0.04 * 100 + 1.0 + 1 / 12), rel=0.05)
+
+
+# --------------------------------------------------------------------------- recordings
+def test_simulation_is_deterministic(small_recording, tmp_path):
+    path, _ = small_recording
+    again = tmp_path / "again.mcap"
+    simulate_recording(again, "sphere", **SMALL)
+    assert again.read_bytes() == path.read_bytes()
+
+
+def test_recording_round_trips_through_reader(small_recording):
+    reader = pytest.importorskip("robo3d.recording.reader")
+    path, result = small_recording
+    rec = reader.read_recording(path)
+    assert len(rec.views) == 8 and len(rec.laser_frames) == 40
+    assert result.frames_per_sweep == [20, 20]
+    cam = rec.camera_for(rec.views[0])
+    ref = default_camera(320, 240)
+    assert isinstance(cam, CameraModel)
+    np.testing.assert_allclose(cam.K, ref.K)
+    np.testing.assert_allclose(cam.D, ref.D)
+    view = rec.views[0].decode()
+    laser = rec.laser_frames[10].decode()
+    assert view.shape == (240, 320, 3) and laser.shape == (240, 320)
+    assert laser.dtype == np.uint8 and laser.max() > 60  # a stripe
+
+    # metadata and truth attachments
+    info = rec.info
+    assert info["kind"] == "scan" and info["object"] == "sphere" and info["units"] == "m"
+    ws_lo, ws_hi = rec.workspace
+    assert ws_lo[2] == pytest.approx(0.0005)
+    mesh = object_mesh("sphere")
+    assert np.all(ws_lo[:2] < mesh.bounds[0][:2] - 0.009)
+    assert np.all(ws_hi > mesh.bounds[1] + 0.009)
+    assert json.loads(rec.metadata["robo3d.simulation"]["seed"]) == 7
+    assert rec.attachments["ground_truth/mesh.ply"] == mesh_to_ply_bytes(mesh)
+
+    # reported poses differ from the truth by exactly the injected flange-frame error
+    truth = reader.read_ground_truth_tf(rec)
+    stamps = np.array([m.timestamp_ns for m in rec.laser_frames])
+    reported = rec.camera_poses(rec.laser_frames)
+    t_fc = default_hand_eye()
+    true_cam = truth.lookup("base", "camera", stamps)
+    np.testing.assert_allclose(true_cam[:, :3, :3], (truth.lookup("base", "flange", stamps)
+                                                     @ t_fc)[:, :3, :3], atol=1e-9)
+    for k in range(2):
+        sel = slice(20 * k, 20 * (k + 1))
+        # T_rep_cam = T_true_flange @ E @ T_fc  =>  E = inv(T_true_flange) T_rep_cam inv(T_fc)
+        e = (invert_transform(true_cam[sel] @ invert_transform(t_fc)) @ reported[sel]
+             @ invert_transform(t_fc))
+        np.testing.assert_allclose(e, np.broadcast_to(result.sweep_errors[k], e.shape),
+                                   atol=2e-9)
+        mm = np.linalg.norm(result.sweep_errors[k][:3, 3]) * 1e3
+        deg = rotation_angle_deg(result.sweep_errors[k][:3, :3])
+        assert 0.2 <= mm <= 0.4 and 0.1 <= deg <= 0.3
+    view_err = np.linalg.norm(result.view_errors[:, :3, 3], axis=1) * 1e3
+    assert np.all(view_err <= 0.03)
+
+    # images fall strictly between /tf samples no more than 50 ms apart
+    tf_stamps, _ = rec.tf.link_samples("base", "flange")
+    for msgs in (rec.views, rec.laser_frames):
+        s = np.array([m.timestamp_ns for m in msgs])
+        i = np.searchsorted(tf_stamps, s)
+        assert np.all((i > 0) & (i < len(tf_stamps)))
+        assert np.all(tf_stamps[i - 1] < s) and np.all(tf_stamps[i] - tf_stamps[i - 1] <= 50e6)
+    # sweeps are separated by more than the 1 s sweep gap
+    assert np.diff(stamps)[19] > 1e9 and np.all(np.delete(np.diff(stamps), 19) < 1e9)
+
+
+def test_cli_simulate_views_only(tmp_path):
+    out = tmp_path / "v.mcap"
+    assert main(["simulate", "sphere", str(out), "--no-laser", "--views", "3",
+                 "--width", "64", "--height", "48", "--view-encoding", "png"]) == 0
+    reader = pytest.importorskip("robo3d.recording.reader")
+    rec = reader.read_recording(out, roles=("views",))
+    assert len(rec.views) == 3 and rec.views[0].encoding == "png"
+    assert main(["simulate", "sphere", str(tmp_path / "x.mcap"), "--views", "-1"]) == 1
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_bad_parameters_are_named():
+    with pytest.raises(ValueError, match="unknown object"):
+        simulate_recording("x.mcap", "teapot")
+    with pytest.raises(ValueError, match="sweep_spacing"):
+        simulate_recording("x.mcap", "sphere", sweep_spacing=0.0)
+    with pytest.raises(ValueError, match="unknown simulation parameter"):
+        simulate_recording("x.mcap", "sphere", n_views=3)
+
+
+def test_triangle_mesh_normals_point_outward():
+    mesh = object_mesh("sphere")
+    n = mesh.vertex_normals()
+    radial = (mesh.vertices - CENTRE) / RADIUS
+    assert np.all(np.einsum("ij,ij->i", n, radial) > 0.999)
+    assert isinstance(mesh, TriangleMesh)

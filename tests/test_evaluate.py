@@ -1,0 +1,190 @@
+"""evaluate: distances, sampling, completeness, volume IoU and pose errors against
+analytic spheres."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robo3d.evaluate import (
+    TruthSurface,
+    cloud_accuracy,
+    completeness,
+    distance_stats,
+    mesh_accuracy,
+    pose_error,
+    sample_surface,
+    volume_iou,
+)
+from robo3d.transforms import euler_to_matrix, make_transform
+
+R = 0.03
+C = np.array([0.5, 0.1, 0.08])
+
+
+def icosphere(radius=R, centre=C, subdivisions=4):
+    """Vertices on the sphere; returns (V, F, sagitta), sagitta = largest gap between a
+    face's plane and the sphere."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_midpoint(subdivisions)
+    v = np.asarray(m.vertices)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    f = np.asarray(m.triangles).astype(np.int64)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    plane_dist = np.abs(np.einsum("ij,ij->i", n / np.linalg.norm(n, axis=1, keepdims=True),
+                                  v[f[:, 0]]))
+    sag = radius * (1.0 - plane_dist.min())
+    return v * radius + centre, f, sag
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    v, f, sag = icosphere()
+    return TruthSurface(v, f), v, f, sag
+
+
+def _directions(n, seed):
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_distance_matches_analytic(sphere):
+    truth, _, _, sag = sphere
+    assert sag < 0.05e-3  # the polyhedron is within 50 um of the sphere
+    d = _directions(5000, 0)
+    off = np.random.default_rng(1).uniform(-5e-3, 5e-3, 5000)
+    pts = C + d * (R + off)[:, None]
+    dist = truth.distance(pts)
+    assert dist.shape == (5000,) and dist.dtype == np.float64
+    # the polyhedron lies between the sphere and the sphere shrunk by sag
+    lo = np.where(off >= 0, off, np.maximum(-off - sag, 0.0))
+    hi = np.where(off >= 0, off + sag, np.maximum(-off, sag + off))
+    assert np.all(dist >= lo - 2e-7) and np.all(dist <= hi + 2e-7)
+
+
+def test_inside(sphere):
+    truth, *_, sag = sphere
+    d = _directions(4000, 2)
+    inner = C + d * (R - sag - 0.2e-3)
+    outer = C + d * (R + 0.2e-3)
+    assert truth.inside(inner).all()
+    assert not truth.inside(outer).any()
+    assert truth.inside(C[None]).all()
+
+
+def test_sample_is_uniform_and_seeded(sphere):
+    truth, v, f, sag = sphere
+    s = truth.sample(20000, seed=3)
+    assert s.shape == (20000, 3)
+    r = np.linalg.norm(s - C, axis=1)
+    assert np.all(r <= R + 1e-12) and np.all(r >= R - sag - 1e-12)
+    # Archimedes: a slab of height h holds h / (2R) of a sphere's area
+    z = s[:, 2] - C[2]
+    frac = np.mean((z > -0.3 * R) & (z < 0.5 * R))
+    assert frac == pytest.approx(0.4, abs=0.015)  # 3 sigma = 0.0104
+    np.testing.assert_array_equal(s, truth.sample(20000, seed=3))
+    assert not np.array_equal(s, truth.sample(20000, seed=4))
+    assert sample_surface(v, f[:0], 10).shape == (0, 3)
+
+
+def test_distance_stats():
+    st = distance_stats(np.array([1e-3, 2e-3, 3e-3, 4e-3]))
+    assert st["mean_mm"] == pytest.approx(2.5)
+    assert st["median_mm"] == pytest.approx(2.5)
+    assert st["max_mm"] == pytest.approx(4.0)
+    assert st["rms_mm"] == pytest.approx(np.sqrt(7.5))
+    assert st["p95_mm"] == pytest.approx(3.85)
+    assert st["n"] == 4
+    empty = distance_stats(np.zeros(0))
+    assert empty["n"] == 0 and empty["mean_mm"] is None
+    with pytest.raises(ValueError, match="non-finite"):
+        distance_stats(np.array([np.inf]))
+
+
+def test_cloud_and_mesh_accuracy(sphere):
+    truth, v, f, sag = sphere
+    pts = C + _directions(3000, 5) * (R + 0.2e-3)
+    acc = cloud_accuracy(pts, truth)
+    assert acc["mean_mm"] == pytest.approx(0.2, abs=sag * 1e3 + 1e-3)
+    assert acc["within_mm"] == {"0.1": 0.0, "0.5": 1.0, "1": 1.0}
+    # a sphere mesh 0.5 mm too big
+    big = C + (v - C) * (R + 0.5e-3) / R
+    m = mesh_accuracy(big, f, truth, n_samples=20000)
+    assert 0.5 - 0.1 < m["mean_mm"] < 0.5 + sag * 1e3 + 0.01
+    assert m["n"] == 20000
+    same = mesh_accuracy(v, f, truth, n_samples=5000)
+    assert same["max_mm"] < 1e-3
+
+
+def test_completeness_of_half_sphere(sphere):
+    truth, v, f, _ = sphere
+    centroid_z = v[f].mean(axis=1)[:, 2]
+    upper = f[centroid_z > C[2]]
+    comp = completeness(v, upper, truth, n_samples=40000, seed=1)
+    for t in ("0.1", "0.5", "1"):
+        assert comp["within_mm"][t] == pytest.approx(0.5, abs=0.02)
+    assert comp["n_samples"] == 40000
+    # counting only the upper half (the region box), the upper half is complete
+    # (above the zig-zag border of the kept triangles, one edge ~2 mm high)
+    box = (np.array([C[0] - 1.01 * R, C[1] - 1.01 * R, C[2] + 3e-3]), C + 1.01 * R)
+    comp_box = completeness(v, upper, truth, n_samples=40000, region=box)
+    assert comp_box["within_mm"]["0.1"] == 1.0
+    assert comp_box["n_samples"] == pytest.approx(40000 * (R - 3e-3) / (2 * R), rel=0.03)
+    # nothing reconstructed
+    empty = completeness(v[:0], f[:0], truth, n_samples=100)
+    assert empty["within_mm"]["0.5"] == 0.0 and empty["distance"]["n"] == 0
+
+
+def _iou_spheres(d):
+    v = 4 / 3 * np.pi * R**3
+    inter = np.pi * (4 * R + d) * (2 * R - d) ** 2 / 12
+    return inter / (2 * v - inter)
+
+
+def test_volume_iou(sphere):
+    truth, *_ = sphere
+    vs = 1e-3
+    origin = C - 0.04
+    idx = np.indices((81, 81, 81)).reshape(3, -1).T
+    centres = origin + idx * vs
+    occ = (np.linalg.norm(centres - C, axis=1) < R).reshape(81, 81, 81)
+    assert volume_iou(occ, origin, vs, truth) > 0.99
+    shift = 6e-3
+    occ_shift = (np.linalg.norm(centres - C - [shift, 0, 0], axis=1) < R).reshape(occ.shape)
+    iou = volume_iou(occ_shift, origin, vs, truth)
+    assert iou == pytest.approx(_iou_spheres(shift), abs=0.01)
+    assert iou < 0.9
+    # the region: only the upper half counts; the vertical shift cancels nothing there
+    region = (C - [0.05, 0.05, 0.0], C + 0.05)
+    assert volume_iou(occ, origin, vs, truth, region=region) > 0.99
+    assert volume_iou(np.zeros_like(occ), origin, vs, truth) == 0.0
+    with pytest.raises(ValueError, match="bool"):
+        volume_iou(occ.astype(np.uint8), origin, vs, truth)
+
+
+def test_pose_error():
+    a = make_transform(euler_to_matrix("zyx", np.radians([10.0, 5.0, -3.0])), [0.4, 0.1, 0.3])
+    rot = euler_to_matrix("zyx", [0.0, 0.0, np.radians(2.0)])
+    b = a @ make_transform(rot, [0.0, 0.0, 0.0])
+    b[:3, 3] += [0.003, 0.0, -0.004]
+    t, r = pose_error(b, a)
+    assert t == pytest.approx(5.0)
+    assert r == pytest.approx(2.0)
+    tt, rr = pose_error(np.stack([a, b]), np.stack([a, a]))
+    np.testing.assert_allclose(tt, [0.0, 5.0], atol=1e-9)
+    np.testing.assert_allclose(rr, [0.0, 2.0], atol=1e-5)
+    with pytest.raises(ValueError, match="4, 4"):
+        pose_error(np.eye(3), np.eye(3))
+
+
+def test_bad_inputs(sphere):
+    truth, v, f, _ = sphere
+    with pytest.raises(ValueError, match="no faces"):
+        TruthSurface(v, f[:0])
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        truth.distance(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="region"):
+        completeness(v, f, truth, region=(C, C))
+    with pytest.raises(ValueError, match="faces index"):
+        mesh_accuracy(v, f + len(v), truth)

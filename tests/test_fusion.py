@@ -1,0 +1,214 @@
+"""fuse_poisson on sampled spheres: accuracy against the analytic surface, the density trim,
+the hull cut."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robo3d.errors import StageError
+from robo3d.fusion import crop_mesh_to_hull, fuse_poisson, remove_vertices
+
+R = 0.03
+C = np.array([0.5, 0.1, 0.1])
+
+
+def _sphere_points(n=6000, seed=0):
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return C + R * d, d
+
+
+def _radial_error(v):
+    return np.abs(np.linalg.norm(v - C, axis=1) - R)
+
+
+def _area(v, f):
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
+                                axis=1).sum()
+
+
+def _hull(keep_upper_only: bool, vs=2e-3):
+    origin = C - 0.04
+    shape = (41, 41, 41)
+    centres = origin + np.indices(shape).reshape(3, -1).T * vs
+    occ = np.linalg.norm(centres - C, axis=1) < R + vs
+    if keep_upper_only:
+        occ &= centres[:, 2] > C[2]
+    return {"origin": origin, "voxel_size": vs, "occupancy": occ.reshape(shape)}
+
+
+def test_poisson_sphere_accuracy():
+    p, n = _sphere_points()
+    v, f, rep = fuse_poisson(p, n, depth=7)
+    err = _radial_error(v)
+    assert err.mean() < 0.1e-3  # measured ~0.01 mm
+    assert err.max() < 0.3e-3
+    # a closed sphere less the 2 % least supported vertices: nearly all the area
+    assert _area(v, f) == pytest.approx(4 * np.pi * R**2, rel=0.05)
+    assert rep["n_points"] == 6000 and rep["n_faces"] == len(f) and rep["n_vertices"] == len(v)
+    assert rep["n_vertices_low_density"] == pytest.approx(0.02 * rep["n_vertices_poisson"],
+                                                          abs=2)
+    assert f.dtype == np.int64 and f.max() < len(v)
+
+
+def test_density_trim_removes_unsupported_surface():
+    # points on the upper cap only (z > 2 mm): Poisson extends the surface below, unsupported
+    p, n = _sphere_points(8000, seed=1)
+    up = p[:, 2] > C[2] + 2e-3
+    cap_area = 2 * np.pi * R * (R - 2e-3)
+
+    def area_below(v, f):
+        return _area(v, f[v[f].mean(axis=1)[:, 2] < C[2] - 5e-3])
+
+    v0, f0, rep0 = fuse_poisson(p[up], n[up], depth=6, density_quantile=0.0)
+    v1, f1, rep1 = fuse_poisson(p[up], n[up], depth=6, density_quantile=0.1)
+    assert area_below(v0, f0) > 0.05 * cap_area and rep0["n_vertices_low_density"] == 0
+    assert area_below(v1, f1) == 0.0 and rep1["n_vertices_low_density"] > 0
+    assert _area(v1, f1) > 0.95 * cap_area  # the measured cap stays
+
+
+def test_hull_cut_removes_surface_outside_hull():
+    p, n = _sphere_points()
+    hull = _hull(keep_upper_only=True)
+    # half the points lie outside this hull: forced cut (the guard is tested below)
+    v, f, rep = fuse_poisson(p, n, depth=6, hull=hull, hull_margin_voxels=1,
+                             max_outside_fraction=1.0)
+    assert rep["hull_cut"] == "applied"
+    # nothing below the upper half-space dilated by one voxel (+ half a voxel rounding)
+    assert v[:, 2].min() >= C[2] - 1.5 * hull["voxel_size"]
+    # and the upper half is all there
+    assert v[:, 2].max() > C[2] + R - 0.1e-3
+    assert _area(v, f) == pytest.approx(2 * np.pi * R**2, rel=0.1)
+    assert rep["n_vertices_outside_hull"] > 0.4 * rep["n_vertices_poisson"]
+    # a full hull cuts nothing
+    _, _, rep_full = fuse_poisson(p, n, depth=6, hull=_hull(keep_upper_only=False))
+    assert rep_full["n_vertices_outside_hull"] == 0
+    assert rep_full["hull_points_outside_fraction"] == 0.0
+
+
+def test_hull_cut_trims_extrapolation_and_is_guarded():
+    p, n = _sphere_points(8000, seed=1)
+    up = p[:, 2] > C[2] + 2e-3  # measured: the upper cap; Poisson extrapolates below
+    hull = _hull(keep_upper_only=True)
+    v, f, rep = fuse_poisson(p[up], n[up], depth=6, density_quantile=0.0, hull=hull)
+    assert rep["hull_cut"] == "applied" and rep["hull_points_outside_fraction"] == 0.0
+    assert v[:, 2].min() >= C[2] - 1.5 * hull["voxel_size"]
+    assert rep["n_vertices_outside_hull"] > 0
+    # the guard: when the laser points disagree with the hull, the hull does not cut
+    v2, f2, rep2 = fuse_poisson(p, n, depth=6, hull=hull)
+    assert rep2["hull_cut"].startswith("skipped")
+    assert rep2["hull_points_outside_fraction"] == pytest.approx(0.5, abs=0.03)
+    assert rep2["n_vertices"] == rep2["n_vertices_poisson"] - rep2["n_vertices_low_density"]
+    assert v2[:, 2].min() < C[2] - R + 0.5e-3
+
+
+def test_crop_mesh_to_hull_off_grid_and_object_hull():
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [5.0, 5.0, 5.0]])
+    f = np.array([[0, 1, 2], [1, 2, 3]])
+
+    class Grid:  # attribute access, like robo3d's VoxelGrid
+        origin = np.zeros(3)
+        voxel_size = 1.0
+        occupancy = np.ones((2, 2, 1), dtype=bool)
+
+    v2, f2, n_out = crop_mesh_to_hull(v, f, Grid(), margin_voxels=0)
+    assert n_out == 1
+    np.testing.assert_array_equal(v2, v[:3])
+    np.testing.assert_array_equal(f2, [[0, 1, 2]])
+
+
+def test_remove_vertices_renumbers():
+    v = np.arange(15, dtype=float).reshape(5, 3)
+    f = np.array([[0, 1, 2], [2, 3, 4], [0, 2, 4]])
+    v2, f2 = remove_vertices(v, f, np.array([True, False, True, True, True]))
+    np.testing.assert_array_equal(v2, v[[0, 2, 3, 4]])
+    np.testing.assert_array_equal(v2[f2], v[f[1:]])
+
+
+def test_lists_reproducible_and_errors():
+    p, n = _sphere_points(3000)
+    a = fuse_poisson([p[:1000], p[1000:]], [n[:1000], n[1000:]], depth=6)
+    b = fuse_poisson(p, n, depth=6)
+    np.testing.assert_array_equal(a[0], b[0])  # single-threaded Poisson: bit-identical
+    np.testing.assert_array_equal(a[1], b[1])
+    with pytest.raises(StageError, match="at least 10"):
+        fuse_poisson(p[:5], n[:5])
+    with pytest.raises(ValueError, match="normals must match"):
+        fuse_poisson(p, n[:10])
+    with pytest.raises(ValueError, match="hull must have"):
+        fuse_poisson(p, n, depth=5, hull={"origin": C})
+    with pytest.raises(ValueError, match="density_quantile"):
+        fuse_poisson(p, n, density_quantile=1.0)
+
+
+def _views_of_sphere(n_per_view=15000, axes=None, seed=0):
+    """Points of the sphere visible from sensors 0.3 m away along the given axes."""
+    rng = np.random.default_rng(seed)
+    axes = np.vstack([np.eye(3), -np.eye(3)]) if axes is None else np.asarray(axes, float)
+    pts, nrm, org = [], [], []
+    for ax in axes:
+        o = C + 0.3 * ax
+        d = rng.normal(size=(n_per_view, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        p = C + R * d
+        vis = np.einsum("ij,ij->i", o - p, d) > 0
+        pts.append(p[vis])
+        nrm.append(d[vis])
+        org.append(np.repeat(o[None], vis.sum(), axis=0))
+    return pts, nrm, org
+
+
+def _signed_volume(v, f):
+    t = v[f] - C
+    return np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6
+
+
+def test_tsdf_sphere_from_six_views():
+    from robo3d.fusion import fuse_tsdf
+
+    pts, nrm, org = _views_of_sphere()
+    v, f, rep = fuse_tsdf(pts, nrm, org, voxel_size=1e-3, trunc_voxels=3)
+    err = _radial_error(v)
+    assert err.mean() < 0.06e-3  # measured 0.037 mm with 1 mm voxels
+    assert err.max() < 0.25e-3
+    # closed and facing outward: the signed volume is the sphere's
+    assert _signed_volume(v, f) == pytest.approx(4 / 3 * np.pi * R**3, rel=0.02)
+    assert _area(v, f) == pytest.approx(4 * np.pi * R**2, rel=0.02)
+    assert 0.8 * rep["n_points"] < rep["n_points_used"] <= rep["n_points"]
+    assert rep["grid_shape"] == [71, 71, 71] and rep["n_faces"] == len(f)
+
+
+def test_tsdf_invents_no_surface_where_nothing_was_seen():
+    from robo3d.fusion import fuse_tsdf
+
+    # one sensor above: only the upper cap is seen (grazing parts dropped by min_cos_view)
+    pts, nrm, org = _views_of_sphere(20000, axes=[[0.0, 0.0, 1.0]])
+    v, f, _ = fuse_tsdf(pts, nrm, org, voxel_size=0.5e-3, min_cos_view=0.3)
+    assert _radial_error(v).mean() < 0.03e-3
+    # the sensor sees z > ~R * 0.1; cos >= 0.3 keeps roughly z > 0.3 R: nothing below
+    assert v[:, 2].min() > C[2] + 0.2 * R
+    assert _area(v, f) < 2 * np.pi * R**2 * 0.75
+    # zero confidence removes a view entirely
+    # (with min_cos_view 0.3 the side views miss a cap of radius ~0.3 R around the bottom
+    # pole, which only the -z view sees)
+    pts6, nrm6, org6 = _views_of_sphere(8000)
+    v1, _, _ = fuse_tsdf(pts6, nrm6, org6, voxel_size=1e-3, min_cos_view=0.3)
+    assert v1[:, 2].min() < C[2] - 0.99 * R
+    conf = [np.full(len(p), 1.0 if k != 5 else 0.0) for k, p in enumerate(pts6)]
+    v2, _, rep2 = fuse_tsdf(pts6, nrm6, org6, voxel_size=1e-3, min_cos_view=0.3,
+                            confidences=conf)
+    assert v2[:, 2].min() > C[2] - 0.97 * R  # the bottom cap is open
+    assert rep2["n_points_used"] < rep2["n_points"] - len(pts6[5]) * 0.99
+
+
+def test_tsdf_errors():
+    from robo3d.fusion import fuse_tsdf
+
+    pts, nrm, org = _views_of_sphere(500, axes=[[0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="sensor_origins"):
+        fuse_tsdf(pts, nrm, [o[:10] for o in org])
+    with pytest.raises(StageError, match="max_voxels"):
+        fuse_tsdf(pts, nrm, org, voxel_size=1e-5, max_voxels=1000)
+    with pytest.raises(StageError, match="no point is usable"):
+        fuse_tsdf(pts, [-n for n in nrm], org)  # normals facing away from the sensor

@@ -1,0 +1,204 @@
+"""align_sweeps: known perturbations of overlapping partial views of an analytic surface are
+recovered; bad sweeps are flagged and left at the robot's pose."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from robo3d.evaluate import pose_error
+from robo3d.registration import AlignmentResult, align_sweeps
+from robo3d.transforms import euler_to_matrix, invert_transform, make_transform
+
+OFFSET = np.array([0.5, 0.1, 0.05])  # the object sits half a metre from the robot base
+CENTRES = [(-12e-3, -12e-3), (12e-3, -12e-3), (-12e-3, 12e-3), (12e-3, 12e-3)]
+HALF = 18e-3  # 36 mm square patches overlapping by 12 mm: a 2x2 grid with a loop
+
+
+def _height(x, y):
+    return (3e-3 * np.sin(2 * np.pi * x / 12e-3) * np.cos(2 * np.pi * y / 15e-3)
+            + 2e-3 * np.sin(2 * np.pi * (x + y) / 25e-3))
+
+
+def _normal(x, y):
+    k1, k2, k3 = 2 * np.pi / 12e-3, 2 * np.pi / 15e-3, 2 * np.pi / 25e-3
+    hx = 3e-3 * k1 * np.cos(k1 * x) * np.cos(k2 * y) + 2e-3 * k3 * np.cos(k3 * (x + y))
+    hy = -3e-3 * k2 * np.sin(k1 * x) * np.sin(k2 * y) + 2e-3 * k3 * np.cos(k3 * (x + y))
+    n = np.stack([-hx, -hy, np.ones_like(x)], axis=1)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _patch(cx, cy, n, rng, half=HALF):
+    x = rng.uniform(cx - half, cx + half, n)
+    y = rng.uniform(cy - half, cy + half, n)
+    return np.stack([x, y, _height(x, y)], axis=1) + OFFSET, _normal(x, y)
+
+
+def _about(t, c):
+    """A transform given about point c, expressed in base."""
+    return make_transform(np.eye(3), c) @ t @ make_transform(np.eye(3), -c)
+
+
+def _views(perturb_mm=0.3, perturb_deg=0.3, n=8000, seed=1, unperturbed=(0,)):
+    """Four overlapping patches, each moved by a known robot error P[s] (points = P @ true)."""
+    rng = np.random.default_rng(seed)
+    pts, nrm, errs = [], [], []
+    for s, (cx, cy) in enumerate(CENTRES):
+        p, nn = _patch(cx, cy, n, rng)
+        if s in unperturbed:
+            t = np.eye(4)
+        else:
+            axis = rng.normal(size=3)
+            ang = np.radians(perturb_deg) * axis / np.linalg.norm(axis)
+            d = rng.normal(size=3)
+            t = _about(make_transform(euler_to_matrix("zyx", ang[::-1]),
+                                      perturb_mm * 1e-3 * d / np.linalg.norm(d)), p.mean(0))
+        pts.append(p @ t[:3, :3].T + t[:3, 3])
+        nrm.append(nn @ t[:3, :3].T)
+        errs.append(t)
+    return pts, nrm, errs
+
+
+def _relative_errors(result: AlignmentResult, errs, pts):
+    """Pose error of each sweep's correction relative to the gauge sweep, at its centroid."""
+    g = result.reference
+    out = []
+    for s in range(len(pts)):
+        est = invert_transform(result.corrections[g]) @ result.corrections[s]
+        true = errs[g] @ invert_transform(errs[s])
+        c = pts[s].mean(axis=0)
+        shift = make_transform(np.eye(3), -c)
+        out.append(pose_error(shift @ est @ invert_transform(shift),
+                              shift @ true @ invert_transform(shift)))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("method", ["pose_graph", "sequential"])
+def test_recovers_known_perturbations(method):
+    pts, nrm, errs = _views()
+    res = align_sweeps(pts, nrm, method=method)
+    assert res.corrections.shape == (4, 4, 4)
+    assert not any(p["flagged"] for p in res.per_sweep)
+    assert all(p["converged"] for p in res.per_sweep)
+    np.testing.assert_allclose(res.corrections[res.reference], np.eye(4), atol=1e-12)
+    err = _relative_errors(res, errs, pts)
+    assert err[:, 0].max() < 0.05, err  # mm
+    assert err[:, 1].max() < 0.02, err  # degrees
+    # what was undone is what was done: corrections are sub-millimetre, not zero
+    before = [pose_error(_about(e, -p.mean(0)), np.eye(4))[0] for e, p in zip(
+        errs, pts, strict=True)]
+    assert min(before[1:]) > 0.2 and before[0] == 0.0
+    # the 2x2 grid overlaps in all six pairs, four of them strongly
+    assert len(res.pairs) == 6
+    assert all(p["accepted"] and p["used"] for p in res.pairs)
+    assert sorted(round(p["overlap"], 1) for p in res.pairs)[-4:] == [0.4] * 4
+    for p in res.pairs:
+        assert p["residual_mm"] < 0.01
+        # point-to-plane misfit: down to the floor set by curvature between samples
+        assert p["rmse_mm"] < 0.02 and p["rmse_mm"] < p["rmse_before_mm"] / 3
+
+
+def test_pose_graph_is_deterministic_and_json_ready():
+    pts, nrm, _ = _views(n=3000)
+    a = align_sweeps(pts, nrm)
+    b = align_sweeps(pts, nrm)
+    np.testing.assert_allclose(a.corrections, b.corrections, atol=1e-12)
+    text = json.dumps(a.to_dict(), allow_nan=False)
+    back = json.loads(text)
+    assert back["reference"] == a.reference and len(back["per_sweep"]) == 4
+
+
+def test_mean_gauge_averages_the_corrections():
+    pts, nrm, errs = _views(unperturbed=())
+    res = align_sweeps(pts, nrm, gauge="mean")
+    # the chordal mean rotation is the identity ...
+    u, _, vt = np.linalg.svd(res.corrections[:, :3, :3].mean(axis=0))
+    np.testing.assert_allclose(u @ vt, np.eye(3), atol=1e-9)
+    # ... and the object's centroid does not move on average
+    c = np.concatenate(pts).mean(axis=0)
+    moved = np.einsum("sij,j->si", res.corrections[:, :3, :3], c) + res.corrections[:, :3, 3]
+    np.testing.assert_allclose((moved - c).mean(axis=0), 0.0, atol=1e-9)
+    # relative poses are as good as with the reference gauge
+    err = _relative_errors(res, errs, pts)
+    assert err[:, 0].max() < 0.05 and err[:, 1].max() < 0.02
+    # and none is the identity any more
+    assert all(p["translation_mm"] > 1e-3 for p in res.per_sweep)
+
+
+def test_grossly_wrong_sweep_is_flagged_and_left_at_robot_pose():
+    pts, nrm, errs = _views()
+    pts[3] = pts[3] + np.array([0.0, 0.0, 10e-3])  # 10 mm off: no overlap
+    res = align_sweeps(pts, nrm)
+    bad = res.per_sweep[3]
+    assert bad["flagged"] and "overlap" in bad["reason"]
+    np.testing.assert_array_equal(res.corrections[3], np.eye(4))
+    assert not any(p["flagged"] for p in res.per_sweep[:3])
+    err = _relative_errors(res, errs, pts)[:3]
+    assert err[:, 0].max() < 0.05 and err[:, 1].max() < 0.02
+
+
+def test_correction_beyond_bounds_is_refused():
+    # only sweep 3 is off, by 0.3 mm / 0.1 deg
+    pts, nrm, errs = _views(perturb_deg=0.1, unperturbed=(0, 1, 2))
+    res = align_sweeps(pts, nrm, max_correction_mm=0.2, max_correction_deg=3.0)
+    bad = res.per_sweep[3]
+    assert bad["flagged"] and "exceeds the bounds" in bad["reason"]
+    np.testing.assert_array_equal(res.corrections[3], np.eye(4))
+    for s in range(3):
+        assert not res.per_sweep[s]["flagged"]
+        assert res.per_sweep[s]["translation_mm"] < 0.01
+        assert res.per_sweep[s]["rotation_deg"] < 0.01
+    # with room to move, the same sweep is corrected
+    res2 = align_sweeps(pts, nrm)
+    assert not res2.per_sweep[3]["flagged"]
+    assert res2.per_sweep[3]["translation_mm"] > 0.2
+    # tighter still, the pairwise results themselves are refused: no accepted pair
+    res3 = align_sweeps(pts, nrm, max_correction_mm=0.1)
+    assert res3.per_sweep[3]["flagged"]
+    assert "exceeds twice the per-sweep bounds" in res3.per_sweep[3]["reason"]
+    np.testing.assert_array_equal(res3.corrections[3], np.eye(4))
+    json.dumps(res3.to_dict(), allow_nan=False)  # unmeasured values are None, not NaN
+    assert all(p["residual_mm"] is None for p in res3.pairs if not p["used"])
+
+
+def test_distant_sweep_is_not_connected():
+    pts, nrm, _ = _views(n=3000)
+    rng = np.random.default_rng(5)
+    p, n = _patch(200e-3, 0.0, 3000, rng)
+    res = align_sweeps(pts + [p], nrm + [n])
+    assert res.per_sweep[4]["flagged"]
+    assert "no overlapping sweep" in res.per_sweep[4]["reason"]
+    np.testing.assert_array_equal(res.corrections[4], np.eye(4))
+    assert not any(q["flagged"] for q in res.per_sweep[:4])
+
+
+def test_single_and_empty_inputs():
+    rng = np.random.default_rng(0)
+    p, n = _patch(0.0, 0.0, 500, rng)
+    one = align_sweeps([p], [n])
+    np.testing.assert_array_equal(one.corrections, np.eye(4)[None])
+    assert one.reference == 0 and not one.per_sweep[0]["flagged"]
+    none = align_sweeps([], [])
+    assert none.corrections.shape == (0, 4, 4) and none.reference == -1
+    tiny = align_sweeps([p, p[:3]], [n, n[:3]])
+    assert tiny.per_sweep[1]["flagged"] and "too few points" in tiny.per_sweep[1]["reason"]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(points=[np.zeros((5, 3))], normals=[]), "normal arrays"),
+        (dict(points=[np.zeros((5, 2))], normals=[np.zeros((5, 2))]), r"\(N, 3\)"),
+        (dict(points=[np.zeros((5, 3))], normals=[np.zeros((4, 3))]), "normals\\[0\\]"),
+        (dict(points=[np.full((5, 3), np.nan)], normals=[np.zeros((5, 3))]), "non-finite"),
+        (dict(points=[], normals=[], method="magic"), "method"),
+        (dict(points=[], normals=[], gauge="first"), "gauge"),
+        (dict(points=[], normals=[], min_overlap=0.0), "min_overlap"),
+        (dict(points=np.zeros((5, 3)), normals=np.zeros((5, 3))), "lists"),
+    ],
+)
+def test_bad_inputs(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        align_sweeps(**kwargs)

@@ -1,0 +1,102 @@
+"""clean_mesh and simplify_mesh (pymeshlab): defects removed, face budgets and Hausdorff
+bounds kept, the reported Hausdorff distance checked against an independent measure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robo3d.evaluate import TruthSurface, sample_surface
+from robo3d.simplify import clean_mesh, hausdorff_distance, simplify_mesh
+
+R = 0.03
+C = np.array([0.4, -0.1, 0.12])
+
+
+def _uv_sphere(resolution=40):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_sphere(R, resolution=resolution)
+    return np.asarray(m.vertices) + C, np.asarray(m.triangles).astype(np.int64)
+
+
+def _independent_hausdorff(va, fa, vb, fb, n=20000):
+    """Max of both one-sided distances, from area samples and Open3D ray casting."""
+    ab = TruthSurface(vb, fb).distance(np.vstack([va, sample_surface(va, fa, n, seed=1)]))
+    ba = TruthSurface(va, fa).distance(np.vstack([vb, sample_surface(vb, fb, n, seed=2)]))
+    return max(ab.max(), ba.max())
+
+
+def test_simplify_to_target_faces():
+    v, f = _uv_sphere()
+    v2, f2, rep = simplify_mesh(v, f, target_faces=800)
+    assert 0.9 * 800 <= len(f2) <= 800
+    assert rep["n_faces"] == len(f2) and rep["n_faces_in"] == len(f)
+    assert rep["hausdorff_max_m"] == rep["hausdorff_m"]["max"]
+    hd = rep["hausdorff_m"]
+    # pymeshlab's measure agrees with an independent one (both sample, so within 15 %)
+    ind = _independent_hausdorff(v, f, v2, f2)
+    assert hd["max"] == pytest.approx(ind, rel=0.15)
+    assert hd["max"] >= max(hd["fused_to_simplified"]["max"], hd["simplified_to_fused"]["max"])
+    for side in ("fused_to_simplified", "simplified_to_fused"):
+        d = hd[side]
+        assert 0 < d["mean"] <= d["rms"] <= d["max"]
+    # every vertex still lies near the sphere: decimation does not wander off
+    assert np.abs(np.linalg.norm(v2 - C, axis=1) - R).max() < hd["max"] + 1e-4
+
+
+def test_simplify_within_max_error():
+    v, f = _uv_sphere()
+    bound = 0.2e-3
+    v2, f2, rep = simplify_mesh(v, f, max_error=bound)
+    assert rep["hausdorff_m"]["max"] <= bound
+    assert _independent_hausdorff(v, f, v2, f2) <= bound * 1.1
+    assert len(f2) < 0.5 * len(f)  # and it did simplify
+    assert rep["n_trials"] >= 2
+    # a face floor that the bound overrides
+    v3, f3, rep3 = simplify_mesh(v, f, target_faces=50, max_error=bound)
+    assert len(f3) > 50 and rep3["hausdorff_m"]["max"] <= bound
+    # a floor the bound allows is reached in one trial
+    v4, f4, rep4 = simplify_mesh(v, f, target_faces=len(f) // 2, max_error=bound)
+    assert rep4["n_trials"] == 1 and len(f4) <= len(f) // 2
+
+
+def test_hausdorff_of_identical_and_offset_meshes():
+    v, f = _uv_sphere(20)
+    same = hausdorff_distance(v, f, v, f)
+    assert same["max"] < 1e-9
+    shifted = hausdorff_distance(v, f, v + [0.5e-3, 0.0, 0.0], f)
+    assert shifted["max"] == pytest.approx(0.5e-3, rel=0.02)
+
+
+def test_clean_mesh_removes_defects():
+    v, f = _uv_sphere(20)
+    n_faces = len(f)
+    # a duplicated vertex used by one face, a degenerate face, a floating triangle
+    v_dup = np.vstack([v, v[f[0, 0]][None]])
+    f_dup = f.copy()
+    f_dup[0, 0] = len(v)
+    island = np.array([[1.0, 1.0, 1.0], [1.001, 1.0, 1.0], [1.0, 1.001, 1.0]])
+    v_all = np.vstack([v_dup, island, np.zeros((2, 3))])  # + 2 unreferenced vertices
+    f_all = np.vstack([f_dup, [[1, 1, 2]], [[len(v_dup), len(v_dup) + 1, len(v_dup) + 2]]])
+    v2, f2, rep = clean_mesh(v_all, f_all, min_component_fraction=0.01)
+    assert len(f2) == n_faces
+    assert len(v2) == len(v)
+    assert rep["n_duplicate_vertices"] >= 1
+    assert rep["n_null_faces"] + rep["n_duplicate_faces"] >= 1
+    assert rep["n_component_faces_removed"] == 1
+    assert np.linalg.norm(v2 - C, axis=1).max() < R + 1e-9  # the island is gone
+    # a clean mesh passes unchanged in size
+    v3, f3, rep3 = clean_mesh(v, f)
+    assert len(v3) == len(v) and len(f3) == len(f) and rep3["n_component_faces_removed"] == 0
+
+
+def test_empty_and_bad_inputs():
+    v, f, rep = clean_mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    assert len(v) == 0 and rep["n_faces"] == 0
+    with pytest.raises(ValueError, match="target_faces, max_error"):
+        simplify_mesh(*_uv_sphere(10))
+    with pytest.raises(ValueError, match="max_error"):
+        simplify_mesh(*_uv_sphere(10), max_error=-1.0)
+    with pytest.raises(ValueError, match="faces index"):
+        clean_mesh(np.zeros((3, 3)), np.array([[0, 1, 5]]))

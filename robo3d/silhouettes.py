@@ -19,15 +19,32 @@ that pixel meets the object. It is obtained by thresholding a grey image (seed Â
    ``mask[v0:v1, u0:u1]``, so a silhouette's ``bbox`` can be passed back as an ROI.
    :func:`roi_from_box` projects the workspace box into a view to make one.
 5. **Threshold** ``f > s`` (``"brighter"``) or ``f < s`` (``"darker"``), with ``s``
-   given or found by Otsu's method on the blurred values inside the ROI.
+   given or found by Otsu's method on the blurred values inside the ROI. Otsu splits the
+   histogram in two, and an object with a lit side and a shaded side makes three modes
+   (background, shade, light): Otsu then cuts between shade and light and the shaded side
+   is lost, which carves real object away. So the automatic threshold looks at the
+   background too. From a sample of sure background (the pixels outside the ROI, or else
+   the image's outer ring) come its level ``b`` (median) and its edge ``s_bg`` (99.5th
+   percentile plus six robust standard deviations). If more than 5 % of the pixels
+   beyond ``s_bg`` lie between ``s_bg`` and Otsu's ``s``, they are a shade mode of the
+   object, not the blurred rim of its outline, and ``s`` moves to the midpoint between
+   ``b`` and that mode's median (at least ``s_bg``); then, along the outline only (a band
+   a few blur widths wide next to the background), each pixel is thresholded at the
+   midpoint between ``b`` and the brightest pixel near it (never below ``s_bg``): every
+   part of the outline, lit or shaded, is cut at the middle of its own step, so neither
+   side is grown or shrunk, while the lit/shade edge inside the object stays inside.
+   Otherwise Otsu's ``s``, the unbiased midpoint of a two-level edge, stands. (Mirror
+   image for a darker object.)
 6. **Holes filled.** The silhouette is the object's *whole* projected region, so every
    background region that does not reach the image border (4-connected, the dual of the
    8-connected foreground) is set to foreground: dark texture inside a bright object
    does not punch holes into the visual hull. A notch that reaches the outline is not a
    hole and is not filled. The seed fills every hole; we keep as background the enclosed
-   regions larger than ``max_hole_fraction`` of the silhouette's area: those are
-   see-through gaps (between a temple's columns, inside a handle), and filling them would
-   keep the voxels behind them for good. Dark markings on an object are small holes.
+   regions larger than ``max_hole_fraction`` of the silhouette's area that look like the
+   background (median grey no brighter than the background's edge ``s_bg``, step 5):
+   those are see-through gaps (between a temple's columns, inside a handle), and filling
+   them would keep the voxels behind them for good. A large hole brighter than any
+   background is object in shadow (a pocket) and is filled; dark markings are small.
 7. **Specks removed.** Of the 8-connected foreground components, those smaller than
    ``min_component_px`` pixels, or smaller than ``min_component_fraction`` of the largest
    one, are dropped. The default keeps generously: a missing silhouette pixel carves a
@@ -192,20 +209,93 @@ def _otsu(values: np.ndarray) -> float:
     return float(edges[i + 1])
 
 
-def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0) -> np.ndarray:
-    """Foreground plus every 4-connected background region not touching the border and
-    no larger than ``max_hole_fraction`` of the foreground's area."""
+def _background_level(f: np.ndarray, roi: tuple[int, int, int, int], mode: str
+                      ) -> tuple[float, float] | None:
+    """``(b, s_bg)``: the level and the edge of the sure background, from the pixels
+    outside the ROI when they are at least 2 % of the image, else from the image's outer
+    ring (2 % of its size)."""
+    height, width = f.shape
+    u0, v0, u1, v1 = roi
+    outside = np.ones((height, width), dtype=bool)
+    outside[v0:v1, u0:u1] = False
+    if np.count_nonzero(outside) < 0.02 * f.size:
+        ring = max(2, int(round(0.02 * min(height, width))))
+        outside[:] = False
+        outside[:ring, :] = outside[-ring:, :] = True
+        outside[:, :ring] = outside[:, -ring:] = True
+    sample = f[outside]
+    if sample.size < 100:
+        return None
+    med = float(np.median(sample))
+    spread = 6.0 * max(1.4826 * float(np.median(np.abs(sample - med))), 1.0)
+    if mode == "darker":
+        return med, float(np.percentile(sample, 0.5)) - spread
+    return med, float(np.percentile(sample, 99.5)) + spread
+
+
+def _shade_aware_threshold(inside: np.ndarray, s_otsu: float, level: tuple[float, float],
+                           mode: str) -> float:
+    """Otsu's ``s``, or the midpoint between background and a shade mode that Otsu put on
+    the background's side (see the module docstring, step 5)."""
+    b, s_bg = level
+    sign = 1.0 if mode == "brighter" else -1.0
+    x = sign * inside
+    lo, hi = sign * s_bg, sign * s_otsu
+    if lo >= hi:
+        return s_otsu
+    beyond = x > lo
+    between = beyond & (x < hi)
+    n_beyond = np.count_nonzero(beyond)
+    if n_beyond == 0 or np.count_nonzero(between) <= 0.05 * n_beyond:
+        return s_otsu
+    shade = float(np.median(x[between]))
+    return sign * max(lo, 0.5 * (sign * b + shade))
+
+
+def _local_midpoint(inside: np.ndarray, level: tuple[float, float], mode: str,
+                    blur_sigma_px: float) -> np.ndarray:
+    """Per-pixel threshold midway between the background level and the object's level next
+    to the pixel (a max filter, min filter for a darker object, over a few blur widths),
+    never nearer the background than its edge ``s_bg``: each part of the outline, lit or
+    shaded, is cut at the middle of its own step, so no side is grown or shrunk."""
+    b, s_bg = level
+    r = max(2, int(np.ceil(3 * blur_sigma_px)))
+    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    img = np.ascontiguousarray(inside, dtype=np.float32)
+    if mode == "darker":
+        near = cv2.erode(img, kernel, borderType=cv2.BORDER_REPLICATE)
+        return np.minimum(s_bg, 0.5 * (b + near))
+    near = cv2.dilate(img, kernel, borderType=cv2.BORDER_REPLICATE)
+    return np.maximum(s_bg, 0.5 * (b + near))
+
+
+def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0,
+                grey: np.ndarray | None = None, s_bg: float | None = None,
+                mode: str = "brighter") -> np.ndarray:
+    """Foreground plus every 4-connected background region not touching the border, except
+    the large ones (over ``max_hole_fraction`` of the foreground's area) that look like
+    background: median grey beyond the background's edge ``s_bg`` means object in shadow
+    (a pocket), which is filled; at or below it, a see-through gap, which is kept. Without
+    ``s_bg`` every large hole is kept."""
+    import scipy.ndimage as ndi
+
     bg = (~mask).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(bg, connectivity=4)
     if n <= 1:
         return mask.copy()
-    border = stats[:, cv2.CC_STAT_AREA] > max_hole_fraction * np.count_nonzero(mask)
-    border[labels[0, :]] = True
-    border[labels[-1, :]] = True
-    border[labels[:, 0]] = True
-    border[labels[:, -1]] = True
-    border[0] = True  # label 0 is the foreground itself
-    outside = border[labels] & ~mask
+    keep = stats[:, cv2.CC_STAT_AREA] > max_hole_fraction * np.count_nonzero(mask)
+    if grey is not None and s_bg is not None and np.any(keep[1:]):
+        idx = np.nonzero(keep)[0]
+        idx = idx[idx > 0]
+        med = np.asarray(ndi.median(grey, labels, idx))
+        shadowed = med > s_bg if mode == "brighter" else med < s_bg
+        keep[idx[shadowed]] = False
+    keep[labels[0, :]] = True
+    keep[labels[-1, :]] = True
+    keep[labels[:, 0]] = True
+    keep[labels[:, -1]] = True
+    keep[0] = True  # label 0 is the foreground itself
+    outside = keep[labels] & ~mask
     return ~outside
 
 
@@ -301,8 +391,25 @@ def segment_silhouette(
         u0, v0, u1, v1 = _check_roi(roi, width, height)
     inside = f[v0:v1, u0:u1]
 
-    s = _otsu(inside.ravel()) if threshold is None else float(threshold)
+    local = None
+    level = None if mode == "difference" else _background_level(f, (u0, v0, u1, v1), mode)
+    if threshold is None:
+        s = _otsu(inside.ravel())
+        if level is not None:
+            s_shade = _shade_aware_threshold(inside, s, level, mode)
+            if s_shade != s:
+                local = _local_midpoint(inside, level, mode, blur_sigma_px)
+    else:
+        s = float(threshold)
+    if local is not None:
+        s = s_shade
     fg_roi = inside < s if mode == "darker" else inside > s
+    if local is not None:  # refine the outline only: a band along the background
+        r = max(2, int(np.ceil(3 * blur_sigma_px)))
+        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        band = fg_roi & cv2.dilate((~fg_roi).view(np.uint8), kernel).astype(bool)
+        fg_roi[band] = (inside[band] < local[band]) if mode == "darker" else \
+            (inside[band] > local[band])
     where = f"(threshold s={s:.2f}, polarity {mode}, roi {(u0, v0, u1, v1)})"
     n_roi = fg_roi.size
     n_fg = int(np.count_nonzero(fg_roi))
@@ -315,7 +422,8 @@ def segment_silhouette(
     mask = np.zeros((height, width), dtype=bool)
     mask[v0:v1, u0:u1] = fg_roi
     if fill_holes:
-        mask = _fill_holes(mask, max_hole_fraction)
+        mask = _fill_holes(mask, max_hole_fraction, f, None if level is None else level[1],
+                           mode)
 
     n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8),
                                                                connectivity=8)

@@ -272,3 +272,35 @@ def test_large_enclosed_gap_stays_background_small_marking_is_filled():
     assert (sil.mask ^ truth).sum() < 0.01 * truth.sum()
     every = segment_silhouette(image, threshold=100, blur_sigma_px=0, max_hole_fraction=1.0)
     assert every.mask[100, 120]                # the seed's rule fills every hole
+
+
+def test_shaded_side_is_kept_with_automatic_threshold():
+    """Three modes (dark table, shaded side, lit side): plain Otsu cuts between shade and
+    light; the background cap keeps the shaded side in the silhouette."""
+    rng = np.random.default_rng(7)
+    h, w = 240, 320
+    image = rng.normal(15, 3, (h, w))                       # dark textured table
+    image[60:180, 80:160] = rng.normal(200, 4, (120, 80))   # lit face
+    image[60:180, 160:240] = rng.normal(70, 4, (120, 80))   # shaded face
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    truth = np.zeros((h, w), bool)
+    truth[60:180, 80:240] = True
+    sil = segment_silhouette(image, roi=(40, 30, 280, 210))
+    iou = (sil.mask & truth).sum() / (sil.mask | truth).sum()
+    assert iou > 0.99, iou
+    assert sil.threshold < 70
+
+
+def test_large_shadowed_pocket_is_filled_but_see_through_gap_is_not():
+    """Two large enclosed regions: one as dark as the table (a gap one sees through),
+    one darker than the object but brighter than any background (a pocket in shadow)."""
+    rng = np.random.default_rng(3)
+    h, w = 240, 320
+    image = rng.normal(15, 2, (h, w))
+    image[40:200, 40:280] = rng.normal(190, 3, (160, 240))
+    image[80:160, 70:130] = rng.normal(15, 2, (80, 60))     # gap: background seen through
+    image[80:160, 190:250] = rng.normal(70, 3, (80, 60))    # pocket: object in shadow
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    sil = segment_silhouette(image, max_hole_fraction=0.02)
+    assert not sil.mask[120, 100]
+    assert sil.mask[120, 220]

@@ -499,13 +499,14 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         align_report = {"skipped": "alignment disabled in the config" if not ac["enabled"]
                         else "a single sweep has nothing to align to"}
     for c, C in zip(clouds, corrections, strict=True):
+        c.report = {**(c.report or {}), "correction": C.tolist()}
         c.points_base = transform_points(C, c.points_base)
         c.normals_base = c.normals_base @ C[:3, :3].T
         c.sensor_origin_base = transform_points(C, c.sensor_origin_base)
     report = {"n_sweeps": len(clouds), **align_report,
               "corrections": [C.tolist() for C in corrections],
               "seconds": round(time.perf_counter() - t0, 3)}
-    save_clouds_npz(outputs["npz"], clouds, corrections=corrections)
+    save_clouds_npz(outputs["npz"], clouds)
     write_point_cloud(outputs["ply"], np.concatenate([c.points_base for c in clouds]),
                       normals=np.concatenate([c.normals_base for c in clouds]),
                       attributes={"sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
@@ -546,7 +547,10 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
             V, F, fuse_report = fuse_poisson(pts, nrm, depth=fc["poisson_depth"],
                                              density_quantile=fc["density_quantile"],
                                              hull=crop, seed=cfg["seed"])
-        source = f"laser ({fc['method']})" + (", cropped to the hull" if crop is not None else "")
+        source = f"laser ({fc['method']})"
+        if crop is not None:
+            cut = str(fuse_report.get("hull_cut", "applied"))
+            source += ", cut to the hull" if cut == "applied" else f", hull cut {cut}"
     elif hull is not None:
         V, F = hull_to_mesh(hull, smooth_sigma_vox=cfg["carving"]["smooth_sigma_vox"])
         fuse_report = {"note": "no laser frames: the fused mesh is the visual hull's"}
@@ -671,13 +675,12 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
     """
     from .evaluate import pose_error
     from .recording.reader import read_ground_truth_tf
-
-    truth_tf = read_ground_truth_tf(rec)
-    with np.load(inputs["aligned"]) as z:
-        corrections = z["corrections"] if "corrections" in z.files else None
     from .triangulation import load_clouds_npz
 
+    truth_tf = read_ground_truth_tf(rec)
     clouds = load_clouds_npz(inputs["clouds"])
+    corrections = [np.asarray(c.report.get("correction", np.eye(4)))
+                   for c in load_clouds_npz(inputs["aligned"])]
     stripes_path = Path(inputs["clouds"]).with_name("stripes.npz")
     with np.load(stripes_path) as z:
         stamps = z["stamps_ns"]
@@ -687,7 +690,7 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
         t = int(stamps[mid])
         T_rep = rec.tf.lookup(rec.base_frame, "flange", t)
         T_true = truth_tf.lookup(rec.base_frame, "flange", t)
-        C = np.eye(4) if corrections is None else corrections[k]
+        C = corrections[k]
         before = pose_error(T_rep, T_true)
         after = pose_error(C @ T_rep, T_true)
         out.append({"sweep": int(c.sweep), "before_mm": float(before[0]),

@@ -13,7 +13,8 @@ Choices where the seed is silent (all written here so that a result can be expla
   centre at ``origin + voxel_size * (i, j, k)``; cubic voxels; ``occupancy`` is a dense
   ``(nx, ny, nz)`` bool array (C order). It is the exchange type of every carver: the
   dense carver here and a later octree carver, which reads and writes the same grid at
-  its finest level. :func:`make_grid` centres the grid on the box and covers it
+  its finest level (:func:`robo3d.octree.carve_octree`; :func:`carve_visual_hull`
+  selects either). :func:`make_grid` centres the grid on the box and covers it
   (``n = ceil(extent / voxel_size)`` per axis), so it may overhang the box by less than
   one voxel on each axis.
 * **Pixel of a voxel.** A projected point ``(u, v)`` falls in pixel
@@ -72,6 +73,8 @@ __all__ = [
     "make_grid",
     "box_from_silhouettes",
     "carve_dense",
+    "carve_visual_hull",
+    "CARVING_METHODS",
     "hull_to_mesh",
     "resolution_report",
 ]
@@ -79,6 +82,8 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 _POLICIES = ("keep", "carve")
+#: Accepted values of ``method`` in :func:`carve_visual_hull`.
+CARVING_METHODS = ("octree", "dense")
 _MAX_VOXELS = 1 << 30  # 1 GiB of bool: beyond this a dense grid is a configuration mistake
 _RESERVED = ("origin", "voxel_size", "occupancy", "frame", "_json_keys")
 
@@ -171,6 +176,20 @@ class VoxelGrid:
         else:
             ijk = np.indices(self.shape).reshape(3, -1).T
         return self.index_to_points(ijk)
+
+    def surface(self) -> np.ndarray:
+        """The occupied voxels with an empty 6-neighbour (outside the grid counts as
+        empty): the hull's shell, ``(nx, ny, nz)`` bool."""
+        occ = self.occupancy
+        inner = occ.copy()
+        inner[0, :, :] = inner[-1, :, :] = False
+        inner[:, 0, :] = inner[:, -1, :] = False
+        inner[:, :, 0] = inner[:, :, -1] = False
+        core = inner[1:-1, 1:-1, 1:-1]
+        core &= occ[:-2, 1:-1, 1:-1] & occ[2:, 1:-1, 1:-1]
+        core &= occ[1:-1, :-2, 1:-1] & occ[1:-1, 2:, 1:-1]
+        core &= occ[1:-1, 1:-1, :-2] & occ[1:-1, 1:-1, 2:]
+        return occ & ~inner
 
     def copy(self) -> VoxelGrid:
         """A deep copy."""
@@ -649,6 +668,61 @@ def carve_dense(
     _log.info("carve: %d -> %d voxels (%.3g m^3) with %d views in %.2f s",
               before, after, out.volume_m3, n_views, elapsed)
     return out, report
+
+
+def carve_visual_hull(
+    grid: VoxelGrid,
+    masks: Sequence[np.ndarray],
+    cameras: CameraModel | Sequence[CameraModel],
+    T_base_cameras: np.ndarray,
+    *,
+    method: str = "octree",
+    outside_image: str = "keep",
+    behind_camera: str = "carve",
+    leaf_rule: str = "centre",
+    threads: int = 1,
+) -> tuple[VoxelGrid, dict]:
+    """Carve the visual hull with the method the configuration selects.
+
+    Parameters
+    ----------
+    grid, masks, cameras, T_base_cameras
+        As :func:`carve_dense`.
+    method : {"octree", "dense"}
+        Szeliski's octree (:func:`robo3d.octree.carve_octree`, seed §3.1.1) or the dense
+        voxel-by-voxel test (:func:`carve_dense`, seed §3.1.2). With
+        ``leaf_rule="centre"`` both give the same occupancy; the octree is far faster.
+    outside_image, behind_camera : {"keep", "carve"}
+        As :func:`carve_dense`, for both methods.
+    leaf_rule : {"centre", "conservative"}
+        Octree only (see :func:`robo3d.octree.carve_octree`); the dense method accepts
+        only ``"centre"``, the rule it implements.
+    threads : int
+        Octree only: threads of the compiled kernel (0: all cores).
+
+    Returns
+    -------
+    grid : VoxelGrid
+    report : dict
+        The method's report, with ``method`` set.
+
+    References
+    ----------
+    R. Szeliski, CVGIP: Image Understanding 58(1), 1993.
+    """
+    if method not in CARVING_METHODS:
+        raise ValueError(f"method must be one of {CARVING_METHODS}, got {method!r}")
+    if method == "dense":
+        if leaf_rule != "centre":
+            raise ValueError(f"the dense method tests voxel centres only (leaf_rule "
+                             f"'centre'), got leaf_rule={leaf_rule!r}")
+        out, report = carve_dense(grid, masks, cameras, T_base_cameras,
+                                  outside_image=outside_image, behind_camera=behind_camera)
+        return out, {"method": "dense", **report}
+    from .octree import carve_octree
+
+    return carve_octree(grid, masks, cameras, T_base_cameras, outside_image=outside_image,
+                        behind_camera=behind_camera, leaf_rule=leaf_rule, threads=threads)
 
 
 # ---------------------------------------------------------------------- mesh

@@ -17,7 +17,11 @@ that pixel meets the object. It is obtained by thresholding a grey image (seed ย
 4. **Region of interest.** Pixels outside the ROI ``(u0, v0, u1, v1)`` are background.
    ROIs and bounding boxes are half-open pixel ranges in numpy slice order,
    ``mask[v0:v1, u0:u1]``, so a silhouette's ``bbox`` can be passed back as an ROI.
-   :func:`roi_from_box` projects the workspace box into a view to make one.
+   :func:`roi_from_box` projects the workspace box into a view to make one; without a
+   box, :func:`find_roi` finds one automatically: a first segmentation of the whole
+   image, the bounding box of its largest component grown by a margin (the larger of
+   ``margin_px`` and 10 % of the box's size), so that the threshold of the second,
+   final segmentation is chosen around the object and clutter far from it is ignored.
 5. **Threshold** ``f > s`` (``"brighter"``) or ``f < s`` (``"darker"``), with ``s``
    given or found by Otsu's method on the blurred values inside the ROI. Otsu splits the
    histogram in two, and an object with a lit side and a shaded side makes three modes
@@ -25,7 +29,7 @@ that pixel meets the object. It is obtained by thresholding a grey image (seed ย
    is lost, which carves real object away. So the automatic threshold looks at the
    background too. From a sample of sure background (the pixels outside the ROI, or else
    the image's outer ring) come its level ``b`` (median) and its edge ``s_bg`` (99.5th
-   percentile plus six robust standard deviations). If more than 5 % of the pixels
+   percentile plus six robust standard deviations). If more than 2 % of the pixels
    beyond ``s_bg`` lie between ``s_bg`` and Otsu's ``s``, they are a shade mode of the
    object, not the blurred rim of its outline, and ``s`` moves to the midpoint between
    ``b`` and that mode's median (at least ``s_bg``); then, along the outline only (a band
@@ -49,6 +53,11 @@ that pixel meets the object. It is obtained by thresholding a grey image (seed ย
    ``min_component_px`` pixels, or smaller than ``min_component_fraction`` of the largest
    one, are dropped. The default keeps generously: a missing silhouette pixel carves a
    true part of the object away for good, while a kept speck only widens the hull.
+
+Quality. Each :class:`Silhouette` says whether it touches the border of the analysed
+region (``touches_border``: the ROI cut it) and of the image (``touches_image_border``:
+the object is cut off by the frame; with ``carving.outside_image = carve`` that view
+carves the object's hidden part away). The pipeline warns naming the view.
 
 An empty result, or one that covers every pixel of the analysed region, is a
 :class:`~robo3d.errors.StageError`: both mean the threshold, polarity or lighting are
@@ -74,7 +83,7 @@ from .camera import CameraModel, project_points
 from .errors import StageError
 from .transforms import invert_transform
 
-__all__ = ["Silhouette", "segment_silhouette", "roi_from_box", "to_grey"]
+__all__ = ["Silhouette", "segment_silhouette", "roi_from_box", "find_roi", "to_grey"]
 
 _log = logging.getLogger(__name__)
 
@@ -104,6 +113,12 @@ class Silhouette:
         Mean ``(u, v)`` of the foreground pixels.
     bbox : tuple of 4 int
         ``(u0, v0, u1, v1)``, half-open: ``mask[v0:v1, u0:u1]`` holds every foreground pixel.
+    touches_image_border : bool
+        The mask reaches the first or last row or column of the image: the object is cut
+        off by the frame in this view.
+    roi : tuple of 4 int or None
+        The region analysed, ``(u0, v0, u1, v1)`` half-open (the whole image if None was
+        given).
     """
 
     mask: np.ndarray
@@ -114,6 +129,8 @@ class Silhouette:
     touches_border: bool
     centroid_uv: np.ndarray
     bbox: tuple[int, int, int, int]
+    touches_image_border: bool = False
+    roi: tuple[int, int, int, int] | None = None
 
     def summary(self) -> dict:
         """JSON-ready numbers (everything but the mask)."""
@@ -125,6 +142,8 @@ class Silhouette:
             "touches_border": bool(self.touches_border),
             "centroid_uv": [float(c) for c in self.centroid_uv],
             "bbox": [int(b) for b in self.bbox],
+            "touches_image_border": bool(self.touches_image_border),
+            "roi": None if self.roi is None else [int(r) for r in self.roi],
         }
 
 
@@ -246,7 +265,7 @@ def _shade_aware_threshold(inside: np.ndarray, s_otsu: float, level: tuple[float
     beyond = x > lo
     between = beyond & (x < hi)
     n_beyond = np.count_nonzero(beyond)
-    if n_beyond == 0 or np.count_nonzero(between) <= 0.05 * n_beyond:
+    if n_beyond == 0 or np.count_nonzero(between) <= 0.02 * n_beyond:
         return s_otsu
     shade = float(np.median(x[between]))
     return sign * max(lo, 0.5 * (sign * b + shade))
@@ -444,12 +463,69 @@ def segment_silhouette(
     centroid = np.array([us.mean(), vs.mean()], dtype=np.float64)
     bbox = (int(us.min()), int(vs.min()), int(us.max()) + 1, int(vs.max()) + 1)
     touches = bool(bbox[0] <= u0 or bbox[1] <= v0 or bbox[2] >= u1 or bbox[3] >= v1)
+    touches_image = bool(bbox[0] == 0 or bbox[1] == 0 or bbox[2] == width
+                         or bbox[3] == height)
     n_removed = n_components - int(np.count_nonzero(keep))
     _log.debug("silhouette: s=%.2f (%s), %d px, %d components (%d specks removed)%s",
                s, mode, area, n_components, n_removed, ", touches border" if touches else "")
     return Silhouette(mask=mask, threshold=s, polarity=mode, area_px=area,
                       n_components=n_components, touches_border=touches,
-                      centroid_uv=centroid, bbox=bbox)
+                      centroid_uv=centroid, bbox=bbox, touches_image_border=touches_image,
+                      roi=(u0, v0, u1, v1))
+
+
+def find_roi(
+    image: np.ndarray,
+    *,
+    margin_px: int = 10,
+    **segment_kwargs,
+) -> tuple[int, int, int, int]:
+    """The object's region in a view without a workspace box (seed ยง3.2, fig. 10).
+
+    A first segmentation of the whole image (:func:`segment_silhouette` with
+    ``segment_kwargs``, Otsu's threshold unless one is given) is reduced to its largest
+    8-connected component, the object; its bounding box grown on every side by the
+    larger of ``margin_px`` and 10 % of its size, clipped to the image, is the ROI of
+    the final segmentation. Bright clutter far from the object is then outside the
+    region, and the threshold is chosen from the object and its surroundings only.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
+    margin_px : int
+        Least growth of the box, pixels, on each side.
+    **segment_kwargs
+        Passed to :func:`segment_silhouette` (``polarity``, ``threshold``,
+        ``blur_sigma_px``, ``background``, ...); ``roi`` is not accepted.
+
+    Returns
+    -------
+    roi : (u0, v0, u1, v1) int
+        Half-open pixel box, ``image[v0:v1, u0:u1]``.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments (as :func:`segment_silhouette`), or a ``roi`` among them.
+    StageError
+        The first segmentation finds nothing (as :func:`segment_silhouette`).
+    """
+    if "roi" in segment_kwargs:
+        raise ValueError("find_roi segments the whole image: do not pass roi")
+    if int(margin_px) < 0:
+        raise ValueError(f"margin_px must be >= 0, got {margin_px}")
+    first = segment_silhouette(image, **segment_kwargs)
+    height, width = first.mask.shape
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(first.mask.view(np.uint8),
+                                                           connectivity=8)
+    big = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    u0 = int(stats[big, cv2.CC_STAT_LEFT])
+    v0 = int(stats[big, cv2.CC_STAT_TOP])
+    u1 = u0 + int(stats[big, cv2.CC_STAT_WIDTH])
+    v1 = v0 + int(stats[big, cv2.CC_STAT_HEIGHT])
+    gu = max(int(margin_px), int(np.ceil(0.1 * (u1 - u0))))
+    gv = max(int(margin_px), int(np.ceil(0.1 * (v1 - v0))))
+    return max(u0 - gu, 0), max(v0 - gv, 0), min(u1 + gu, width), min(v1 + gv, height)
 
 
 # ---------------------------------------------------------------------- projection helpers

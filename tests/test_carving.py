@@ -514,3 +514,70 @@ def test_resolution_report(sphere_views):
     coarse = make_grid(CENTRE - 0.06, CENTRE + 0.06, voxel_size=0.002)
     rep = resolution_report(coarse, cam, Ts)
     assert rep["finer_than_cameras"] is False and rep["warning"] is None
+
+
+def test_surface_is_the_shell():
+    occ = np.zeros((6, 7, 8), bool)
+    occ[1:5, 1:6, 1:7] = True
+    occ[0, 3, 3] = True  # a voxel on the grid's side
+    g = VoxelGrid(np.zeros(3), 0.01, occ)
+    shell = g.surface()
+    inner = np.zeros_like(occ)
+    inner[2:4, 2:5, 2:6] = True
+    inner[1, 3, 3] = True  # enclosed once the voxel on the side covers it
+    assert np.array_equal(shell, occ & ~inner)
+    full = VoxelGrid(np.zeros(3), 0.01, np.ones((3, 3, 3), bool))
+    assert full.surface().sum() == 26  # only the centre voxel is enclosed
+    assert VoxelGrid(np.zeros(3), 0.01, np.ones((1, 4, 4), bool)).surface().all()
+
+
+# ---------------------------------------------------------------------- the pipeline stage
+def _silhouettes_npz(path, cam, Ts, masks):
+    from robo3d.atomic import save_npz
+    from robo3d.pipeline import _camera_arrays
+
+    stack = np.stack(masks)
+    save_npz(path, masks=np.packbits(stack, axis=-1), mask_shape=np.array(stack.shape),
+             T_base_camera=Ts, stamps_ns=np.arange(len(Ts), dtype=np.int64),
+             **_camera_arrays([cam] * len(Ts)))
+
+
+@pytest.mark.parametrize("method", ["octree", "dense"])
+def test_stage_carve_places_the_box_and_carves(tmp_path, sphere_views, method):
+    """Without a workspace box the box comes from the silhouettes (seed §3.4); both
+    methods write the same hull, with its mesh, volume and resolution check."""
+    from robo3d.config import load_config
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks = sphere_views
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, masks)
+    out = {"npz": str(tmp_path / f"hull_{method}.npz"), "ply": str(tmp_path / "hull.ply"),
+           "report": str(tmp_path / "carve.json"), "rrd": str(tmp_path / "carve.rrd")}
+    cfg = load_config(overrides={"carving": {"method": method, "resolution": 48}})
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+    box = report["box"]
+    assert box["source"].startswith("silhouette centroid rays")
+    assert np.linalg.norm(np.asarray(box["centre"]) - CENTRE) < 1e-3
+    assert np.all(np.asarray(box["size_m"]) > 2 * RADIUS)
+    grid, extra = VoxelGrid.load_npz(out["npz"], return_extra=True)
+    assert extra["carving"]["method"] == method and grid.frame == "base"
+    assert report["carving"]["method"] == method
+    assert report["volume_m3"] == pytest.approx(SPHERE_VOLUME, rel=0.05)
+    assert report["mesh"]["volume_m3"] == pytest.approx(report["volume_m3"], rel=0.03)
+    assert len(report["resolution"]["pixel_footprint_m"]) == len(Ts)
+    expect, _ = carve_dense(make_grid(np.asarray(box["min"]), np.asarray(box["max"]),
+                                      resolution=48), masks, cam, Ts)
+    assert np.array_equal(grid.occupancy, expect.occupancy)
+
+
+def test_stage_carve_rejects_conservative_dense(tmp_path, sphere_views):
+    from robo3d.config import load_config
+    from robo3d.errors import ConfigError
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks = sphere_views
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, masks)
+    cfg = load_config(overrides={"carving": {"method": "dense", "leaf_rule": "conservative"}})
+    with pytest.raises(ConfigError, match="carving.leaf_rule"):
+        stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")},
+                    {k: str(tmp_path / k) for k in ("npz", "ply", "report", "rrd")}, cfg, "s")

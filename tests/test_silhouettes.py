@@ -15,6 +15,7 @@ from robo3d.errors import StageError
 from robo3d.silhouettes import (
     Silhouette,
     _distortion_limit_r2,
+    find_roi,
     roi_from_box,
     segment_silhouette,
     to_grey,
@@ -151,8 +152,37 @@ def test_touches_border():
     img, disc = _scene(cx=30.0, cy=80.0)  # cut by the left side; the holes stay inside
     sil = segment_silhouette(img)
     assert sil.touches_border and sil.bbox[0] == 0
+    assert sil.touches_image_border
     assert _iou(sil.mask, disc) >= 0.99
-    assert sil.summary()["touches_border"] is True
+    s = sil.summary()
+    assert s["touches_border"] is True and s["touches_image_border"] is True
+    assert s["roi"] == [0, 0, W, H]
+    # an ROI cutting the object: its border is touched, not the image's
+    img, disc = _scene()
+    cut = segment_silhouette(img, roi=(0, 0, int(CX), H))
+    assert cut.touches_border and not cut.touches_image_border
+    assert cut.roi == (0, 0, int(CX), H)
+    whole = segment_silhouette(img)
+    assert not whole.touches_border and not whole.touches_image_border
+
+
+def test_find_roi_around_the_object_excludes_clutter():
+    img, disc = _scene(seed=3)
+    img[5:25, 5:35] = 200  # a bright thing beside the object, as in the test above
+    roi = find_roi(img, margin_px=10)
+    vs, us = np.nonzero(disc)
+    # the disc's box grown by max(10 px, 10 % of its size) = 10 px on each side
+    assert roi == (us.min() - 10, vs.min() - 10, us.max() + 11, vs.max() + 11)
+    sil = segment_silhouette(img, roi=roi)
+    assert _iou(sil.mask, disc) >= 0.99 and sil.n_components == 1
+    # near the image's side the region is clipped to the image
+    img2, disc2 = _scene(seed=2, cx=30.0, cy=80.0)
+    roi2 = find_roi(img2, margin_px=25)
+    assert roi2[0] == 0 and roi2[2] <= W
+    with pytest.raises(ValueError, match="do not pass roi"):
+        find_roi(img, roi=(0, 0, 10, 10))
+    with pytest.raises(StageError, match="empty"):
+        find_roi(np.full((H, W), 40, np.uint8), threshold=100)
 
 
 # ---------------------------------------------------------------------- exceptions
@@ -304,3 +334,85 @@ def test_large_shadowed_pocket_is_filled_but_see_through_gap_is_not():
     sil = segment_silhouette(image, max_hole_fraction=0.02)
     assert not sil.mask[120, 100]
     assert sil.mask[120, 220]
+
+
+# ---------------------------------------------------------------------- the pipeline stage
+def _write_views_recording(path, images, backgrounds, bg_offsets_m):
+    """A views-only recording of a static camera rig: one view per image, and on
+    ``/camera/background`` an empty-scene image per view, taken ``bg_offsets_m[i]``
+    metres from that view's camera position."""
+    from robo3d.recording.writer import RecordingWriter
+
+    cam = CameraModel("camera", W, H, [[200, 0, (W - 1) / 2], [0, 200, (H - 1) / 2], [0, 0, 1]])
+    t0 = 1_700_000_000_000_000_000
+    with RecordingWriter(path) as w:
+        w.add_metadata("robo3d.recording", {"kind": "scan", "object": "disc", "units": "m"})
+        w.write_calibration("/camera/calibration", t0, cam)
+        w.write_transforms("/tf_static", t0, [("flange", "camera", np.eye(4))])
+        for i, (img, bg, off) in enumerate(zip(images, backgrounds, bg_offsets_m, strict=True)):
+            T = _look_at([0.3 * np.cos(i), 0.3 * np.sin(i), 0.2], [0.0, 0.0, 0.0])
+            Tb = T.copy()
+            Tb[0, 3] += off
+            tv = t0 + (2 * i + 1) * 1_000_000_000
+            tb = tv + 500_000_000
+            for t, pose in ((tv, T), (tb, Tb)):
+                for d in (-20_000_000, 20_000_000):
+                    w.write_transforms("/tf", t + d, [("base", "flange", pose)])
+            w.write_image("/camera/image", tv, "camera", img, "png")
+            w.write_image("/camera/background", tb, "camera", bg, "png")
+    return cam
+
+
+def test_stage_silhouettes_background_topic_and_mask_pngs(tmp_path, caplog):
+    """Views whose background is both brighter and darker than the object: subtracting
+    the empty scene of the same pose segments them; a view whose empty-scene image was
+    taken elsewhere is segmented without it (and says so); every mask is written as a
+    PNG beside the NPZ."""
+    from robo3d.config import load_config
+    from robo3d.pipeline import _load_silhouettes, stage_silhouettes
+
+    rng = np.random.default_rng(9)
+    v, u = np.mgrid[0:H, 0:W]
+    background = np.where((u // 10) % 2 == 0, 30.0, 220.0)
+    disc = _disc()
+    images, bgs = [], []
+    for _ in range(3):
+        img = background.copy()
+        img[disc] = 125 + 8 * np.sin(u[disc] / 3.0)
+        images.append(np.clip(np.rint(img + rng.normal(0, 3, img.shape)), 0, 255)
+                      .astype(np.uint8))
+        bgs.append(np.clip(np.rint(background + rng.normal(0, 3, img.shape)), 0, 255)
+                   .astype(np.uint8))
+    rec = tmp_path / "discs.mcap"
+    _write_views_recording(rec, images, bgs, [0.0, 0.0002, 0.05])
+    out = {"npz": str(tmp_path / "silhouettes.npz"), "masks": str(tmp_path / "masks"),
+           "report": str(tmp_path / "silhouettes.json"), "rrd": str(tmp_path / "s.rrd")}
+    cfg = load_config(overrides={"segmentation": {"background_topic": "/camera/background",
+                                                  "min_component_px": 20}})
+    report = stage_silhouettes({"recording": str(rec)}, out, cfg, "discs")
+    views = report["views"]
+    assert [v["background_subtracted"] for v in views] == [True, True, False]
+    assert report["n_background_subtracted"] == 2
+    assert "no empty-scene image on /camera/background within 1.00 mm" in caplog.text
+    masks = _load_silhouettes(out["npz"])["masks"]
+    assert _iou(masks[0], disc) >= 0.99 and _iou(masks[1], disc) >= 0.99
+    assert _iou(masks[2], disc) < 0.9  # thresholding alone cannot separate them
+    assert all(v["roi_source"] == "automatic" for v in views)  # no workspace box
+    pngs = sorted((tmp_path / "masks").iterdir())
+    assert [p.name for p in pngs] == ["view_000.png", "view_001.png", "view_002.png"]
+    for p, m in zip(pngs, masks, strict=True):
+        png = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint8 and np.array_equal(png == 255, m)
+        assert set(np.unique(png)) <= {0, 255}
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".masks")]
+    # a view cut by the image's side is flagged and named
+    caplog.clear()
+    edge = [np.clip(np.rint(np.where(_disc(20.0, 80.0), 200.0, 40.0)), 0, 255).astype(np.uint8)]
+    rec2 = tmp_path / "edge.mcap"
+    _write_views_recording(rec2, edge, edge, [0.0])
+    cfg2 = load_config(overrides={"segmentation": {"min_component_px": 20}})
+    report = stage_silhouettes({"recording": str(rec2)}, out, cfg2, "edge")
+    assert report["views_touching_image_border"] == [0]
+    assert report["views"][0]["touches_image_border"] is True
+    assert "view 0 (topic /camera/image" in caplog.text and "image border" in caplog.text
+    assert len(list((tmp_path / "masks").iterdir())) == 1  # the folder was replaced

@@ -6,6 +6,7 @@ rule silhouettes:
         recording=get_recording,
     output:
         npz="results/{rec}/silhouettes.npz",
+        masks=directory("results/{rec}/masks"),
         report="results/{rec}/reports/silhouettes.json",
         rrd="results/{rec}/silhouettes.rrd",
     log:
@@ -35,7 +36,8 @@ rule carve:
         "benchmarks/carve/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    # the octree kernel's threads (carving.threads, 0 = all cores)
+    threads: config["carving"]["threads"] or workflow.cores
     resources:
         mem_mb=4000,
     script:

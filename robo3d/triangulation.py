@@ -41,10 +41,18 @@ The seed intersects the pinhole ray ``(x, y, z) = ((u - u0) δx t, (v - v0) δy 
 with the plane (eq. 17). We use the same ray–plane intersection on the ray through the
 *undistorted* pixel (``CameraModel.rays``), ``x = t · ray`` with ``t = d / (n · ray)``;
 :func:`triangulate_pixels_eq17` keeps the seed's own form (on undistorted ideal pixels)
-as a check. Points are dropped, and counted, when the ray meets the sheet at less than
-``min_angle_deg`` (the depth error grows as ``1 / sin`` of that angle), when the
-intersection is behind the camera, or outside ``[min_range, max_range]`` (distance from
-the camera centre, metres).
+as a check. Points are dropped, and counted (:data:`DROP_REASONS`), when the pixel is
+not finite, when the ray meets the sheet at less than ``min_angle_deg`` (nearly parallel:
+the depth error grows as ``1 / sin`` of that angle, and at 0 there is no intersection),
+when the intersection is behind the camera (``t <= 0``), or outside
+``[min_range, max_range]`` (distance from the camera centre, metres);
+:func:`triangulate_sweep` also drops and counts the points outside the workspace box.
+
+The undistortion and the intersection run in one compiled kernel (Numba, ``nogil``,
+cached on disk) over all the pixels of a sweep: the same fixed-point inverse of plumb_bob
+as :meth:`CameraModel.undistort_normalized` (20 iterations at most, stopping when the
+update falls below 1e-15), equal to ``CameraModel.rays`` to 1e-12; about 0.1 ms for the
+1280 centres of a 1280 x 960 frame.
 
 Sweep clouds
 ------------
@@ -85,13 +93,14 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
+from .atomic import save_npz
 from .camera import CameraModel
 from .errors import StageError
 from .stripes import StripePoints
@@ -249,29 +258,82 @@ def _planes(T_camera_laser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------- eq. 16-17
+@njit(nogil=True, cache=True)
+def _ray_plane_kernel(uv, plane_of, normals, offsets, kpar, dist, has_dist, min_sin,
+                      min_range, max_range):  # noqa: ANN001, ANN202 - numba kernel
+    """Undistort each pixel, intersect its unit ray with its plane; status per pixel:
+    0 kept, 1 non_finite, 2 grazing, 3 behind, 4 out_of_range (DROP_REASONS order)."""
+    n = uv.shape[0]
+    pts = np.full((n, 3), np.nan)
+    status = np.zeros(n, np.int8)
+    sin_a = np.zeros(n)
+    fx, fy, cx, cy, skew = kpar[0], kpar[1], kpar[2], kpar[3], kpar[4]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for i in range(n):
+        u = uv[i, 0]
+        v = uv[i, 1]
+        if not (np.isfinite(u) and np.isfinite(v)):
+            status[i] = 1
+            continue
+        y0 = (v - cy) / fy
+        x0 = (u - cx - skew * y0) / fx
+        x = x0
+        y = y0
+        if has_dist:  # the fixed-point inverse of plumb_bob, as CameraModel's
+            for _ in range(20):
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+                dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+                inv = 1.0 / radial
+                xn = (x0 - dx) * inv
+                yn = (y0 - dy) * inv
+                done = abs(xn - x) <= 1e-15 and abs(yn - y) <= 1e-15
+                x = xn
+                y = yn
+                if done:
+                    break
+        norm = np.sqrt(x * x + y * y + 1.0)
+        rx = x / norm
+        ry = y / norm
+        rz = 1.0 / norm
+        j = plane_of[i]
+        den = rx * normals[j, 0] + ry * normals[j, 1] + rz * normals[j, 2]
+        sa = abs(den)
+        sin_a[i] = sa
+        if not (sa >= min_sin):
+            status[i] = 2
+            continue
+        t = offsets[j] / den
+        if not (t > 0):
+            status[i] = 3
+            continue
+        if not (t >= min_range and t <= max_range):
+            status[i] = 4
+            continue
+        pts[i, 0] = t * rx
+        pts[i, 1] = t * ry
+        pts[i, 2] = t * rz
+    return pts, status, sin_a
+
+
 def _intersect(
-    rays: np.ndarray, n: np.ndarray, d: np.ndarray, finite: np.ndarray,
-    min_angle_deg: float, min_range: float, max_range: float,
+    uv: np.ndarray, camera: CameraModel, plane_of: np.ndarray, normals: np.ndarray,
+    offsets: np.ndarray, min_angle_deg: float, min_range: float, max_range: float,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int], np.ndarray]:
-    """Ray-plane intersection for unit rays (N, 3) and per-ray planes n (N, 3), d (N,)."""
-    denom = np.einsum("ni,ni->n", rays, n)
-    sin_a = np.abs(denom)
-    grazing = finite & ~(sin_a >= np.sin(np.radians(min_angle_deg)))
-    ok = finite & ~grazing
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(ok, d / np.where(ok, denom, 1.0), np.nan)
-    behind = ok & ~(t > 0)
-    ok &= ~behind
-    out_range = ok & ~((t >= min_range) & (t <= max_range))
-    ok &= ~out_range
-    pts = np.where(ok[:, None], rays * t[:, None], np.nan)
-    dropped = {
-        "non_finite": int((~finite).sum()),
-        "grazing": int(grazing.sum()),
-        "behind": int(behind.sum()),
-        "out_of_range": int(out_range.sum()),
-    }
-    return pts, ok, dropped, sin_a
+    """Rays through the (distorted) pixels uv (N, 2) meet the planes normals (F, 3),
+    offsets (F,) (pixel i meets plane plane_of[i]): points (N, 3) in the camera, kept
+    (N,), counts of the dropped by reason, |sin| of the ray-sheet angle (N,)."""
+    kpar = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1]])
+    pts, status, sin_a = _ray_plane_kernel(
+        np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(plane_of, np.int64),
+        np.ascontiguousarray(normals, dtype=np.float64),
+        np.ascontiguousarray(offsets, dtype=np.float64), kpar,
+        np.ascontiguousarray(camera.D[:5], dtype=np.float64), camera.has_distortion,
+        float(np.sin(np.radians(min_angle_deg))), float(min_range), float(max_range))
+    counts = np.bincount(status, minlength=len(DROP_REASONS) + 1)
+    dropped = {name: int(counts[i + 1]) for i, name in enumerate(DROP_REASONS)}
+    return pts, status == 0, dropped, sin_a
 
 
 def _check_pixels(pixels_uv: np.ndarray) -> np.ndarray:
@@ -329,12 +391,8 @@ def triangulate_pixels(
     t = _check_transform(T_camera_laser, "T_camera_laser")
     _check_ranges(min_angle_deg, min_range, max_range)
     n, d = laser_plane_in_camera(t)
-    finite = np.all(np.isfinite(uv), axis=1)
-    rays = camera.rays(np.where(finite[:, None], uv, 0.0))
-    nn = np.broadcast_to(n, rays.shape)
-    dd = np.broadcast_to(d, rays.shape[:1])
-    pts, keep, dropped, _ = _intersect(rays, nn, dd, finite, min_angle_deg, min_range,
-                                       max_range)
+    pts, keep, dropped, _ = _intersect(uv, camera, np.zeros(len(uv), np.int64), n[None],
+                                       np.array([d]), min_angle_deg, min_range, max_range)
     return pts, keep, dropped
 
 
@@ -698,10 +756,8 @@ def triangulate_sweep(
 
     # all frames at once: per-point plane and pose
     n_f, d_f = _planes(tl)
-    finite = np.all(np.isfinite(uv), axis=1)
-    rays = camera.rays(np.where(finite[:, None], uv, 0.0))
-    pts_cam, keep, dropped, sin_a = _intersect(rays, n_f[frame_pos], d_f[frame_pos],
-                                               finite, min_angle_deg, min_range, max_range)
+    pts_cam, keep, dropped, sin_a = _intersect(uv, camera, frame_pos, n_f, d_f,
+                                               min_angle_deg, min_range, max_range)
     R = tb[frame_pos, :3, :3]
     origin = tb[frame_pos, :3, 3]
     pts_base = np.einsum("nij,nj->ni", R, np.nan_to_num(pts_cam)) + origin
@@ -765,7 +821,8 @@ def triangulate_sweep(
 
 
 # ---------------------------------------------------------------------------- I/O
-def save_clouds_npz(path: str | os.PathLike, clouds: Sequence[SweepCloud]) -> None:
+def save_clouds_npz(path: str | os.PathLike, clouds: Sequence[SweepCloud], *,
+                    corrections: np.ndarray | None = None) -> None:
     """Write sweep clouds to one NPZ file, atomically.
 
     The clouds are concatenated (``cloud`` gives each point's cloud); the reports are
@@ -776,6 +833,8 @@ def save_clouds_npz(path: str | os.PathLike, clouds: Sequence[SweepCloud]) -> No
     path : str or path-like
         Target file; written to a temporary file in the same directory, then renamed.
     clouds : sequence of SweepCloud
+    corrections : (K, 4, 4) float64, optional
+        One rigid correction per cloud (the alignment's), stored as ``corrections``.
     """
     path = Path(path)
     clouds = list(clouds)
@@ -798,16 +857,13 @@ def save_clouds_npz(path: str | os.PathLike, clouds: Sequence[SweepCloud]) -> No
         "sweeps": np.array([c.sweep for c in clouds], dtype=np.int64),
         "reports_json": np.array(json.dumps([c.report for c in clouds])),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    if corrections is not None:
+        corr = np.asarray(corrections, dtype=np.float64)
+        if corr.shape != (len(clouds), 4, 4):
+            raise ValueError(f"corrections must be (K, 4, 4) with K={len(clouds)} clouds, "
+                             f"got shape {corr.shape}")
+        arrays["corrections"] = corr
+    save_npz(path, **arrays)
 
 
 def load_clouds_npz(path: str | os.PathLike) -> list[SweepCloud]:

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.special import erf
 
 from robo3d.stripes import (
     REJECTION_REASONS,
     StripePoints,
+    _noise_sigma,
     brightness_coefficient,
     extract_stripe_centres,
     extract_stripes_batch,
@@ -87,7 +89,7 @@ def test_brightness_coefficient_mono_and_errors():
 
 # ---------------------------------------------------------------------------- centres
 @pytest.mark.parametrize("method", ["cog", "gaussian"])
-@pytest.mark.parametrize("sigma", [1.0, 1.6, 2.5])
+@pytest.mark.parametrize("sigma", [1.0, 1.6, 2.5, 4.0])
 def test_gaussian_stripe_subpixel_accuracy(method, sigma):
     vc = _centres()
     img = _stripe_image(vc, sigma=sigma)
@@ -251,3 +253,156 @@ def test_input_errors():
                                background=np.zeros((4, 5), dtype=np.uint8))
     with pytest.raises(ValueError, match="same length"):
         StripePoints(u=np.zeros(3), v=np.zeros(2))
+    with pytest.raises(ValueError, match="reference"):
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), reference="global")
+    with pytest.raises(ValueError, match="reference_lines"):
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), reference_lines=-1)
+    with pytest.raises(ValueError, match="s must be"):
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), s=-3.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        extract_stripe_centres(np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="threads"):
+        extract_stripes_batch([np.zeros((4, 4), dtype=np.uint8)], threads=0)
+
+
+# ---------------------------------------------------------------------------- the band
+def _varying_stripe(amp_left: float, amp_right: float, *, sigma: float = 1.2,
+                    seed: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """A stripe whose brightness falls linearly along the frame (incidence, albedo)."""
+    vc = _centres(seed=seed)
+    amp = np.linspace(amp_left, amp_right, W)
+    rng = np.random.default_rng(seed)
+    img = 6.0 + amp[None, :] * _profile(vc, H, sigma) + rng.normal(0.0, 1.0, (H, W))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), vc
+
+
+def test_local_reference_keeps_a_stripe_of_varying_brightness():
+    img, vc = _varying_stripe(230.0, 40.0)
+    local = extract_stripe_centres(img)
+    assert len(local) == W, local.rejected
+    assert _rms(local.v - vc) < 0.05
+    # the seed's one band around the frame's s loses the dim end (and the bright one is
+    # kept only because a lone blob brighter than the band is still the stripe)
+    frame = extract_stripe_centres(img, reference="frame")
+    assert 100.0 < frame.s < 160.0
+    assert frame.rejected["no_band"] > 0.25 * W
+    assert len(frame) < 0.75 * W
+    assert np.all(frame.peak > 0.8 * frame.s)
+    # the confidence follows the stripe's contrast against the frame's s
+    assert local.confidence[-1] < 0.6 < local.confidence[0]
+
+
+def test_sweep_end_rim_of_the_object_beside_the_dim_table_stripe():
+    # the sheet lights a rim of the object (columns 50-70, bright) and the table
+    # (everywhere, 10 x dimmer, below min_peak): the rim must be found, the table not
+    rows = np.arange(H, dtype=np.float64)[:, None]
+    table = 12.0 * np.exp(-0.5 * ((rows - 30.0) / 1.0) ** 2) * np.ones((1, W))
+    vc = np.full(W, 60.37)
+    obj = np.zeros((H, W))
+    obj[:, 50:71] = 90.0 * _profile(vc[50:71], H, 0.8)
+    img = np.clip(np.rint(2.0 + table + obj), 0, 255).astype(np.uint8)
+    sp = extract_stripe_centres(img, min_peak=20.0)
+    np.testing.assert_array_equal(sp.line, np.arange(50, 71))
+    assert np.abs(sp.v - 60.37).max() < 0.05
+    assert sp.rejected["too_weak"] == W - 21
+    # eq. 18 on the samples: the rim's brightest pixels, row 60 (0.37 px off the centre)
+    assert sp.s == pytest.approx(np.rint(2.0 + 90.0 * np.exp(-0.5 * (0.37 / 0.8) ** 2)))
+
+
+def test_highlight_brighter_than_the_band_is_ignored_with_the_local_reference():
+    vc = _centres()
+    img = _stripe_image(vc, amp=200.0, sigma=1.5)
+    lit = img.copy()
+    lit[5:12, 20:28] = 255  # a white highlight over 8 columns (< reference_lines)
+    sp = extract_stripe_centres(lit)
+    assert len(sp) == W and sp.rejected["two_blobs"] == 0
+    assert _rms(sp.v - vc) < 0.05
+
+
+def test_reflection_inside_the_band_is_rejected_with_the_local_reference():
+    vc = np.full(W, 40.3)
+    base = 12.0 + 200.0 * _profile(vc, H, 1.5)
+    base[:, 10:15] += 180.0 * _profile(np.full(5, 75.0), H, 1.5)  # 90 % as bright
+    base[:, 60:65] += 100.0 * _profile(np.full(5, 75.0), H, 1.5)  # 50 %: below the band
+    img = np.clip(np.rint(base), 0, 255).astype(np.uint8)
+    sp = extract_stripe_centres(img)
+    assert sp.rejected["two_blobs"] == 5
+    assert not np.isin(sp.line, np.r_[10:15]).any()
+    assert np.isin(np.r_[60:65], sp.line).all()  # the dim reflection is ignored
+    assert np.abs(sp.v - 40.3).max() < 0.05
+
+
+def _integrated_stripe(vc: np.ndarray, sigma: float, *, h: int = H, amp: float = 200.0,
+                       noise: float = 1.0, seed: int = 5) -> np.ndarray:
+    """A pixel-integrated Gaussian stripe (what a sensor records), uint8."""
+    r = np.arange(h, dtype=np.float64)[:, None]
+
+    def cdf(x: np.ndarray) -> np.ndarray:
+        return 0.5 * (1.0 + erf(x / (np.sqrt(2.0) * sigma)))
+
+    prof = cdf(r + 0.5 - vc[None, :]) - cdf(r - 0.5 - vc[None, :])
+    prof /= prof.max(axis=0, keepdims=True)
+    rng = np.random.default_rng(seed)
+    img = 8.0 + amp * prof + rng.normal(0.0, noise, prof.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("method", ["cog", "gaussian"])
+@pytest.mark.parametrize("sigma", [0.35, 0.5])
+def test_narrow_pixel_integrated_stripe(method, sigma):
+    # FWHM 1.2-1.5 px, as in the simulated frames: pixel locking stays below 0.03 px
+    vc = _centres()
+    sp = extract_stripe_centres(_integrated_stripe(vc, sigma), method=method)
+    assert len(sp) == W
+    err = sp.v - vc
+    assert _rms(err) < 0.03 and abs(err.mean()) < 0.01, (_rms(err), err.mean())
+    assert np.median(sp.width_px) == pytest.approx(1.2 if sigma == 0.35 else 1.5, abs=0.15)
+
+
+def test_rgb_mono_and_other_dtypes_agree():
+    vc = _centres()
+    img = _stripe_image(vc, sigma=1.3)
+    ref = extract_stripe_centres(img)
+    grey = extract_stripe_centres(np.repeat(img[..., None], 3, axis=2))
+    np.testing.assert_allclose(grey.v, ref.v, atol=1e-9)
+    # 16 bits and floats: the same centres (min_peak in the image's own units)
+    wide = extract_stripe_centres(img.astype(np.uint16) * 257, min_peak=10.2 * 257)
+    np.testing.assert_allclose(wide.v, ref.v, atol=1e-6)
+    flt = extract_stripe_centres(img / 255.0, min_peak=0.04)
+    np.testing.assert_allclose(flt.v, ref.v, atol=1e-5)
+    # a red laser on a grey scene, by eq. 19
+    red = np.stack([img, np.full_like(img, 10), np.full_like(img, 10)], axis=-1)
+    sp = extract_stripe_centres(red, min_peak=5.0)
+    assert len(sp) == W and _rms(sp.v - vc) < 0.05
+    assert sp.s == pytest.approx(brightness_coefficient(red, sample=sp.pixels_uv), rel=0.1)
+
+
+def test_noise_sigma_estimate():
+    rng = np.random.default_rng(7)
+    img = np.clip(np.rint(100.0 + rng.normal(0.0, 5.0, (240, 320))), 0, 255).astype(np.uint8)
+    sigma = _noise_sigma(img[..., None], 1)
+    assert sigma == pytest.approx(5.0, rel=0.1)
+    # and the threshold keeps the centres of a stripe in that noise unbiased
+    vc = _centres()
+    sp = extract_stripe_centres(_stripe_image(vc, noise=5.0, sigma=1.6))
+    assert len(sp) >= W - 2 and _rms(sp.v - vc[sp.line]) < 0.1
+
+
+def test_auto_axis_counts_lines():
+    vc = _centres(w=W, h=H)
+    img = _stripe_image(vc)
+    assert extract_stripe_centres(img, axis="auto").axis == "columns"
+    tall = np.ascontiguousarray(img.T)  # a vertical stripe: more rows than columns lit
+    sp = extract_stripe_centres(tall, axis="auto")
+    assert sp.axis == "rows" and len(sp) == W
+    np.testing.assert_allclose(sp.u, vc, atol=0.2)
+    np.testing.assert_array_equal(sp.v, np.arange(W))
+
+
+def test_batch_on_threads_equals_serial():
+    frames = [_stripe_image(_centres(seed=i), seed=i) for i in range(6)]
+    one = extract_stripes_batch(frames)
+    two = extract_stripes_batch(frames, threads=2, method="cog")
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a.v, b.v)
+        assert a.rejected == b.rejected

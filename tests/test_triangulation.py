@@ -395,3 +395,104 @@ def test_save_load_round_trip(tmp_path):
         assert a.report == b.report
     save_clouds_npz(path, [])
     assert load_clouds_npz(path) == []
+
+
+def test_kernel_equals_the_camera_rays_on_a_large_distorted_camera():
+    cam = CameraModel("camera", 1280, 960, K * 2.0 + np.diag([0.0, 0.0, -1.0]), D)
+    T_cl = _rig_laser()
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([0, 0], [1279, 959], size=(2000, 2))
+    pts, keep, _ = triangulate_pixels(uv, cam, T_cl, min_angle_deg=0.0)
+    rays = cam.rays(uv)  # CameraModel's own undistortion and rays
+    n, d = laser_plane_in_camera(T_cl)
+    ref = rays * (d / (rays @ n))[:, None]
+    ok = keep & (ref[:, 2] > 0)
+    assert ok.sum() > 1000
+    np.testing.assert_allclose(pts[ok], ref[ok], rtol=1e-12, atol=1e-14)
+
+
+def test_save_with_corrections(tmp_path):
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=4)
+    c0 = triangulate_sweep(stripes, CAM, poses, T_cl, sweep=0)
+    path = tmp_path / "aligned.npz"
+    corr = np.eye(4)[None].copy()
+    corr[0, :3, 3] = [0.001, 0.0, 0.0]
+    save_clouds_npz(path, [c0], corrections=corr)
+    with np.load(path) as z:
+        np.testing.assert_array_equal(z["corrections"], corr)
+    assert len(load_clouds_npz(path)[0]) == len(c0)
+    with pytest.raises(ValueError, match="corrections"):
+        save_clouds_npz(path, [c0], corrections=np.eye(4))
+
+
+# ---------------------------------------------------------------------------- stages
+@pytest.fixture(scope="module")
+def sphere_recording(tmp_path_factory):
+    from robo3d.simulate import simulate_recording
+
+    path = tmp_path_factory.mktemp("sim") / "sphere.mcap"
+    # the demo camera (640 x 480): the stripe is 1.5-1.7 px wide there; at 320 x 240 it
+    # would be ~1.1 px, where pixel locking costs any estimator 0.05-0.1 px
+    simulate_recording(path, "sphere", views=0, sweeps=2, sweep_frames=10,
+                       sweep_error_mm=(0.0, 0.0), sweep_error_deg=(0.0, 0.0))
+    return path
+
+
+def test_stages_on_a_simulated_sphere(sphere_recording, tmp_path):
+    import json
+
+    from robo3d.config import default_config
+    from robo3d.meshio import read_point_cloud_attributes
+    from robo3d.pipeline import stage_stripes, stage_triangulate
+    from robo3d.stripes import REJECTION_REASONS
+
+    cfg = default_config()
+    out = {k: str(tmp_path / f) for k, f in
+           (("npz", "stripes.npz"), ("report", "stripes.json"), ("rrd", "stripes.rrd"))}
+    rep = stage_stripes({"recording": str(sphere_recording)}, out, cfg, "sphere", threads=2)
+    assert rep["n_frames"] == 20 and rep["threads"] == 2 and rep["n_points"] > 1000
+    with np.load(out["npz"]) as z:
+        assert z["axis"].shape == (20,) and set(z["axis"]) == {"columns"}
+        assert z["rejected"].shape == (20, len(REJECTION_REASONS))
+        assert list(z["rejection_reasons"]) == list(REJECTION_REASONS)
+        assert z["line"].shape == z["u"].shape
+    # the same with one thread: the results do not depend on it
+    out1 = {k: str(tmp_path / ("one_" + f)) for k, f in
+            (("npz", "stripes.npz"), ("report", "stripes.json"), ("rrd", "stripes.rrd"))}
+    stage_stripes({"recording": str(sphere_recording)}, out1, cfg, "sphere", threads=1)
+    with np.load(out["npz"]) as a, np.load(out1["npz"]) as b:
+        np.testing.assert_array_equal(a["v"], b["v"])
+
+    tout = {k: str(tmp_path / f) for k, f in
+            (("npz", "clouds.npz"), ("ply", "clouds.ply"), ("report", "tri.json"),
+             ("rrd", "tri.rrd"))}
+    trep = stage_triangulate({"stripes": out["npz"]}, tout, cfg, "sphere")
+    with open(tout["report"]) as f:
+        assert json.load(f)["stripe_rejected"] == rep["rejected"]  # the counts flow on
+    assert trep["n_sweeps"] == 2 and trep["n_pixels"] == rep["n_points"]
+    clouds = load_clouds_npz(tout["npz"])
+    P = np.concatenate([c.points_base for c in clouds])
+    assert len(P) == trep["n_points"] > 1000
+    # the truth: a sphere of 40 mm radius at (0, 0, 40 mm) (its facets sag < 0.01 mm)
+    err_mm = np.abs(np.linalg.norm(P - [0.0, 0.0, 0.04], axis=1) - 0.04) * 1e3
+    assert np.median(err_mm) < 0.025 and np.percentile(err_mm, 95) < 0.1, (
+        np.median(err_mm), np.percentile(err_mm, 95))
+    # normals point outward, toward the camera
+    N = np.concatenate([c.normals_base for c in clouds])
+    radial = (P - [0.0, 0.0, 0.04]) / np.linalg.norm(P - [0.0, 0.0, 0.04], axis=1)[:, None]
+    assert np.median(np.einsum("ij,ij->i", N, radial)) > 0.99
+    attrs = read_point_cloud_attributes(tout["ply"])
+    assert {"sweep", "frame_index", "confidence"} <= set(attrs)
+    np.testing.assert_array_equal(attrs["frame_index"],
+                                  np.concatenate([c.frame_index for c in clouds]))
+    # the seed's six parameters (eq. 11) of the recording's own laser pose: same cloud
+    with np.load(out["npz"]) as z:
+        T_cl = z["T_camera_laser"][0]
+    dx, dy, dz, phi, theta, psi = laser_params_from_transform(T_cl)
+    cfg6 = default_config()
+    cfg6["triangulation"]["laser_params"] = [dx, dy, dz, *np.degrees([phi, theta, psi])]
+    tout6 = {k: v.replace(".", "_6.") for k, v in tout.items()}
+    rep6 = stage_triangulate({"stripes": out["npz"]}, tout6, cfg6, "sphere")
+    assert "eq. 11" in rep6["laser_pose"]
+    P6 = np.concatenate([c.points_base for c in load_clouds_npz(tout6["npz"])])
+    np.testing.assert_allclose(P6, P, atol=1e-9)

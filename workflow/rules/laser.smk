@@ -14,7 +14,7 @@ rule stripes:
         "benchmarks/stripes/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    threads: 2  # frames are decoded and searched in parallel
     resources:
         mem_mb=2000,
     script:

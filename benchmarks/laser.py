@@ -1,0 +1,558 @@
+"""Laser benchmark: accuracy and speed of stripe detection and triangulation (seed §4).
+
+Run from the repository root (one command, a few minutes on 2 cores)::
+
+    .venv/bin/python benchmarks/laser.py            # full run, writes results/laser.json
+    .venv/bin/python benchmarks/laser.py --quick    # one object, fewer frames and repeats
+
+Everything is seeded; nothing random changes between runs.
+
+Accuracy on simulated recordings (exact robot poses)
+    The demo objects (``dimple_block``, ``vase``; their demo seeds) are simulated with the
+    demo's 5 sweeps at 640 x 480 but no silhouette views and no robot error
+    (``sweep_error_mm = sweep_error_deg = (0, 0)``), then run through the pipeline's own
+    stages (``stage_stripes`` on 2 threads, ``stage_triangulate``) with the default
+    configuration. Each point's distance to the truth mesh (Open3D
+    ``RaycastingScene.compute_distance``; the images were rendered from exactly this mesh)
+    gives the median and 95th percentile, in millimetres and in pixel footprints (the
+    point's depth in its camera over the focal length, seed eq. 8). The same stripes are
+    also extracted with the seed's frame-wide band (``reference: frame``) and with the
+    Gaussian fit, to show what each choice costs or gains.
+Flat plate
+    A 400 x 400 x 10 mm plate (a box mesh built here, on the simulator's public
+    ``SimScene``), tilted 10 degrees, seen at 30 degrees off its normal from 0.22 to
+    0.34 m (the sheet crosses the optical axis at 0.27 m): at each distance a short sweep
+    of 17 frames (1 mm apart along the sheet's normal) is rendered with the simulator's
+    sensor noise, the stripes found and triangulated (library calls), and a plane fitted
+    by least squares (SVD). Reported: the plane-fit residual (RMS, 95th percentile) and
+    the distance to the true plate, in mm and pixel footprints.
+Sub-pixel centre (synthetic Gaussian stripe)
+    Pixel-integrated Gaussian stripes (what a sensor records: the Gaussian integrated over
+    each pixel), 150 DN over 8 DN with 1 DN of noise, quantised to 8 bits, on a smooth
+    path with arbitrary sub-pixel offsets; RMS of the centre error for FWHM 1.1 to 4 px,
+    both estimators. The headline ``centre_rms_px`` is the centre of gravity (the default)
+    at FWHM 1.5 px, the width of the simulated stripe.
+Speed at 1280 x 960
+    24 synthetic mono frames with a realistic stripe (a curved path with a depth jump over
+    85 % of the columns, 0.6-1.6 px sigma, 60-220 DN, saturated in places, a reflection
+    in 3 % of the columns, a textured ambient of about 10 DN, 1.5 DN of noise). Ours:
+    ``extract_stripe_centres`` (the pipeline's configuration, ``axis: auto``) then
+    ``triangulate_pixels`` and the move into ``base``, per frame, on 1 and 2 threads. The
+    peer, measured in the same run on fewer frames: a plain per-column Python loop as
+    open scanners write it (argmax of the column, centre of gravity above half the peak in
+    a +-7 px window) followed by a vectorised triangulation (``cv2.undistortPoints`` and
+    the ray-plane intersection). Decoding: the same frames as PNG (OpenCV's default
+    compression, as the recorder writes) and JPEG (quality 92), one thread and two. The
+    whole stage (decode, detect, triangulate) on 2 threads against decoding alone on 2
+    threads gives ``stage_over_decode``. Times are the best of several runs (wall clock),
+    because the machine is shared.
+Numba compile time
+    The kernels are compiled on first use and cached on disk (``cache=True``): the first
+    call in a process with an empty cache (compile), with a filled cache (load).
+
+Writes ``benchmarks/results/laser.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+SEED = 11
+W_SPEED, H_SPEED = 1280, 960
+
+
+def _best(fn, repeats: int, cpu: list | None = None) -> float:
+    """Best wall-clock seconds of ``repeats`` calls of ``fn`` (the process's CPU seconds
+    of that call appended to ``cpu`` when given)."""
+    best, best_cpu = np.inf, np.inf
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.process_time()
+        fn()
+        dt, dc = time.perf_counter() - t, time.process_time() - c
+        if dt < best:
+            best, best_cpu = dt, dc
+    if cpu is not None:
+        cpu.append(best_cpu)
+    return float(best)
+
+
+def _cfg_kw() -> dict:
+    from robo3d.config import default_config
+
+    sc = default_config()["stripes"]
+    return {"band": sc["band"], "axis": sc["axis"], "min_peak": sc["min_peak"],
+            "max_width_px": sc["max_width_px"], "method": sc["method"],
+            "reference": sc["reference"], "reference_lines": sc["reference_lines"],
+            "s": sc["s"]}
+
+
+# ---------------------------------------------------------------------------- accuracy
+def _truth_scene(vertices: np.ndarray, faces: np.ndarray):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    return scene
+
+
+def _distances_mm(scene, points: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    d = scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()
+    return d.astype(np.float64) * 1e3
+
+
+def _footprints_mm(points: np.ndarray, frame_index: np.ndarray, stripes_npz: dict) -> np.ndarray:
+    """Pixel footprint (mm) at each point: its depth in its frame's camera / focal."""
+    T = stripes_npz["T_base_camera"][frame_index]
+    K = stripes_npz["K"][frame_index]
+    depth = np.einsum("ni,ni->n", points - T[:, :3, 3], T[:, :3, 2])
+    return depth / np.sqrt(K[:, 0, 0] * K[:, 1, 1]) * 1e3
+
+
+def _stats(d_mm: np.ndarray, fp_mm: np.ndarray) -> dict:
+    px = d_mm / fp_mm
+    return {"n_points": int(d_mm.size), "median_mm": float(np.median(d_mm)),
+            "p95_mm": float(np.percentile(d_mm, 95)), "p99_mm": float(np.percentile(d_mm, 99)),
+            "max_mm": float(d_mm.max()), "median_px": float(np.median(px)),
+            "p95_px": float(np.percentile(px, 95)),
+            "footprint_median_mm": float(np.median(fp_mm))}
+
+
+def accuracy_objects(objects: list[str], work: Path, log) -> dict:
+    from robo3d.config import default_config
+    from robo3d.meshio import read_mesh
+    from robo3d.pipeline import stage_stripes, stage_triangulate
+    from robo3d.recording.reader import read_recording
+    from robo3d.simulate import DEMOS, simulate_recording
+    from robo3d.triangulation import load_clouds_npz
+
+    out: dict = {"objects": {}}
+    pooled_d, pooled_fp = [], []
+    for obj in objects:
+        seed = DEMOS[obj][1]["seed"]
+        rec = work / f"{obj}.mcap"
+        if not rec.exists():
+            t = time.perf_counter()
+            simulate_recording(rec, obj, views=0, seed=seed, sweep_error_mm=(0.0, 0.0),
+                               sweep_error_deg=(0.0, 0.0), threads=2)
+            log(f"simulated {obj} in {time.perf_counter() - t:.0f} s")
+        r = read_recording(str(rec), roles=())
+        V, F = read_mesh(r.attachments["ground_truth/mesh.ply"])
+        scene = _truth_scene(V, F)
+        res: dict = {}
+        variants = {"default": {}, "reference_frame": {"reference": "frame"},
+                    "gaussian": {"method": "gaussian"}}
+        for name, override in variants.items():
+            cfg = default_config()
+            cfg["stripes"].update(override)
+            d = work / f"{obj}_{name}"
+            d.mkdir(exist_ok=True)
+            so = {"npz": str(d / "stripes.npz"), "report": str(d / "stripes.json"),
+                  "rrd": str(d / "stripes.rrd")}
+            srep = stage_stripes({"recording": str(rec)}, so, cfg, obj, threads=2)
+            to = {"npz": str(d / "clouds.npz"), "ply": str(d / "clouds.ply"),
+                  "report": str(d / "triangulate.json"), "rrd": str(d / "triangulate.rrd")}
+            trep = stage_triangulate({"stripes": so["npz"]}, to, cfg, obj)
+            clouds = load_clouds_npz(to["npz"])
+            P = np.concatenate([c.points_base for c in clouds])
+            fidx = np.concatenate([c.frame_index for c in clouds])
+            with np.load(so["npz"]) as z:
+                s = {k: z[k] for k in z.files}
+            d_mm = _distances_mm(scene, P)
+            fp = _footprints_mm(P, fidx, s)
+            st = _stats(d_mm, fp)
+            st.update({
+                "frames": srep["n_frames"],
+                "frames_without_stripe": srep["frames_without_stripe"],
+                "frames_without_stripe_all_lines_too_weak":
+                    srep["frames_without_stripe_all_lines_too_weak"],
+                "stripe_rejected": srep["rejected"], "dropped": trep["dropped"],
+                "decode_ms_per_frame": 1e3 * srep["decode_seconds_cpu"] / srep["n_frames"],
+                "detect_ms_per_frame": 1e3 * srep["detect_seconds_cpu"] / srep["n_frames"]})
+            res[name] = st
+            if name == "default":
+                pooled_d.append(d_mm)
+                pooled_fp.append(fp)
+            log(f"{obj} {name}: {st['n_points']} points, median {st['median_mm']:.4f} mm, "
+                f"p95 {st['p95_mm']:.4f} mm ({st['median_px']:.3f} / {st['p95_px']:.3f} px), "
+                f"{st['frames_without_stripe']} of {st['frames']} frames without stripe")
+        out["objects"][obj] = res
+    out["pooled_default"] = _stats(np.concatenate(pooled_d), np.concatenate(pooled_fp))
+    return out
+
+
+def _plate_mesh(size: float, thickness: float, centre: np.ndarray, tilt_deg: float):
+    """A box plate, each face with its own 4 vertices (flat shading normals)."""
+    from robo3d.sim.rig import rotation_about_axis
+    from robo3d.sim.shapes import TriangleMesh
+
+    h = np.array([size / 2, size / 2, thickness / 2])
+    verts, faces = [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            n = np.zeros(3)
+            n[axis] = sign
+            a, b = [i for i in range(3) if i != axis]
+            quad = []
+            for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = np.zeros(3)
+                p[axis] = sign * h[axis]
+                p[a] = sa * h[a]
+                p[b] = sb * h[b]
+                quad.append(p)
+            quad = np.array(quad)
+            # counter-clockwise seen from outside
+            if np.cross(quad[1] - quad[0], quad[2] - quad[0]) @ n < 0:
+                quad = quad[::-1]
+            k = len(verts)
+            verts += list(quad)
+            faces += [[k, k + 1, k + 2], [k, k + 2, k + 3]]
+    R = rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg))
+    v = np.array(verts) @ R.T + centre
+    v = v.astype(np.float32).astype(np.float64)
+    top_normal = R @ np.array([0.0, 0.0, 1.0])
+    top_point = centre + top_normal * thickness / 2
+    return TriangleMesh(v, np.array(faces, dtype=np.int64)), top_normal, top_point
+
+
+def accuracy_plate(distances: list[float], frames: int, log) -> dict:
+    from robo3d.sim.render import SimScene, render_laser_frame, sensor_noise
+    from robo3d.sim.rig import default_camera, default_laser_mount, look_at, rotation_about_axis
+    from robo3d.stripes import extract_stripe_centres
+    from robo3d.triangulation import triangulate_pixels
+
+    centre = np.array([0.0, 0.0, 0.06])
+    mesh, normal, top = _plate_mesh(0.4, 0.01, centre, 10.0)
+    scene = SimScene(mesh, threads=2)
+    cam = default_camera(640, 480)
+    T_cl = default_laser_mount()
+    kw = _cfg_kw()
+    # view direction: 30 degrees off the plate's normal, about the plate's x axis
+    view_dir = rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.radians(30.0)) @ normal
+    out = {}
+    for D in distances:
+        T0 = look_at(top + D * view_dir, top, up=np.array([0.0, 1.0, 0.0]))
+        sheet_n = (T0 @ T_cl)[:3, 1]
+        pts = []
+        fps = []
+        for j, off in enumerate(np.linspace(-0.008, 0.008, frames)):
+            T = T0.copy()
+            T[:3, 3] += off * sheet_n
+            signal = render_laser_frame(scene, cam, T, T @ T_cl)
+            img = sensor_noise(signal, np.random.default_rng([SEED, 20, int(D * 1e3), j]),
+                               0.025, 0.12)
+            sp = extract_stripe_centres(img, **kw)
+            P, keep, _ = triangulate_pixels(sp.pixels_uv, cam, T_cl)
+            P = P[keep] @ T[:3, :3].T + T[:3, 3]
+            pts.append(P)
+            depth = (P - T[:3, 3]) @ T[:3, 2]
+            fps.append(depth / np.sqrt(cam.fx * cam.fy) * 1e3)
+        P = np.concatenate(pts)
+        fp = np.concatenate(fps)
+        true_d = (P - top) @ normal * 1e3
+        c = P.mean(axis=0)
+        _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+        res = (P - c) @ vt[2] * 1e3
+        out[f"{D:.2f}"] = {
+            "n_points": int(len(P)), "footprint_mm": float(np.median(fp)),
+            "plane_fit_rms_mm": float(np.sqrt(np.mean(res ** 2))),
+            "plane_fit_p95_mm": float(np.percentile(np.abs(res), 95)),
+            "plane_fit_rms_px": float(np.sqrt(np.mean((res / fp) ** 2))),
+            "true_plane_median_mm": float(np.median(np.abs(true_d))),
+            "true_plane_p95_mm": float(np.percentile(np.abs(true_d), 95)),
+            "true_plane_mean_mm": float(np.mean(true_d)),
+            "fitted_normal_error_deg": float(np.degrees(np.arccos(min(1.0, abs(vt[2] @ normal))))),
+        }
+        o = out[f"{D:.2f}"]
+        log(f"plate at {D:.2f} m: {o['n_points']} points, plane fit RMS "
+            f"{o['plane_fit_rms_mm']:.4f} mm ({o['plane_fit_rms_px']:.3f} px), true plane "
+            f"median {o['true_plane_median_mm']:.4f} mm")
+    return out
+
+
+def centre_accuracy() -> dict:
+    from scipy.special import erf
+
+    from robo3d.stripes import extract_stripe_centres
+
+    H, W = 128, 1024
+    rng = np.random.default_rng([SEED, 30])
+    u = np.arange(W)
+    vc = H / 2 + 0.2 * H * np.sin(u / 67.0) + rng.uniform(-0.5, 0.5)
+    out = {}
+    for sigma in (0.3, 0.5, 1.0, 1.7):
+        r = np.arange(H, dtype=np.float64)[:, None]
+
+        def cdf(x, s=sigma):
+            return 0.5 * (1.0 + erf(x / (np.sqrt(2.0) * s)))
+
+        prof = cdf(r + 0.5 - vc[None]) - cdf(r - 0.5 - vc[None])
+        prof /= prof.max(axis=0, keepdims=True)
+        img = 8.0 + 150.0 * prof + rng.normal(0.0, 1.0, prof.shape)
+        img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        row = {}
+        for method in ("cog", "gaussian"):
+            sp = extract_stripe_centres(img, method=method)
+            err = sp.v - vc[sp.line]
+            row[method] = {"rms_px": float(np.sqrt(np.mean(err ** 2))),
+                           "max_px": float(np.abs(err).max()), "found": int(len(sp))}
+            row["fwhm_px"] = float(np.median(sp.width_px))
+        out[f"sigma_{sigma}"] = row
+    return out
+
+
+# ---------------------------------------------------------------------------- speed
+def synthetic_frames(n: int, w: int = W_SPEED, h: int = H_SPEED) -> list[np.ndarray]:
+    """Mono uint8 frames with a realistic stripe (see the module docstring)."""
+    frames = []
+    u = np.arange(w, dtype=np.float64)
+    rows = np.arange(h, dtype=np.float64)[:, None]
+    yy, xx = np.mgrid[0:h, 0:w]
+    texture = 10.0 + 3.0 * np.sin(xx / 23.0 + 0.3 * np.sin(yy / 41.0)) * np.cos(yy / 57.0)
+    for i in range(n):
+        rng = np.random.default_rng([SEED, 40, i])
+        ph = rng.uniform(0, 2 * np.pi)
+        v = h * 0.5 + 0.18 * h * np.sin(2 * np.pi * u / w * 1.3 + ph) + 12 * np.sin(u / 37.0)
+        jump = int(rng.uniform(0.3, 0.7) * w)
+        v[jump:] += 35.0
+        amp = 60.0 + 160.0 * (0.5 + 0.5 * np.cos(u / w * 5.0 + ph))
+        sig = 0.6 + 1.0 * (0.5 + 0.5 * np.sin(u / 150.0 + ph))
+        start = int(rng.uniform(0.0, 0.15) * w)
+        lit = (u >= start) & (u < start + 0.85 * w)
+        stripe = amp * np.exp(-0.5 * ((rows - v) / sig) ** 2) * lit
+        refl = rng.random(w) < 0.03
+        stripe += 0.4 * amp * np.exp(-0.5 * ((rows - v - 40.0) / sig) ** 2) * (lit & refl)
+        img = texture + stripe * rng.uniform(0.9, 1.3) + rng.normal(0.0, 1.5, (h, w))
+        frames.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    return frames
+
+
+class _Rig:
+    def __init__(self) -> None:
+        from robo3d.sim.rig import default_camera, default_laser_mount, look_at
+
+        self.cam = default_camera(W_SPEED, H_SPEED)
+        self.T_cl = default_laser_mount()
+        self.T_bc = look_at(np.array([0.2, -0.1, 0.25]), np.zeros(3))
+        self.kw = _cfg_kw()
+
+
+def ours(img: np.ndarray, rig: _Rig) -> np.ndarray:
+    """Detection, triangulation and the move into base of one frame."""
+    from robo3d.stripes import extract_stripe_centres
+    from robo3d.triangulation import triangulate_pixels
+
+    sp = extract_stripe_centres(img, **rig.kw)
+    P, keep, _ = triangulate_pixels(sp.pixels_uv, rig.cam, rig.T_cl, min_range=0.02,
+                                    max_range=2.0)
+    return P[keep] @ rig.T_bc[:3, :3].T + rig.T_bc[:3, 3]
+
+
+def naive(img: np.ndarray, rig: _Rig, threshold: float = 20.0, half: int = 7) -> np.ndarray:
+    """The peer: a plain per-column Python loop (argmax, centre of gravity above half the
+    peak in a +-7 px window), then a vectorised triangulation."""
+    import cv2
+
+    from robo3d.triangulation import laser_plane_in_camera
+
+    gray = img.astype(np.float32)
+    h, w = gray.shape
+    us, vs = [], []
+    for c in range(w):
+        col = gray[:, c]
+        p = int(np.argmax(col))
+        if col[p] - np.median(col) < threshold:
+            continue
+        lo, hi = max(p - half, 0), min(p + half + 1, h)
+        win = col[lo:hi]
+        wts = np.clip(win - 0.5 * col[p], 0.0, None)
+        us.append(c)
+        vs.append(float((wts * np.arange(lo, hi)).sum() / wts.sum()))
+    uv = np.array([us, vs], dtype=np.float64).T.reshape(-1, 1, 2)
+    xy = cv2.undistortPoints(uv, rig.cam.K, rig.cam.D).reshape(-1, 2)
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    n, d = laser_plane_in_camera(rig.T_cl)
+    P = rays * (d / (rays @ n))[:, None]
+    return P @ rig.T_bc[:3, :3].T + rig.T_bc[:3, 3]
+
+
+def speed(n_frames: int, repeats: int, log) -> dict:
+    import cv2
+
+    rig = _Rig()
+    frames = synthetic_frames(n_frames)
+    for f in frames[:2]:
+        ours(f, rig)  # warm (kernels loaded)
+    cycles = 4
+    batch = frames * cycles
+    n = len(batch)
+    t1 = _best(lambda: [ours(f, rig) for f in batch], repeats)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        t2 = _best(lambda: list(pool.map(lambda f: ours(f, rig), batch)), repeats)
+    n_naive = 3
+    tn = _best(lambda: [naive(f, rig) for f in frames[:n_naive]], max(2, repeats // 2))
+    n_pts = float(np.mean([len(ours(f, rig)) for f in frames]))
+    n_pts_naive = float(np.mean([len(naive(f, rig)) for f in frames[:n_naive]]))
+    out = {"frames": n_frames, "points_per_frame": n_pts,
+           "points_per_frame_naive": n_pts_naive,
+           "ours_1t_ms_per_frame": 1e3 * t1 / n, "ours_2t_ms_per_frame": 1e3 * t2 / n,
+           "fps_1t": n / t1, "fps_2t": n / t2,
+           "naive_ms_per_frame": 1e3 * tn / n_naive, "fps_naive": n_naive / tn}
+    log(f"ours: {out['fps_1t']:.0f} fps on 1 thread, {out['fps_2t']:.0f} on 2; naive "
+        f"per-column loop: {out['fps_naive']:.1f} fps")
+
+    # decoding, and the whole stage (decode, detect, triangulate) on 2 threads
+    enc = {"png": [cv2.imencode(".png", f)[1].tobytes() for f in frames],
+           "jpeg": [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 92])[1].tobytes()
+                    for f in frames]}
+
+    def dec(b: bytes) -> np.ndarray:
+        return cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_UNCHANGED)
+
+    def whole(b: bytes) -> np.ndarray:
+        return ours(dec(b), rig)
+
+    for kind, blobs in enc.items():
+        blobs_b = blobs * 2
+        nb = len(blobs_b)
+        d1 = _best(lambda blobs_b=blobs_b: [dec(b) for b in blobs_b], repeats)
+        cpu: list = []
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            d2 = _best(lambda blobs_b=blobs_b: list(pool.map(dec, blobs_b)), repeats, cpu)
+            s2 = _best(lambda blobs_b=blobs_b: list(pool.map(whole, blobs_b)), repeats, cpu)
+        out[kind] = {"kb_per_frame": float(np.mean([len(b) for b in blobs])) / 1e3,
+                     "decode_ms_1t": 1e3 * d1 / nb, "decode_ms_per_frame_2t": 1e3 * d2 / nb,
+                     "stage_ms_per_frame_2t": 1e3 * s2 / nb, "stage_over_decode": s2 / d2,
+                     "stage_over_decode_cpu": cpu[1] / cpu[0],
+                     "parallel_speedup_decode": d1 / d2, "stage_fps_2t": nb / s2}
+        o = out[kind]
+        log(f"{kind}: {o['kb_per_frame']:.0f} kB, decode {o['decode_ms_1t']:.2f} ms "
+            f"(1 thread), whole stage {o['stage_ms_per_frame_2t']:.2f} ms/frame on 2 threads "
+            f"= {o['stage_over_decode']:.3f} x decoding alone")
+    # the demo's size for reference: 640 x 480
+    small = [f[:480, :640].copy() for f in frames[:8]]
+    pngs = [cv2.imencode(".png", f)[1].tobytes() for f in small]
+    out["png_640x480_decode_ms"] = 1e3 * _best(lambda: [dec(b) for b in pngs], repeats) / 8
+    return out
+
+
+_COLD = """
+import time, numpy as np
+t0 = time.perf_counter()
+from robo3d.stripes import extract_stripe_centres
+from robo3d.triangulation import triangulate_pixels
+from robo3d.sim.rig import default_camera, default_laser_mount
+t1 = time.perf_counter()
+img = np.zeros((480, 640), np.uint8); img[200:203] = 200
+sp = extract_stripe_centres(img, axis="auto")
+triangulate_pixels(sp.pixels_uv, default_camera(), default_laser_mount())
+t2 = time.perf_counter()
+print(t1 - t0, t2 - t1)
+"""
+
+
+def compile_times() -> dict:
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
+        res = []
+        for _ in range(2):
+            p = subprocess.run([sys.executable, "-c", _COLD], env=env, capture_output=True,
+                               text=True, check=True, cwd=ROOT)
+            res.append([float(x) for x in p.stdout.split()])
+    return {"import_s": res[1][0], "first_call_empty_cache_s": res[0][1],
+            "first_call_filled_cache_s": res[1][1]}
+
+
+# ---------------------------------------------------------------------------- main
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="one object, fewer frames/repeats")
+    ap.add_argument("--work", default=None, help="keep the simulated recordings here")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "laser.json"))
+    args = ap.parse_args()
+    t_start = time.perf_counter()
+
+    def log(msg: str) -> None:
+        print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", flush=True)
+
+    load0 = os.getloadavg()
+    details: dict = {"cpu_count": os.cpu_count(), "load_avg_start": list(load0)}
+    details["compile"] = compile_times()
+    log(f"numba: compile {details['compile']['first_call_empty_cache_s']:.1f} s, cached load "
+        f"{details['compile']['first_call_filled_cache_s']:.2f} s")
+    details["centre"] = centre_accuracy()
+    details["speed"] = speed(12 if args.quick else 24, 3 if args.quick else 5, log)
+    objects = ["vase"] if args.quick else ["dimple_block", "vase"]
+    if args.work:
+        work = Path(args.work)
+        work.mkdir(parents=True, exist_ok=True)
+        details["accuracy"] = accuracy_objects(objects, work, log)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            details["accuracy"] = accuracy_objects(objects, Path(tmp), log)
+    details["plate"] = accuracy_plate([0.22, 0.25, 0.28, 0.31, 0.34],
+                                      9 if args.quick else 17, log)
+    details["load_avg_end"] = list(os.getloadavg())
+    details["seconds"] = time.perf_counter() - t_start
+
+    sp = details["speed"]
+    pooled = details["accuracy"]["pooled_default"]
+    plate = details["plate"]
+    worst_plate = max(v["plane_fit_rms_mm"] for v in plate.values())
+    result = {
+        "fps_1280x960": sp["fps_2t"],
+        "fps_naive_1280x960": sp["fps_naive"],
+        "stage_over_decode": sp["png"]["stage_over_decode"],
+        "median_mm": pooled["median_mm"],
+        "p95_mm": pooled["p95_mm"],
+        "centre_rms_px": details["centre"]["sigma_0.5"]["cog"]["rms_px"],
+        "notes": (
+            f"machine: {os.cpu_count()} cores shared with other engineers' jobs (load "
+            f"average {load0[0]:.1f} at the start, {details['load_avg_end'][0]:.1f} at the "
+            "end); times are best-of-N wall clock. fps_1280x960: detection + triangulation "
+            "+ move into base of decoded 1280x960 mono frames on 2 threads "
+            f"({sp['fps_1t']:.0f} fps on 1); fps_naive: a plain per-column Python loop on "
+            f"1 thread (it holds the GIL), {sp['fps_2t'] / sp['fps_naive']:.0f}x slower. "
+            "stage_over_decode: decode + detect + triangulate over decoding alone, both on 2 "
+            f"threads, PNG frames ({sp['png']['stage_over_decode']:.3f}; JPEG "
+            f"{sp['jpeg']['stage_over_decode']:.3f}). median/p95: distance of the "
+            "triangulated points to the truth mesh, both demo objects simulated with exact "
+            f"robot poses at 640x480 ({pooled['n_points']} points; "
+            f"{pooled['median_px']:.3f} / {pooled['p95_px']:.3f} pixel footprints, the "
+            f"footprint being {pooled['footprint_median_mm']:.3f} mm). Flat plate at 0.22-"
+            f"0.34 m: plane-fit RMS residual at most {worst_plate:.4f} mm. centre_rms_px: "
+            "centre of gravity on a pixel-integrated Gaussian stripe of FWHM 1.5 px with "
+            "1 DN noise (a stripe narrower than ~1.2 px FWHM suffers pixel locking: see "
+            "details.centre). Numba: compile "
+            f"{details['compile']['first_call_empty_cache_s']:.1f} s once, then "
+            f"{details['compile']['first_call_filled_cache_s']:.2f} s to load the cache."),
+        "details": details,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "w", encoding="utf-8") as f:
+        json.dump(result, f, indent=2)
+        f.write("\n")
+    log(f"wrote {args.out}")
+    for k in ("fps_1280x960", "fps_naive_1280x960", "stage_over_decode", "median_mm", "p95_mm",
+              "centre_rms_px"):
+        print(f"  {k}: {result[k]:.4g}")
+
+
+if __name__ == "__main__":
+    main()

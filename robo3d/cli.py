@@ -8,6 +8,12 @@ status. To add a command (``robo3d info``, ...), write the pair and append it.
     Simulate a scan recording (see :mod:`robo3d.simulate`).
 ``robo3d simulate --demo DIR``
     Regenerate the demo recordings into ``DIR``, deterministically.
+``robo3d info RECORDING [--config CONFIG] [--topic ROLE=NAME] [--frame ROLE=NAME] [--json]``
+    What a recording holds and whether each stage can use it (see :mod:`robo3d.info`);
+    exit status 1 when it is not fit, with the reasons.
+``robo3d status [--results DIR] [--logs DIR] [--json]``
+    After a batch: per recording, the stages done, failed (with the first error line of
+    their log) and not run; exit status 1 when a recording failed.
 """
 
 from __future__ import annotations
@@ -144,10 +150,68 @@ def _run_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- info
+def _pairs(items: list[str] | None, what: str, allowed: tuple[str, ...]) -> dict[str, str]:
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or key not in allowed or not value:
+            raise ValueError(f"--{what} must be ROLE=NAME with ROLE among "
+                             f"{', '.join(allowed)}, got {item!r}")
+        out[key] = value
+    return out
+
+
+def _add_info(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", help="an .mcap file or a rosbag2 directory")
+    p.add_argument("--config", metavar="YAML",
+                   help="pipeline config whose topics, frames and timing apply "
+                        "(default: the shipped config/config.yaml)")
+    p.add_argument("--topic", action="append", metavar="ROLE=NAME",
+                   help="map a topic role, e.g. --topic views=/camera/color/image_raw "
+                        "(repeatable; overrides the config)")
+    p.add_argument("--frame", action="append", metavar="ROLE=NAME",
+                   help="map a frame role, e.g. --frame base=base_link (repeatable)")
+    p.add_argument("--json", action="store_true", help="print the analysis as JSON")
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .info import _dumps, format_info, inspect_with_config
+    from .recording.model import FRAME_ROLES
+
+    cfg = load_config(args.config) if args.config else load_config()
+    cfg["topics"].update(_pairs(args.topic, "topic", ("tf", "tf_static", "calibration",
+                                                      "views", "laser", "joint_states")))
+    cfg["frames"].update(_pairs(args.frame, "frame", FRAME_ROLES))
+    info = inspect_with_config(args.recording, cfg)
+    sys.stdout.write((_dumps(info) if args.json else format_info(info)) + "\n")
+    return 0 if info["fit"] else 1
+
+
+# --------------------------------------------------------------------------- status
+def _add_status(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--results", default="results", help="results folder (default %(default)s)")
+    p.add_argument("--logs", default="logs", help="logs folder (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print the status as JSON")
+
+
+def _run_status(args: argparse.Namespace) -> int:
+    from .info import _dumps, batch_status, format_batch_status
+
+    status = batch_status(args.results, args.logs)
+    sys.stdout.write((_dumps(status) if args.json else format_batch_status(status)) + "\n")
+    return 1 if status["failed"] else 0
+
+
 #: The registered subcommands, in the order ``robo3d --help`` lists them.
 COMMANDS: list[Command] = [
     Command("simulate", "simulate a scan recording with ground truth (or the demos)",
             _add_simulate, _run_simulate),
+    Command("info", "what a recording holds and whether the pipeline can use it",
+            _add_info, _run_info),
+    Command("status", "what a batch run made, and why its failed jobs failed",
+            _add_status, _run_status),
 ]
 
 

@@ -607,7 +607,34 @@ def test_non_finite_or_uncalibrated_K(tmp_path: Path) -> None:  # noqa: N802
 
 
 def test_unsupported_encoding_and_schema(tmp_path: Path) -> None:
-    p = tmp_path / "ros.mcap"
+    p = tmp_path / "cbor.mcap"
+    with open(p, "wb") as f:
+        w = McapWriter(f)
+        w.start()
+        sid = w.register_schema("foxglove.CompressedImage", "", b"")
+        cid = w.register_channel("/camera/image", "cbor", sid)
+        w.add_message(cid, log_time=T0, data=b"\x00\x01\x00\x00", publish_time=T0)
+        w.finish()
+    with pytest.raises(RecordingError, match="unsupported message encoding 'cbor'.*"
+                                             "foxglove.CompressedImage") as ei:
+        read_recording(p, roles=("views",))
+    assert ei.value.topic == "/camera/image"
+    s = probe_recording(p)
+    assert not s.readable and "'cbor'" in s.problem
+    # ROS 2 CDR with an IDL schema: named, with what is read instead
+    p = tmp_path / "idl.mcap"
+    with open(p, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="ros2")
+        sid = w.register_schema("sensor_msgs/msg/CompressedImage", "ros2idl", b"module x {};")
+        cid = w.register_channel("/camera/image", "cdr", sid)
+        w.add_message(cid, log_time=T0, data=b"\x00\x01\x00\x00", publish_time=T0)
+        w.finish()
+    with pytest.raises(RecordingError, match="'sensor_msgs/msg/CompressedImage' is encoded "
+                                             "as 'ros2idl'.*ros2msg"):
+        read_recording(p, roles=("views",))
+    # a CDR message that does not decode against its schema: wrapped, with its time
+    p = tmp_path / "cdr.mcap"
     with open(p, "wb") as f:
         w = McapWriter(f)
         w.start(profile="ros2")
@@ -615,12 +642,9 @@ def test_unsupported_encoding_and_schema(tmp_path: Path) -> None:
         cid = w.register_channel("/camera/image", "cdr", sid)
         w.add_message(cid, log_time=T0, data=b"\x00\x01\x00\x00", publish_time=T0)
         w.finish()
-    with pytest.raises(RecordingError, match="unsupported message encoding 'cdr'.*"
-                                             "sensor_msgs/msg/CompressedImage") as ei:
+    with pytest.raises(RecordingError, match="CompressedImage message does not decode") as ei:
         read_recording(p, roles=("views",))
-    assert ei.value.topic == "/camera/image"
-    s = probe_recording(p)
-    assert not s.readable and "sensor_msgs/msg/CompressedImage" in s.problem
+    assert ei.value.topic == "/camera/image" and ei.value.time_ns == T0
     # a Foxglove schema, but the wrong one for the topic
     p = craft(tmp_path / "w.mcap", [("/tf", _img_msg(T0)), ("/camera/image", _img_msg(T0))])
     with pytest.raises(RecordingError, match="schema 'foxglove.CompressedImage'.*not supported "

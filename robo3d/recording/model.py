@@ -4,6 +4,12 @@ A :class:`Recording` is what the reader returns and what the writer's users buil
 metadata, the calibrations by ``frame_id``, the transform tree, and the image messages of
 each role, kept encoded until a stage decodes them (:meth:`ImageMessage.decode`), so that
 a long laser scan costs its compressed size in memory, not its decoded size.
+
+Frame names in a :class:`Recording` are the *roles* of ``recording-format.md``
+(``base``, ``flange``, ``camera``, ``laser``) wherever the reader was told which
+recorded name plays which role (``frames=``, the config's ``frames`` section): a ROS 2
+cell's ``base_link`` is ``base`` here, and :attr:`Recording.frame_names` keeps the
+recorded names.
 """
 
 from __future__ import annotations
@@ -15,7 +21,10 @@ import numpy as np
 from ..camera import CameraModel
 from ..transforms import TransformBuffer
 
-__all__ = ["ImageMessage", "Recording", "TopicMap"]
+__all__ = ["ImageMessage", "Recording", "TopicMap", "TopicStats", "JointStates", "FRAME_ROLES"]
+
+#: The frame roles of ``recording-format.md``.
+FRAME_ROLES: tuple[str, ...] = ("base", "flange", "camera", "laser")
 
 
 @dataclass(frozen=True)
@@ -28,6 +37,52 @@ class TopicMap:
     views: str = "/camera/image"
     laser: str = "/camera/laser_image"
     joint_states: str = "/robot/joint_states"
+
+
+@dataclass
+class TopicStats:
+    """What a recording holds on one topic (every topic, read or not).
+
+    Attributes
+    ----------
+    topic, schema, encoding : str
+        Topic name, schema name and message encoding (``protobuf``, ``json``, ``cdr``).
+    count : int
+        Messages found intact.
+    log_times_ns : (count,) int64
+        MCAP log times in file order (nanoseconds).
+    stamps_ns : (count,) int64 or None
+        The messages' own stamps, for the topics the reader decoded (a tf message: its
+        first transform's stamp); None for topics it skipped.
+    """
+
+    topic: str
+    schema: str
+    encoding: str
+    count: int = 0
+    log_times_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    stamps_ns: np.ndarray | None = None
+
+
+@dataclass
+class JointStates:
+    """Joint positions as recorded (``sensor_msgs/msg/JointState``): informational only.
+
+    Attributes
+    ----------
+    topic : str
+    names : list of str
+        Every joint named by any message, in order of first appearance.
+    stamps_ns : (N,) int64
+        One per message, sorted.
+    positions : (N, J) float64
+        Radians or metres; NaN where a message lacks the joint.
+    """
+
+    topic: str
+    names: list[str]
+    stamps_ns: np.ndarray
+    positions: np.ndarray
 
 
 @dataclass
@@ -48,6 +103,8 @@ class ImageMessage:
         For raw images (0 for compressed ones until decoded).
     path : str
         The recording file, named in decode errors.
+    log_time_ns : int
+        The MCAP log time (when the recorder received it).
     """
 
     topic: str
@@ -59,6 +116,7 @@ class ImageMessage:
     height: int = 0
     step: int = 0
     path: str = ""
+    log_time_ns: int = 0
 
     def decode(self) -> np.ndarray:
         """The image as ``(H, W)`` or ``(H, W, 3)`` RGB array (uint8 or uint16).
@@ -72,7 +130,12 @@ class ImageMessage:
 
 @dataclass
 class Recording:
-    """A whole recording, read into memory with images still encoded."""
+    """A whole recording, read into memory with images still encoded.
+
+    ``topics`` describes every topic found (counts, log times); ``frame_names`` maps each
+    role to the recorded frame name it was read from (only roles that were renamed);
+    ``files`` lists the MCAP files read (several for a split rosbag2 directory).
+    """
 
     path: str
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -83,6 +146,10 @@ class Recording:
     attachments: dict[str, bytes] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     base_frame: str = "base"
+    topics: dict[str, TopicStats] = field(default_factory=dict)
+    joint_states: JointStates | None = None
+    frame_names: dict[str, str] = field(default_factory=dict)
+    files: list[str] = field(default_factory=list)
 
     @property
     def info(self) -> dict[str, str]:
@@ -95,8 +162,22 @@ class Recording:
         info = self.info
         if "workspace_min" not in info or "workspace_max" not in info:
             return None
-        lo = np.array([float(x) for x in info["workspace_min"].split()])
-        hi = np.array([float(x) for x in info["workspace_max"].split()])
+        try:
+            lo = np.array([float(x) for x in info["workspace_min"].split()])
+            hi = np.array([float(x) for x in info["workspace_max"].split()])
+        except ValueError as exc:
+            from ..errors import RecordingError
+
+            raise RecordingError(f"metadata robo3d.recording: workspace_min/workspace_max must "
+                                 f"be 'x y z' numbers, got {info['workspace_min']!r} and "
+                                 f"{info['workspace_max']!r} ({exc})", path=self.path) from None
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo))
+                                                        and np.all(np.isfinite(hi))):
+            from ..errors import RecordingError
+
+            raise RecordingError(f"metadata robo3d.recording: workspace_min/workspace_max must "
+                                 f"be three finite numbers each, got {info['workspace_min']!r} "
+                                 f"and {info['workspace_max']!r}", path=self.path)
         return lo, hi
 
     def camera_for(self, msg: ImageMessage) -> CameraModel:

@@ -1,5 +1,6 @@
 # robo3d: recordings in, measured meshes out. See README.md and workflow/rules/.
 import os
+import sys
 
 from snakemake.utils import min_version
 
@@ -20,3 +21,9 @@ rule all:
     input:
         get_all_outputs(),
     default_target: True
+
+
+onerror:
+    from robo3d.info import batch_status, format_batch_status
+
+    print(format_batch_status(batch_status("results", "logs", RECORDINGS)), file=sys.stderr)

@@ -86,7 +86,7 @@ shift || true
 case "$cmd" in
   demo)
     say "running the pipeline on the recordings in recordings/ (results in results/)"
-    exec .venv/bin/snakemake --cores all --keep-going --printshellcmds "$@"
+    exec .venv/bin/snakemake --cores all --keep-going --rerun-incomplete "$@"
     ;;
   test)
     exec .venv/bin/python -m pytest "$@"

@@ -95,7 +95,7 @@ _SIM_OPTIONS: list[tuple[str, str, object, str, str]] = [
     ("--view-distance", "view_distance", float, "M",
      "camera-to-object distance of the views"),
     ("--sweep-elevation", "sweep_elevation_deg", float, "DEG",
-     "elevation of the side sweeps"),
+     "elevation of the upper ring of side sweeps"),
     ("--sweep-spacing", "sweep_spacing", float, "M",
      "camera travel per laser frame"),
     ("--sweep-frames", "sweep_frames", int, "N",

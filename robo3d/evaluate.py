@@ -48,6 +48,8 @@ __all__ = [
     "completeness",
     "volume_iou",
     "pose_error",
+    "batch_rows",
+    "write_batch_table",
 ]
 
 log = logging.getLogger(__name__)
@@ -268,7 +270,8 @@ def _fractions(d: np.ndarray, thresholds_mm: tuple[float, ...]) -> dict[str, flo
 
 def mesh_accuracy(vertices: np.ndarray, faces: np.ndarray, truth: TruthSurface, *,
                   n_samples: int = 200_000, seed: int = 0,
-                  thresholds_mm: tuple[float, ...] = (0.1, 0.5, 1.0)) -> dict[str, Any]:
+                  thresholds_mm: tuple[float, ...] = (0.1, 0.5, 1.0),
+                  region: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
     """Distances from a reconstructed mesh's surface to the true surface.
 
     The reconstruction is sampled uniformly by area (``n_samples`` points, ``seed``), so
@@ -282,16 +285,23 @@ def mesh_accuracy(vertices: np.ndarray, faces: np.ndarray, truth: TruthSurface, 
     n_samples : int
     seed : int
     thresholds_mm : tuple of float
+    region : (box_min (3,), box_max (3,)), metres, optional
+        Score only the reconstruction inside this box (e.g. above the closure of the
+        face resting on the table, which no sensor sees).
 
     Returns
     -------
     dict
-        :func:`distance_stats` keys (``n == 0`` for an empty mesh) and ``within_mm``.
+        :func:`distance_stats` keys (``n == 0`` for an empty mesh), ``within_mm`` and
+        ``fraction_scored`` (of the samples, those in the region).
     """
+    box = _check_box(region)
     p = sample_surface(vertices, faces, n_samples, seed=seed)
-    d = truth.distance(p)
+    inb = _in_box(p, box)
+    d = truth.distance(p[inb])
     out = distance_stats(d)
     out["within_mm"] = _fractions(d, thresholds_mm)
+    out["fraction_scored"] = float(inb.mean()) if len(p) else None
     return out
 
 
@@ -419,3 +429,108 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[Any, Any]:
     if a.ndim == 2:
         return float(t), float(r)
     return t, r
+
+
+_STAGES = ("silhouettes", "carve", "stripes", "triangulate", "align", "fuse", "simplify",
+           "evaluate")
+
+
+def _get(d: Any, *keys: str) -> Any:
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return None
+        d = d[k]
+    return d
+
+
+def batch_rows(metrics: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One flat row per recording from its ``metrics.json`` (missing values None).
+
+    Parameters
+    ----------
+    metrics : list of dict
+        The recordings' metrics, as written by the evaluate stage.
+
+    Returns
+    -------
+    list of dict
+        Keys: ``recording``, ``hull_iou``, ``pose_before_mm`` / ``pose_before_deg``
+        (worst sweep, displacement at the object / rotation), ``pose_after_mm``,
+        ``pose_after_flange_mm``, ``pose_after_deg``, ``mesh_median_mm``,
+        ``mesh_p95_mm``, ``complete_<t>mm`` per threshold, ``laser_fraction``,
+        ``faces``, ``hausdorff_mm``, ``total_s``, ``<stage>_s`` and ``<stage>_mb`` (peak
+        resident memory) per stage.
+    """
+    rows = []
+    for m in metrics:
+        ev = m.get("evaluation") or {}
+        row: dict[str, Any] = {"recording": m.get("name"),
+                               "hull_iou": ev.get("hull_volume_iou"),
+                               "pose_before_mm": _get(ev, "poses", "worst_before_obj_mm"),
+                               "pose_before_deg": _get(ev, "poses", "worst_before_deg"),
+                               "pose_after_mm": _get(ev, "poses", "worst_after_obj_mm"),
+                               "pose_after_flange_mm": _get(ev, "poses", "worst_after_mm"),
+                               "pose_after_deg": _get(ev, "poses", "worst_after_deg"),
+                               "mesh_median_mm": _get(ev, "mesh", "median_mm"),
+                               "mesh_p95_mm": _get(ev, "mesh", "p95_mm")}
+        for t, v in (_get(ev, "mesh", "completeness", "within_mm") or {}).items():
+            row[f"complete_{t}mm"] = v
+        row["laser_fraction"] = _get(m, "surface_sources", "laser_area_fraction")
+        row["faces"] = _get(m, "stages", "simplify", "faces_out")
+        h = _get(m, "stages", "simplify", "hausdorff_max_m")
+        row["hausdorff_mm"] = None if h is None else h * 1e3
+        row["total_s"] = _get(m, "timings", "total_seconds")
+        for st in _STAGES:
+            row[f"{st}_s"] = _get(m, "timings", st, "seconds")
+            row[f"{st}_mb"] = _get(m, "timings", st, "max_rss_mb")
+        rows.append(row)
+    return rows
+
+
+def write_batch_table(metrics_paths: list[str], tsv_path: str, html_path: str) -> None:
+    """Write the batch table of several recordings' ``metrics.json`` as TSV and HTML.
+
+    Parameters
+    ----------
+    metrics_paths : list of str
+    tsv_path, html_path : str
+        Outputs (written atomically).
+    """
+    import html
+    import json
+
+    from .atomic import atomic_path
+
+    metrics = []
+    for p in metrics_paths:
+        with open(p, encoding="utf-8") as f:
+            metrics.append(json.load(f))
+    rows = batch_rows(metrics)
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+
+    def fmt(v: Any) -> str:
+        if v is None:
+            return ""
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return str(v)
+
+    with atomic_path(tsv_path) as tmp:
+        lines = ["\t".join(cols)] + ["\t".join(fmt(r.get(c)) for c in cols) for r in rows]
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(fmt(r.get(c)))}</td>" for c in cols)
+                   + "</tr>" for r in rows)
+    page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>robo3d batch</title>"
+            "<style>body{font-family:sans-serif}table{border-collapse:collapse}"
+            "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
+            "th{background:#eee}</style></head><body><h1>robo3d batch: "
+            f"{len(rows)} recording(s)</h1><p>Pose errors: worst sweep, displacement of "
+            "its points (mm) and rotation (deg); mesh: distance of the final mesh to the "
+            "true surface; complete: fraction of the true surface within the threshold; "
+            "times in seconds, memory in MB (peak resident).</p>"
+            f"<table><tr>{head}</tr>{body}</table></body></html>\n")
+    with atomic_path(html_path) as tmp:
+        tmp.write_text(page, encoding="utf-8")

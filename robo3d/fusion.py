@@ -24,11 +24,29 @@ the sensor, which for an object scanned from outside is outward.
 Reproducibility: Poisson runs single-threaded by default (``n_threads=1``) because Open3D's
 multi-threaded solver does not give bit-identical vertices from run to run.
 
-:func:`fuse_tsdf` is volumetric fusion after Curless & Levoy (1996): a truncated signed
-distance field accumulated along each point's line of sight with view-angle weights, then
-marching cubes. It needs the sensor origin of every point. It does not yet use the hull
-to carve free space or fill holes (a later step); the hull only cuts the result, as for
-Poisson.
+:func:`fuse_tsdf` (the pipeline's default) is volumetric fusion after Curless & Levoy
+(1996): each sweep is range data, triangulated into its range surface
+(:func:`range_surface`); every voxel near it gets the signed distance to it along the line
+of sight (ray cast through the voxel, Open3D/Embree), weighted by the cosine of the view
+angle, the points' confidence and a ramp at the range surface's border; a voxel is
+observed when its summed weight reaches ``min_weight`` (no surface from a single grazing
+view). The lines of sight carve the space in front of the surface. Where the laser saw
+nothing, the visual hull bounds the space and closes the holes: unobserved voxels inside
+the hull that were not seen empty are solid (C & L's hole filling with the hull as the
+"unseen" boundary), so the mesh is watertight; the report gives the fraction of its area
+from the laser and from the hull. Marching cubes (Lewiner) extracts the surface. Laser
+points outside the hull are kept (the laser is the accurate measurement; the hull may be
+eroded by a segmentation error): their count is reported.
+
+Why not Open3D's own TSDF: its integration takes depth images from pinhole cameras and
+weighs every observation 1 (no view-angle weights); a laser sweep is a push-broom scan
+whose lines of sight change along the sweep, and a single stripe image is a one-pixel
+wide depth image. ``benchmarks/pipeline.py`` measures Open3D's tensor ``VoxelBlockGrid``
+on the same sweeps rendered into depth images, for speed and accuracy.
+
+Choice: the range surface is triangulated after a parallel projection along the sweep's
+mean line of sight (the laser's profile order is not kept in the clouds); triangles with
+an edge longer than twice the median longest edge are depth jumps and dropped.
 
 References
 ----------
@@ -48,7 +66,7 @@ import numpy as np
 
 from .errors import StageError
 
-__all__ = ["fuse_poisson", "fuse_tsdf", "crop_mesh_to_hull", "remove_vertices"]
+__all__ = ["fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull", "remove_vertices"]
 
 log = logging.getLogger(__name__)
 
@@ -286,75 +304,235 @@ def fuse_poisson(
     return v, f, report
 
 
+def _as_list(name: str, a: object, dims: int) -> list[np.ndarray]:
+    """A list of per-sweep arrays (one array = one sweep)."""
+    items = list(a) if isinstance(a, list | tuple) else [a]
+    out = []
+    for k, x in enumerate(items):
+        arr = np.asarray(x, dtype=np.float64)
+        arr = arr.reshape(-1, 3) if dims == 2 and arr.size == 0 else arr
+        if dims == 2 and (arr.ndim != 2 or arr.shape[1] != 3):
+            raise ValueError(f"{name}[{k}] must be (N, 3), got {arr.shape}")
+        if dims == 1:
+            arr = arr.reshape(-1)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name}[{k}] contains non-finite values")
+        out.append(arr)
+    return out
+
+
+def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
+                  max_edge_factor: float = 2.0, min_cos_view: float = 0.1
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Triangulate one range scan (a sweep) into its range surface.
+
+    The points are triangulated in 2D (Delaunay) after a parallel projection along the
+    scan's mean line of sight, as a range image is triangulated on its pixel grid. A
+    triangle is dropped when an edge is longer than ``max_edge_factor`` times the median
+    longest edge (a depth jump: two surfaces that only look adjacent), or when it is seen
+    at a grazing angle (``|cos| < min_cos_view``, steep triangles bridge jumps too). The
+    kept triangles face the sensor.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, metres
+    sensor_origins : (N, 3) float64, metres
+        Sensor position at each point's frame.
+    max_edge_factor : float
+    min_cos_view : float
+
+    Returns
+    -------
+    faces : (T, 3) int64
+        Indices into ``points``, counter-clockwise seen from the sensor.
+    report : dict
+        ``n_triangles_delaunay``, ``n_triangles``, ``max_edge_m``.
+
+    References
+    ----------
+    Curless & Levoy (1996), section 4 (range images triangulated into range surfaces).
+    """
+    from scipy.spatial import Delaunay
+
+    p = np.asarray(points, dtype=np.float64)
+    o = np.asarray(sensor_origins, dtype=np.float64)
+    if p.shape != o.shape or p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points and sensor_origins must both be (N, 3), got {p.shape} and "
+                         f"{o.shape}")
+    empty = np.zeros((0, 3), dtype=np.int64)
+    if len(p) < 3:
+        return empty, {"n_triangles_delaunay": 0, "n_triangles": 0, "max_edge_m": None}
+    los = p - o
+    los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
+    w = los.mean(axis=0)
+    w /= np.linalg.norm(w)
+    a = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(w, a)
+    uv = np.stack([p @ a, p @ b], axis=1)
+    try:
+        tri = Delaunay(uv - uv.mean(axis=0)).simplices.astype(np.int64)
+    except Exception:  # degenerate input (collinear): no surface
+        return empty, {"n_triangles_delaunay": 0, "n_triangles": 0, "max_edge_m": None}
+    v0, v1, v2 = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+    longest = np.max(np.stack([np.linalg.norm(v1 - v0, axis=1), np.linalg.norm(v2 - v1, axis=1),
+                               np.linalg.norm(v0 - v2, axis=1)]), axis=0)
+    max_edge = float(max_edge_factor * np.median(longest))
+    nrm = np.cross(v1 - v0, v2 - v0)
+    area2 = np.linalg.norm(nrm, axis=1)
+    nrm = nrm / np.maximum(area2, 1e-30)[:, None]
+    sight = (o[tri[:, 0]] + o[tri[:, 1]] + o[tri[:, 2]]) / 3 - (v0 + v1 + v2) / 3
+    sight /= np.maximum(np.linalg.norm(sight, axis=1, keepdims=True), 1e-12)
+    cos = np.einsum("ij,ij->i", nrm, sight)
+    keep = (longest <= max_edge) & (np.abs(cos) >= min_cos_view) & (area2 > 0)
+    faces = tri[keep]
+    flip = cos[keep] < 0  # wind counter-clockwise as seen from the sensor
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces, {"n_triangles_delaunay": int(len(tri)), "n_triangles": int(len(faces)),
+                   "max_edge_m": max_edge}
+
+
+def _boundary_ramp(points: np.ndarray, faces: np.ndarray, ramp: float) -> np.ndarray:
+    """Per-vertex weight rising from 0 on the range surface's border to 1 at ``ramp``
+    metres inside it (Curless & Levoy: weights fall off toward the edges of a scan)."""
+    from scipy.spatial import cKDTree
+
+    w = np.zeros(len(points))
+    if len(faces) == 0:
+        return w
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e.sort(axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    border = np.unique(uniq[count == 1].ravel())
+    used = np.unique(faces.ravel())
+    if ramp <= 0 or len(border) == 0:
+        w[used] = 1.0
+        return w
+    d, _ = cKDTree(points[border]).query(points[used], k=1)
+    w[used] = np.clip(d / ramp, 0.0, 1.0)
+    return w
+
+
+def _hull_field(hull: Any, grid_origin: np.ndarray,
+                voxel_size: float, shape: tuple[int, int, int], margin_voxels: int,
+                smooth_sigma: float) -> np.ndarray:
+    """Whether each voxel of the fusion grid is inside the hull, from the hull's smoothed
+    occupancy (0.5 level, trilinear), dilated by ``margin_voxels`` hull voxels."""
+    from scipy import ndimage
+
+    h_origin, h_vs, occ = _dilated_hull(hull, margin_voxels)
+    field = ndimage.gaussian_filter(occ.astype(np.float32), smooth_sigma) if smooth_sigma > 0 \
+        else occ.astype(np.float32)
+    inside = np.zeros(shape, dtype=bool)
+    idx = np.indices(shape, dtype=np.float32).reshape(3, -1)
+    for k in range(3):  # fusion voxel index -> hull voxel coordinates
+        idx[k] = (grid_origin[k] + idx[k] * voxel_size - h_origin[k]) / h_vs
+    vals = ndimage.map_coordinates(field, idx, order=1, mode="constant", cval=0.0)
+    inside.ravel()[:] = vals > 0.5
+    return inside
+
+
 def fuse_tsdf(
     points: np.ndarray | list[np.ndarray],
     normals: np.ndarray | list[np.ndarray],
     sensor_origins: np.ndarray | list[np.ndarray],
     *,
-    voxel_size: float = 0.5e-3,
+    voxel_size: float = 0.4e-3,
     trunc_voxels: int = 4,
     confidences: np.ndarray | list[np.ndarray] | None = None,
     hull: Any = None,
-    hull_margin_voxels: int = 1,
-    max_outside_fraction: float = 0.05,
-    min_weight: float = 0.5,
+    hull_margin_voxels: int = 0,
+    hull_smooth_vox: float = 0.8,
+    fill_holes: bool = True,
+    carve_free_space: bool = True,
+    min_weight: float = 0.15,
     min_cos_view: float = 0.1,
+    max_edge_factor: float = 2.0,
+    border_ramp_m: float = 1.0e-3,
+    carve_depth_m: float = 0.02,
+    interp_sigma_m: float = 0.0,
+    interp_floor: float = 0.05,
     max_voxels: int = 64_000_000,
-    chunk_points: int = 50_000,
+    threads: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """Volumetric fusion: a truncated signed distance field over the lines of sight, then
-    marching cubes (Curless & Levoy 1996).
+    """Volumetric fusion of range scans after Curless & Levoy (1996), bounded and closed by
+    the visual hull.
 
-    Each measured point ``p`` (normal ``n`` toward the sensor, seen from ``o``) updates the
-    voxels along its line of sight within ``±trunc`` of ``p`` (``trunc = trunc_voxels *
-    voxel_size``): the ray is sampled every voxel and each sample splats into the 8 voxels
-    around it (each voxel once per ray), so that the band is covered laterally as well.
-    The value given to voxel centre ``x`` is the distance to the point's tangent plane,
-    ``(x - p) . n``, clipped to ``±trunc``: positive in front of the surface (free space),
-    negative behind it. Its weight is ``confidence * cos(view angle)`` (the angle between
-    ``n`` and the direction to the sensor: grazing measurements are the least accurate),
-    tapered linearly to 0 between ``-trunc/2`` and ``-trunc`` behind the surface. Points
-    seen at ``cos < min_cos_view`` are dropped. The fused field is the weighted mean; a voxel
-    is observed when its weight sum is at least ``min_weight``. The zero level set is
-    extracted with scikit-image's marching cubes (Lewiner), where the voxels are
-    observed, so no surface is invented between observed and unobserved space: a vertex is
-    kept only when both voxels of the grid edge it lies on are observed.
+    1. Each scan (one laser sweep) is triangulated into its range surface
+       (:func:`range_surface`).
+    2. For every voxel within ``±trunc`` (``trunc_voxels * voxel_size``) of a scan, the
+       signed distance to that scan's range surface is measured *along the line of sight*
+       (the sight line of the nearest measured point), by casting a ray through the voxel
+       centre (Open3D / Embree): positive in front of the surface, negative behind.
+    3. Its weight is ``cos(view angle)`` at the hit (grazing views count little) times the
+       points' confidence and a ramp that falls to 0 at the range surface's border,
+       tapered to 0 between ``trunc/2`` and ``trunc`` behind the surface. The TSDF is the
+       weighted mean over scans; a voxel is *observed* when its weight sum reaches
+       ``min_weight``: a single view at ``cos < min_weight`` makes no surface (the
+       minimum-weight guard).
+    4. Space carving: voxels along each line of sight in front of the surface are seen
+       empty (``carve_free_space``).
+    5. Hole filling (``fill_holes``, with a hull): an unobserved voxel is empty when it
+       was seen empty or lies outside the hull, and solid otherwise, so that where the
+       laser saw nothing the surface is the boundary between the space seen empty and the
+       hull; the solid/empty indicator is smoothed over one voxel for a smooth surface.
+       Without a hull no surface is made where nothing was observed.
+    6. Marching cubes (Lewiner) at level 0. Each triangle is attributed to the laser when
+       its vertices lie on grid edges between observed voxels, otherwise to the hull.
 
     Parameters
     ----------
     points : (N, 3) float64, metres, or a list of per-sweep arrays
-    normals : (N, 3) float64 (or list)
-        Unit normals oriented toward the sensor (out of the object).
-    sensor_origins : (N, 3) float64 (or list)
-        Camera centre in ``base`` when each point was measured.
+        One array per range scan (sweep).
+    normals : like ``points``
+        Unit normals (used for the view-angle check of the points; the weights use the
+        range surface's own normals).
+    sensor_origins : like ``points``
+        Sensor position when each point was measured.
     voxel_size : float, metres
     trunc_voxels : int
-        Half-width of the band around the surface, in voxels.
-    confidences : (N,) float in [0, 1] (or list), optional
-        Per-point confidence, multiplied into the weights (default 1).
+        Half-width of the band around each range surface, in voxels.
+    confidences : (N,) float in [0, 1] or list, optional
+        Per-point confidence (default 1); 0 removes a point.
     hull : VoxelGrid-like, optional
-        Surface outside the hull (dilated by ``hull_margin_voxels``) is cut away.
+        ``origin``, ``voxel_size``, ``occupancy``: bounds and closes the surface.
     hull_margin_voxels : int
-    max_outside_fraction : float
-        As for :func:`fuse_poisson`: the cut is skipped when the points disagree with it.
+        Dilation of the hull (hull voxels) before use.
+    hull_smooth_vox : float
+        Gaussian smoothing of the hull's occupancy (hull voxels) before its 0.5 level.
+    fill_holes, carve_free_space : bool
     min_weight : float
-        Smallest weight sum of an observed voxel.
+        Least weight sum of an observed voxel.
     min_cos_view : float
-        Points seen more obliquely than this cosine are not fused.
+        Points and range triangles seen more obliquely are not used.
+    max_edge_factor : float
+        Range-surface depth-jump threshold (:func:`range_surface`).
+    border_ramp_m : float, metres
+        Width of the weight ramp at range-surface borders.
+    carve_depth_m : float, metres
+        How far in front of the surface the lines of sight carve (deeper concavities than
+        this are left to the hull).
+    interp_sigma_m, interp_floor : float
+        Weight of a range-surface hit falls as ``floor + (1 - floor) exp(-(d / sigma)^2)``
+        with its distance ``d`` to the nearest measured point of its triangle: between
+        two laser profiles the range surface is a chord, so where sweeps cross, measured
+        points outweigh interpolated ones (0 disables).
     max_voxels : int
-        Largest dense grid allowed (memory: 16 bytes per voxel).
-    chunk_points : int
-        Points processed per vectorised batch (bounds memory).
+        Largest grid allowed (memory: about 10 bytes per voxel).
+    threads : int
+        Ray-casting threads (results do not depend on it).
 
     Returns
     -------
     vertices : (V, 3) float64, metres
     faces : (F, 3) int64
-        Triangles counter-clockwise seen from outside (normals point out of the object).
+        Counter-clockwise seen from outside.
     report : dict
-        ``n_points``, ``n_points_used``, ``voxel_size``, ``trunc``, ``grid_shape``,
-        ``n_voxels_observed``, ``hull_cut``, ``hull_points_outside_fraction``,
-        ``n_vertices_outside_hull``, ``n_vertices``, ``n_faces``.
+        ``n_points``, ``n_points_used``, ``n_scans``, ``voxel_size``, ``trunc``,
+        ``grid_shape``, ``n_voxels_observed``, ``n_voxels_seen_empty``,
+        ``laser_area_fraction``, ``hull_area_fraction``, ``hull_fill`` (what was done),
+        ``n_observed_voxels_outside_hull``, ``range_surfaces`` (per scan), ``seconds``
+        per step, ``n_vertices``, ``n_faces``.
 
     Raises
     ------
@@ -367,108 +545,232 @@ def fuse_tsdf(
     range images. SIGGRAPH.
     Lewiner, T. et al. (2003). Efficient implementation of marching cubes' cases with
     topological guarantees. Journal of Graphics Tools 8(2).
+    Laurentini, A. (1994). The visual hull concept for silhouette-based image
+    understanding. IEEE PAMI 16(2).
     """
+    import time
+
+    import open3d as o3d
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
     from skimage import measure
 
-    p = _stack("points", points)
-    n = _stack("normals", normals)
-    o = _stack("sensor_origins", sensor_origins)
-    if n.shape != p.shape or o.shape != p.shape:
-        raise ValueError(f"normals and sensor_origins must match points {p.shape}, got "
-                         f"{n.shape} and {o.shape}")
-    if confidences is None:
-        conf = np.ones(len(p))
-    else:
-        conf = (np.concatenate([np.asarray(c, dtype=np.float64).ravel() for c in confidences])
-                if isinstance(confidences, list | tuple) else
-                np.asarray(confidences, dtype=np.float64).ravel())
-        if conf.shape != (len(p),) or not np.all(np.isfinite(conf)) or np.any(conf < 0):
-            raise ValueError(f"confidences must be ({len(p)},) finite and >= 0, got "
-                             f"{conf.shape}")
+    clock = {}
+    t_start = time.perf_counter()
+    P = _as_list("points", points, 2)
+    N = _as_list("normals", normals, 2)
+    O = _as_list("sensor_origins", sensor_origins, 2)
+    if not (len(P) == len(N) == len(O)) or any(
+            n.shape != p.shape or o.shape != p.shape for p, n, o in zip(P, N, O, strict=True)):
+        raise ValueError("normals and sensor_origins must match points (per scan), got "
+                         f"{[p.shape for p in P]}, {[n.shape for n in N]} and "
+                         f"{[o.shape for o in O]}")
+    Cf = ([np.ones(len(p)) for p in P] if confidences is None
+          else _as_list("confidences", confidences, 1))
+    if len(Cf) != len(P) or any(len(c) != len(p) or np.any(c < 0) for c, p in zip(Cf, P,
+                                                                              strict=True)):
+        raise ValueError("confidences must hold one value >= 0 per point, like points")
     if not voxel_size > 0 or trunc_voxels < 1:
         raise ValueError(f"voxel_size must be > 0 and trunc_voxels >= 1, got {voxel_size} "
                          f"and {trunc_voxels}")
     if not min_weight > 0:
         raise ValueError(f"min_weight must be > 0, got {min_weight}")
-
-    ray = p - o
-    dist = np.linalg.norm(ray, axis=1)
-    nlen = np.linalg.norm(n, axis=1)
-    ok = (dist > 0) & (nlen > 1e-12)
-    d = np.zeros_like(ray)
-    d[ok] = ray[ok] / dist[ok, None]
-    nn = np.zeros_like(n)
-    nn[ok] = n[ok] / nlen[ok, None]
-    cos_view = -np.einsum("ij,ij->i", nn, d)
-    use = ok & (cos_view >= min_cos_view) & (conf > 0)
-    p, nn, d, w_pt = p[use], nn[use], d[use], (conf * cos_view)[use]
-    report: dict[str, Any] = dict(n_points=int(len(use)), n_points_used=int(len(p)),
+    n_total = int(sum(len(p) for p in P))
+    # points seen from the front only (normals toward the sensor), with confidence
+    for k in range(len(P)):
+        los = O[k] - P[k]
+        los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
+        nl = np.linalg.norm(N[k], axis=1)
+        cos = np.einsum("ij,ij->i", N[k], los) / np.maximum(nl, 1e-12)
+        ok = (cos >= min_cos_view) & (Cf[k] > 0)
+        P[k], N[k], O[k], Cf[k] = P[k][ok], N[k][ok], O[k][ok], Cf[k][ok]
+    n_used = int(sum(len(p) for p in P))
+    report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used, n_scans=len(P),
                                   voxel_size=float(voxel_size))
-    if len(p) == 0:
+    if n_used == 0:
         raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
                          f"cos(view angle) >= {min_cos_view} with confidence > 0)")
-
     trunc = trunc_voxels * voxel_size
-    margin = trunc + 2 * voxel_size
-    origin = p.min(axis=0) - margin
-    shape = np.ceil((p.max(axis=0) + margin - origin) / voxel_size).astype(np.int64) + 1
+    allp = np.concatenate(P)
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    h_origin = h_vs = h_occ = None
+    if hull is not None:
+        h_origin, h_vs, h_occ = _hull_arrays(hull)
+        if h_occ.any():
+            idx = np.argwhere(h_occ)
+            lo = np.minimum(lo, h_origin + idx.min(axis=0) * h_vs)
+            hi = np.maximum(hi, h_origin + idx.max(axis=0) * h_vs)
+    margin = trunc + 3 * voxel_size
+    origin = lo - margin
+    shape = tuple(int(x) for x in np.ceil((hi + margin - origin) / voxel_size).astype(np.int64)
+                  + 1)
     n_vox = int(np.prod(shape))
     if n_vox > max_voxels:
-        raise StageError(f"TSDF grid {tuple(shape)} has {n_vox} voxels > max_voxels "
-                         f"{max_voxels}; use a larger voxel_size")
-    report.update(trunc=float(trunc), grid_shape=[int(x) for x in shape])
-
-    sum_w = np.zeros(n_vox)
-    sum_wd = np.zeros(n_vox)
-    steps = np.arange(-trunc_voxels, trunc_voxels + 1) * voxel_size  # (K,)
-    corners = np.indices((2, 2, 2)).reshape(3, -1).T  # (8, 3)
-    for start in range(0, len(p), chunk_points):
-        sl = slice(start, start + chunk_points)
-        pc, nc, dc, wc = p[sl], nn[sl], d[sl], w_pt[sl]
-        samples = pc[:, None, :] + steps[None, :, None] * dc[:, None, :]  # (M, K, 3)
-        base_idx = np.floor((samples - origin) / voxel_size).astype(np.int64)
-        vox = (base_idx[:, :, None, :] + corners[None, None]).reshape(len(pc), -1, 3)
-        lin = np.ravel_multi_index((vox[..., 0], vox[..., 1], vox[..., 2]), tuple(shape))
-        lin.sort(axis=1)
-        first = np.ones_like(lin, dtype=bool)
-        first[:, 1:] = lin[:, 1:] != lin[:, :-1]  # each voxel once per ray
-        rows = np.nonzero(first)[0]
-        lin_u = lin[first]
-        x = origin + np.stack(np.unravel_index(lin_u, tuple(shape)), axis=1) * voxel_size
-        sdf = np.einsum("ij,ij->i", x - pc[rows], nc[rows])
-        w = wc[rows] * np.clip((sdf + trunc) / (0.5 * trunc), 0.0, 1.0)
-        sdf = np.clip(sdf, -trunc, trunc)
+        raise StageError(f"TSDF grid {shape} has {n_vox} voxels > max_voxels {max_voxels}; "
+                         "use a larger voxel_size")
+    report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
+    sum_w = np.zeros(n_vox, dtype=np.float32)
+    sum_wd = np.zeros(n_vox, dtype=np.float32)
+    seen_empty = np.zeros(n_vox, dtype=bool)
+    shift = 0.5 * (lo + hi)  # float32 ray casting in a frame centred on the object
+    scans = []
+    clock["setup"] = time.perf_counter() - t_start
+    t_rs = t_rays = t_carve = 0.0
+    for k in range(len(P)):
+        p, o, conf = P[k], O[k], Cf[k]
+        ta = time.perf_counter()
+        faces, rs = range_surface(p, o, max_edge_factor=max_edge_factor,
+                                  min_cos_view=min_cos_view)
+        scans.append(rs)
+        t_rs += time.perf_counter() - ta
+        if len(faces) == 0:
+            continue
+        ta = time.perf_counter()
+        vw = conf * _boundary_ramp(p, faces, border_ramp_m)
+        # the band: voxels within trunc of the range surface (surface samples dilated)
+        v0, v1, v2 = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+        samples = np.concatenate([p, (v0 + v1 + v2) / 3, (v0 + v1) / 2, (v1 + v2) / 2,
+                                  (v2 + v0) / 2])
+        occ = np.zeros(shape, dtype=bool)
+        ii = np.round((samples - origin) / voxel_size).astype(np.int64)
+        occ[ii[:, 0], ii[:, 1], ii[:, 2]] = True
+        band = ndimage.maximum_filter(occ, size=2 * trunc_voxels + 1)
+        lin = np.flatnonzero(band)
+        x = origin + np.stack(np.unravel_index(lin, shape), axis=1) * voxel_size
+        _, nb = cKDTree(p).query(x, k=1)
+        d = p[nb] - o[nb]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))
+        scene.add_triangles(o3d.core.Tensor((p - shift).astype(np.float32)),
+                            o3d.core.Tensor(faces.astype(np.uint32)))
+        rays = np.hstack([x - shift - trunc * d, d]).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        t_hit = hit["t_hit"].numpy().astype(np.float64)
+        good = t_hit <= 2 * trunc
+        prim = hit["primitive_ids"].numpy()
+        uvh = hit["primitive_uvs"].numpy().astype(np.float64)
+        nh = hit["primitive_normals"].numpy().astype(np.float64)
+        cos = -np.einsum("ij,ij->i", nh, d)  # range triangles face their sensor
+        good &= cos > 0
+        lin, t_hit, d, cos, x = lin[good], t_hit[good], d[good], cos[good], x[good]
+        prim, uvh = prim[good], uvh[good]
+        tri = faces[prim.astype(np.int64)]
+        wv = (vw[tri[:, 0]] * (1 - uvh[:, 0] - uvh[:, 1]) + vw[tri[:, 1]] * uvh[:, 0]
+              + vw[tri[:, 2]] * uvh[:, 1])
+        sdf = t_hit - trunc
+        if interp_sigma_m > 0:
+            # interpolated range is less certain than measured range: the weight falls
+            # with the hit's distance to the nearest measured point of its triangle
+            hp = x - trunc * d + t_hit[:, None] * d
+            dv = np.min(np.stack([np.linalg.norm(hp - p[tri[:, m]], axis=1)
+                                  for m in range(3)]), axis=0)
+            wv = wv * (interp_floor + (1 - interp_floor) * np.exp(-(dv / interp_sigma_m) ** 2))
+        w = cos * wv * np.clip((sdf + trunc) / (0.5 * trunc), 0.0, 1.0)
         keep = w > 0
-        sum_w += np.bincount(lin_u[keep], weights=w[keep], minlength=n_vox)
-        sum_wd += np.bincount(lin_u[keep], weights=(w * sdf)[keep], minlength=n_vox)
-
-    observed = (sum_w >= min_weight).reshape(tuple(shape))
-    tsdf = np.full(n_vox, trunc)
-    obs_flat = observed.ravel()
-    tsdf[obs_flat] = sum_wd[obs_flat] / sum_w[obs_flat]
-    tsdf = tsdf.reshape(tuple(shape))
-    report["n_voxels_observed"] = int(np.count_nonzero(observed))
-    has_surface = bool(np.any(tsdf[observed] < 0) and np.any(tsdf[observed] > 0))
-    if not has_surface:
+        np.add.at(sum_w, lin[keep], w[keep].astype(np.float32))
+        np.add.at(sum_wd, lin[keep], (w * sdf)[keep].astype(np.float32))
+        seen_empty[lin[sdf > 0.5 * voxel_size]] = True
+        t_rays += time.perf_counter() - ta
+        if carve_free_space:
+            ta = time.perf_counter()
+            # from the range surface's vertices and triangle centres (dense enough that,
+            # dilated by one voxel, the carved lines leave no gaps between profiles)
+            cen = (v0 + v1 + v2) / 3
+            o_c = (o[faces[:, 0]] + o[faces[:, 1]] + o[faces[:, 2]]) / 3
+            _carve_lines_of_sight(seen_empty, np.concatenate([p, cen]),
+                                  np.concatenate([o, o_c]), origin, voxel_size, shape,
+                                  start=trunc + voxel_size, depth=carve_depth_m)
+            t_carve += time.perf_counter() - ta
+    clock.update(range_surfaces=t_rs, rays=t_rays, carve=t_carve)
+    ta = time.perf_counter()
+    if carve_free_space:
+        seen_empty = ndimage.binary_dilation(seen_empty.reshape(shape)).ravel()
+    observed = sum_w >= min_weight
+    tsdf = np.full(n_vox, trunc, dtype=np.float32)
+    tsdf[observed] = sum_wd[observed] / sum_w[observed]
+    observed = observed.reshape(shape)
+    tsdf = tsdf.reshape(shape)
+    seen_empty = seen_empty.reshape(shape) & ~observed
+    report.update(n_voxels_observed=int(observed.sum()), n_voxels_seen_empty=int(
+        seen_empty.sum()), range_surfaces=scans)
+    filled = False
+    if hull is not None:
+        inside = _hull_field(hull, origin, voxel_size, shape, hull_margin_voxels,
+                             hull_smooth_vox)
+        report["n_observed_voxels_outside_hull"] = int(np.count_nonzero(
+            observed & (tsdf < 0) & ~inside))
+        if fill_holes:
+            solid = np.where(observed, tsdf < 0, inside & ~seen_empty)
+            smooth = ndimage.gaussian_filter(solid.astype(np.float32), 1.0)
+            tsdf = np.where(observed, tsdf, (1.0 - 2.0 * smooth) * trunc).astype(np.float32)
+            filled = True
+            report["hull_fill"] = ("unobserved space inside the hull and not seen empty is "
+                                   "solid: holes closed from the hull")
+        else:
+            report["hull_fill"] = "disabled"
+    else:
+        report["hull_fill"] = "no hull: no surface where the laser saw nothing"
+    clock["field"] = time.perf_counter() - ta
+    ta = time.perf_counter()
+    if not (np.any(tsdf < 0) and np.any(tsdf > 0)):
         v = np.zeros((0, 3))
         f = np.zeros((0, 3), dtype=np.int64)
+        laser_v = np.zeros(0, dtype=bool)
     else:
-        # (marching cubes' "descent": values decrease into the object; here they are
-        # negative inside, and measured, this orientation gives outward normals)
         v, f, _, _ = measure.marching_cubes(tsdf, level=0.0, gradient_direction="descent",
                                             allow_degenerate=False)
         f = f.astype(np.int64)
-        # keep only vertices on grid edges whose two voxels are both observed: unobserved
-        # voxels hold a placeholder (+trunc) whose crossings are not surface
-        q = v.astype(np.float64)  # voxel index coordinates
-        lo = np.clip(np.floor(q + 1e-3).astype(np.int64), 0, shape - 1)
-        hi = np.clip(np.ceil(q - 1e-3).astype(np.int64), 0, shape - 1)
-        good = (observed[lo[:, 0], lo[:, 1], lo[:, 2]] & observed[hi[:, 0], hi[:, 1], hi[:, 2]])
-        v, f = remove_vertices(origin + q * voxel_size, f, good)
-    report.update(hull_cut="no hull", n_vertices_outside_hull=0)
-    if hull is not None:
-        v, f = _cut_to_hull(v, f, p, hull, hull_margin_voxels, max_outside_fraction, report)
-    report.update(n_vertices=int(len(v)), n_faces=int(len(f)))
-    log.info("TSDF fusion: %d points, grid %s, %d observed voxels -> %d vertices, %d faces",
-             len(p), tuple(shape), report["n_voxels_observed"], len(v), len(f))
+        q = v.astype(np.float64)
+        lo_i = np.clip(np.floor(q + 1e-3).astype(np.int64), 0, np.array(shape) - 1)
+        hi_i = np.clip(np.ceil(q - 1e-3).astype(np.int64), 0, np.array(shape) - 1)
+        laser_v = (observed[lo_i[:, 0], lo_i[:, 1], lo_i[:, 2]]
+                   & observed[hi_i[:, 0], hi_i[:, 1], hi_i[:, 2]])
+        v = origin + q * voxel_size
+        if not filled:  # crossings next to unobserved voxels are not surface
+            keep_v = laser_v
+            v, f = remove_vertices(v, f, keep_v)
+            laser_v = np.ones(len(v), dtype=bool)
+    clock["marching_cubes"] = time.perf_counter() - ta
+    if len(f):
+        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
+                                    axis=1)
+        from_laser = np.all(laser_v[f], axis=1)
+        total = float(area.sum())
+        lf = float(area[from_laser].sum() / total) if total > 0 else 0.0
+    else:
+        lf = 0.0
+    report.update(laser_area_fraction=lf, hull_area_fraction=(1.0 - lf) if len(f) else 0.0,
+                  n_vertices=int(len(v)), n_faces=int(len(f)),
+                  seconds={k: round(t, 3) for k, t in clock.items()})
+    log.info("TSDF fusion: %d scans, %d points, grid %s, %d observed voxels -> %d faces "
+             "(%.1f%% of the area from the laser)", len(P), n_used, shape,
+             report["n_voxels_observed"], len(f), 100 * lf)
     return v, f, report
+
+
+def _carve_lines_of_sight(seen_empty: np.ndarray, p: np.ndarray, o: np.ndarray,
+                          origin: np.ndarray, voxel_size: float, shape: tuple[int, ...],
+                          *, start: float, depth: float, chunk: int = 20_000) -> None:
+    """Mark the voxels along each line of sight, from ``start`` to ``depth`` in front of
+    the point (or where the line leaves the grid), as seen empty (flat grid, in place)."""
+    if len(p) == 0:
+        return
+    d = o - p
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    ext = np.array(shape) * voxel_size
+    # distance from the point to the grid's border along d (slab method)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = np.where(d > 0, (origin + ext - p) / d, np.where(d < 0, (origin - p) / d, np.inf))
+    t_exit = np.minimum(np.minimum(t1.min(axis=1), dist), depth)
+    n_steps = int(np.ceil(max(float(t_exit.max()) - start, 0.0) / voxel_size)) + 1
+    steps = start + np.arange(n_steps) * voxel_size
+    dims = np.array(shape)
+    for a in range(0, len(p), chunk):
+        sl = slice(a, a + chunk)
+        q = p[sl, None, :] + steps[None, :, None] * d[sl, None, :]
+        valid = steps[None, :] <= t_exit[sl, None]
+        ii = np.round((q - origin) / voxel_size).astype(np.int64)
+        valid &= np.all((ii >= 0) & (ii < dims), axis=2)
+        ii = ii[valid]
+        seen_empty[np.ravel_multi_index((ii[:, 0], ii[:, 1], ii[:, 2]), shape)] = True

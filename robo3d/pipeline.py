@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -72,7 +72,10 @@ def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = No
     """The recordings of a batch: every ``*.mcap`` in a folder, or a list of files.
 
     A rosbag2 directory (``metadata.yaml`` beside an ``.mcap``) counts as one recording
-    named after the directory. Names must be unique (they name ``results/<name>/``).
+    named after the directory, and so does a sub-folder holding ``<folder>_0.mcap`` without
+    ``metadata.yaml`` (a bag whose recorder died before writing it: the reader reads what
+    is there and says what is missing). Names must be unique (they name
+    ``results/<name>/``).
     """
     from .errors import ConfigError
 
@@ -81,12 +84,11 @@ def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = No
     for item in items:
         p = Path(item)
         if p.is_dir():
-            if (p / "metadata.yaml").exists():
+            if _is_bag_dir(p):
                 paths.append(p)
             else:
                 paths += sorted(p.glob("*.mcap"))
-                paths += sorted(d for d in p.iterdir()
-                                if d.is_dir() and (d / "metadata.yaml").exists())
+                paths += sorted(d for d in p.iterdir() if d.is_dir() and _is_bag_dir(d))
         elif p.exists():
             paths.append(p)
         else:
@@ -99,6 +101,11 @@ def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = No
                               f"({out[name].path} and {p}); results/<name>/ must be unique")
         out[name] = RecordingEntry(name, str(p), None, dict(topics or {}))
     return out
+
+
+def _is_bag_dir(d: Path) -> bool:
+    """A rosbag2 directory: its ``metadata.yaml``, or (recorder died) ``<dir>_0.mcap``."""
+    return (d / "metadata.yaml").exists() or (d / f"{d.name}_0.mcap").exists()
 
 
 def recording_stages(entry: RecordingEntry) -> set[str]:
@@ -134,10 +141,20 @@ def export_library_path(repo_root: str) -> None:
 def _read(path: str, cfg: Mapping[str, Any], roles: tuple[str, ...], require: bool = True):
     from .recording.reader import read_recording
 
-    rec = read_recording(path, topics=topic_map(cfg["topics"]), roles=roles,
-                         max_pose_gap_ns=int(round(cfg["timing"]["max_pose_gap_s"] * 1e9)),
-                         base_frame=cfg["frames"]["base"], require=require)
+    rec = read_recording(path, roles=roles, require=require, **_reader_options(cfg))
     return rec  # the reader has logged its warnings (rec.warnings keeps them)
+
+
+def _reader_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The reader's keyword arguments from a config's topics, frames and timing sections:
+    recorded frame names are renamed to their roles, so poses are looked up in ``base``."""
+    timing = cfg.get("timing", {})
+    return {"topics": topic_map(cfg.get("topics")),
+            "frames": dict(cfg.get("frames") or {}),
+            "base_frame": "base",
+            "max_pose_gap_ns": int(round(timing.get("max_pose_gap_s", 0.05) * 1e9)),
+            "stamp_source": timing.get("stamp_source", "header"),
+            "image_offset_ns": int(round(timing.get("image_offset_s", 0.0) * 1e9))}
 
 
 def _camera_arrays(cameras: list[CameraModel]) -> dict[str, np.ndarray]:
@@ -200,8 +217,15 @@ class _Progress:
 # ---------------------------------------------------------------------------- stages
 def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Segment every silhouette view (seed §3.2) and keep its camera and pose."""
-    from .silhouettes import roi_from_box, segment_silhouette
+    """Segment every silhouette view (seed §3.2) and keep its camera and pose.
+
+    Outputs: ``npz`` (masks, cameras, poses), ``report`` (per view: threshold, area,
+    components, whether the silhouette touches the ROI's or the image's border, the ROI,
+    whether an empty-scene image was subtracted), ``rrd`` (images with their masks at
+    their cameras) and, when given, ``masks``: a folder of one PNG per view
+    (``view_000.png``, 255 = silhouette).
+    """
+    from .silhouettes import find_roi, roi_from_box, segment_silhouette
     from .viz import log_box, log_report, rerun_log, spaced_indices
 
     t0 = time.perf_counter()
@@ -211,34 +235,56 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     poses = rec.camera_poses(views)
     seg = cfg["segmentation"]
     ws = rec.workspace
+    backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses)
+    kwargs = dict(polarity=seg["polarity"], threshold=seg["threshold"],
+                  blur_sigma_px=seg["blur_sigma_px"], min_component_px=seg["min_component_px"],
+                  min_component_fraction=seg["min_component_fraction"],
+                  fill_holes=seg["fill_holes"], max_hole_fraction=seg["max_hole_fraction"])
     masks, per_view = [], []
     progress = _Progress("segmenting views", len(views))
     for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
         image = rec.decode(msg) if hasattr(rec, "decode") else msg.decode()
-        roi = None
-        if ws is not None and seg["roi_from_workspace"]:
-            roi = roi_from_box(ws[0], ws[1], cam, T, margin_px=seg["roi_margin_px"])
+        background = backgrounds[i]
+        roi, roi_source = None, "image"
         try:
-            sil = segment_silhouette(image, polarity=seg["polarity"], threshold=seg["threshold"],
-                                     roi=roi, blur_sigma_px=seg["blur_sigma_px"],
-                                     min_component_px=seg["min_component_px"],
-                                     fill_holes=seg["fill_holes"],
-                                     max_hole_fraction=seg["max_hole_fraction"])
+            if ws is not None and seg["roi_from_workspace"]:
+                roi = roi_from_box(ws[0], ws[1], cam, T, margin_px=seg["roi_margin_px"])
+                roi_source = "workspace box"
+            elif seg["roi_auto"]:
+                roi = find_roi(image, margin_px=seg["roi_margin_px"], background=background,
+                               **kwargs)
+                roi_source = "automatic"
+            sil = segment_silhouette(image, roi=roi, background=background, **kwargs)
         except StageError as exc:
             raise StageError(f"{inputs['recording']}: topic {msg.topic}, view {i} "
                              f"(t={msg.timestamp_ns} ns): {exc}") from None
-        if sil.touches_border:
-            log.warning("view %d (t=%d ns) silhouette touches the image border: the object "
-                        "may be cut off and the hull carved too much", i, msg.timestamp_ns)
+        if sil.touches_image_border:
+            log.warning("view %d (topic %s, t=%d ns): the silhouette touches the image border, "
+                        "the object is cut off in this view; with carving.outside_image=carve "
+                        "this view carves the object's hidden part away", i, msg.topic,
+                        msg.timestamp_ns)
+        elif sil.touches_border:
+            log.warning("view %d (topic %s, t=%d ns): the silhouette touches the border of its "
+                        "region of interest (%s): the object may reach beyond it and be cut "
+                        "off", i, msg.topic, msg.timestamp_ns, roi_source)
         masks.append(sil.mask)
         per_view.append({"index": i, "timestamp_ns": msg.timestamp_ns,
-                         "threshold": float(sil.threshold), "area_px": int(sil.area_px),
-                         "n_components": int(sil.n_components),
-                         "touches_border": bool(sil.touches_border)})
+                         "threshold": float(sil.threshold), "polarity": sil.polarity,
+                         "area_px": int(sil.area_px), "n_components": int(sil.n_components),
+                         "touches_border": bool(sil.touches_border),
+                         "touches_image_border": bool(sil.touches_image_border),
+                         "roi": [int(r) for r in sil.roi], "roi_source": roi_source,
+                         "centroid_uv": [float(c) for c in sil.centroid_uv],
+                         "background_subtracted": background is not None,
+                         "mask_png": f"view_{i:03d}.png"})
         progress(i + 1)
     sizes = {m.shape for m in masks}
     report = {"n_views": len(views), "views": per_view,
               "n_touching_border": sum(v["touches_border"] for v in per_view),
+              "n_touching_image_border": sum(v["touches_image_border"] for v in per_view),
+              "views_touching_image_border": [v["index"] for v in per_view
+                                              if v["touches_image_border"]],
+              "n_background_subtracted": sum(v["background_subtracted"] for v in per_view),
               "workspace_box": None if ws is None else [ws[0].tolist(), ws[1].tolist()],
               "seconds": round(time.perf_counter() - t0, 3)}
     if len(sizes) == 1:
@@ -253,6 +299,8 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
              mask_shape=np.array(mask_stack.shape), T_base_camera=poses,
              stamps_ns=np.array([m.timestamp_ns for m in views], dtype=np.int64),
              **_camera_arrays(cameras), **_workspace_arrays(rec))
+    if outputs.get("masks"):
+        _write_mask_pngs(outputs["masks"], masks)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         if ws is not None:
             log_box(rr_stream, "base/workspace", ws[0], ws[1], label="workspace")
@@ -261,9 +309,79 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                               poses[i], mask=masks[i])
         log_report(rr_stream, "reports/silhouettes", report)
     write_json(outputs["report"], report)
-    log.info("segmented %d views in %.1f s; %d touch the border", len(views),
-             report["seconds"], report["n_touching_border"])
+    log.info("segmented %d views in %.1f s; %d touch the image border, %d their region's",
+             len(views), report["seconds"], report["n_touching_image_border"],
+             report["n_touching_border"])
     return report
+
+
+def _write_mask_pngs(directory: str, masks: list[np.ndarray]) -> None:
+    """One 8-bit PNG per view (255 = silhouette) into ``directory``, atomically: written
+    into a temporary folder beside it, which then replaces it."""
+    import shutil
+    import tempfile
+
+    import cv2
+
+    target = Path(directory)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        for i, m in enumerate(masks):
+            if not cv2.imwrite(str(tmp / f"view_{i:03d}.png"), m.astype(np.uint8) * 255):
+                raise StageError(f"could not write mask PNG {tmp / f'view_{i:03d}.png'}")
+        if target.exists():
+            shutil.rmtree(target)
+        tmp.rename(target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _background_images(path: str, cfg: Mapping[str, Any], views: list, cameras: list,
+                       poses: np.ndarray) -> list[np.ndarray | None]:
+    """For each view, the decoded empty-scene image of ``segmentation.background_topic``
+    taken nearest its pose (same camera), or None when there is none close enough."""
+    from dataclasses import replace
+
+    from .transforms import rotation_angle_deg
+
+    seg = cfg["segmentation"]
+    out: list[np.ndarray | None] = [None] * len(views)
+    topic = seg.get("background_topic")
+    if not topic or not views:
+        return out
+    from .recording.reader import read_recording
+
+    options = _reader_options(cfg)
+    options["topics"] = replace(options["topics"], views=topic)
+    rec = read_recording(path, roles=("views",), require=False, **options)
+    bgs = [m for m in rec.views if m.topic == topic]
+    if not bgs:
+        log.warning("segmentation.background_topic %s has no images in %s: segmenting "
+                    "without background subtraction", topic, path)
+        return out
+    bg_poses = rec.camera_poses(bgs)
+    max_mm, max_deg = seg["background_max_offset_mm"], seg["background_max_offset_deg"]
+    decoded: dict[int, np.ndarray] = {}
+    for i, (cam, T) in enumerate(zip(cameras, poses, strict=True)):
+        best, best_d = None, np.inf
+        for j, (msg, Tb) in enumerate(zip(bgs, bg_poses, strict=True)):
+            if msg.frame_id != cam.frame_id:
+                continue
+            d_mm = float(np.linalg.norm(Tb[:3, 3] - T[:3, 3])) * 1e3
+            d_deg = float(rotation_angle_deg(Tb[:3, :3].T @ T[:3, :3]))
+            if d_mm <= max_mm and d_deg <= max_deg and d_mm + d_deg < best_d:
+                best, best_d = j, d_mm + d_deg
+        if best is None:
+            log.warning("view %d (t=%d ns): no empty-scene image on %s within %.2f mm and "
+                        "%.2f deg of its pose: segmented without background subtraction", i,
+                        views[i].timestamp_ns, topic, max_mm, max_deg)
+            continue
+        if best not in decoded:
+            decoded[best] = rec.decode(bgs[best])
+        out[i] = decoded[best]
+    return out
 
 
 def _load_silhouettes(path: str) -> dict[str, Any]:
@@ -276,16 +394,23 @@ def _load_silhouettes(path: str) -> dict[str, Any]:
 
 def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Place the box and carve the visual hull (seed §3.1–3.5), then mesh it."""
+    """Place the box and carve the visual hull (seed §3.1–3.5), then mesh it.
+
+    The carving method (``carving.method``: Szeliski's octree or dense) and its policies
+    come from the config; ``hull.npz`` holds the occupancy with its origin, voxel size,
+    frame and how it was carved, ``hull.ply`` the smoothed watertight marching-cubes
+    mesh, the report the box, the resolution check (eq. 7–8) and the volume.
+    """
     from .carving import (
         box_from_silhouettes,
-        carve_dense,
+        carve_visual_hull,
         hull_to_mesh,
         make_grid,
         resolution_report,
     )
+    from .errors import ConfigError
     from .meshio import write_mesh
-    from .viz import log_box, log_mesh, log_report, log_voxels, rerun_log
+    from .viz import log_box, log_camera, log_mesh, log_report, log_voxels, rerun_log
 
     t0 = time.perf_counter()
     sil = _load_silhouettes(inputs["silhouettes"])
@@ -293,6 +418,9 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cameras)]
     poses = sil["T_base_camera"]
     cc = cfg["carving"]
+    if cc["method"] == "dense" and cc["leaf_rule"] != "centre":
+        raise ConfigError(f"config key carving.leaf_rule: {cc['leaf_rule']!r} needs "
+                          "carving.method octree (the dense method tests voxel centres)")
     ws = _workspace_from(sil)
     if ws is not None:
         box_min, box_max = ws
@@ -301,11 +429,16 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         box_min, box_max, box_report = box_from_silhouettes(None, masks, cameras, poses,
                                                             margin=cc["box_margin"])
         box_report = {"source": "silhouette centroid rays (seed §3.4)", **box_report}
+    box_report["size_m"] = (np.asarray(box_max) - np.asarray(box_min)).tolist()
+    log.info("carving box (%s): min %s, max %s, size %s mm", box_report["source"],
+             np.round(box_min, 4).tolist(), np.round(box_max, 4).tolist(),
+             np.round(np.asarray(box_report["size_m"]) * 1e3, 1).tolist())
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
-    grid, carve_report = carve_dense(grid, masks, cameras, poses,
-                                     outside_image=cc["outside_image"],
-                                     behind_camera=cc["behind_camera"])
-    n_occ = int(grid.occupancy.sum())
+    grid, carve_report = carve_visual_hull(grid, masks, cameras, poses, method=cc["method"],
+                                           outside_image=cc["outside_image"],
+                                           behind_camera=cc["behind_camera"],
+                                           leaf_rule=cc["leaf_rule"], threads=cc["threads"])
+    n_occ = grid.n_occupied
     if n_occ == 0:
         raise StageError(f"{inputs['silhouettes']}: carving removed every voxel: the "
                          "silhouettes do not agree with the cameras' poses (check the "
@@ -316,86 +449,196 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log.warning("%s", res["warning"])
     report = {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
                       **box_report},
-              "grid_shape": list(grid.occupancy.shape), "voxel_size_m": grid.voxel_size,
-              "occupied_voxels": n_occ, "volume_m3": n_occ * grid.voxel_size ** 3,
-              "carving": carve_report, "resolution": res,
-              "mesh": {"vertices": len(vertices), "faces": len(faces)},
+              "method": cc["method"], "grid_shape": list(grid.occupancy.shape),
+              "voxel_size_m": grid.voxel_size, "occupied_voxels": n_occ,
+              "volume_m3": grid.volume_m3, "carving": carve_report, "resolution": res,
+              "mesh": {"vertices": len(vertices), "faces": len(faces),
+                       "volume_m3": _mesh_volume(vertices, faces)},
               "seconds": round(time.perf_counter() - t0, 3)}
-    grid.save_npz(outputs["npz"])
+    grid.save_npz(outputs["npz"], carving={k: cc[k] for k in ("method", "leaf_rule",
+                                                              "outside_image",
+                                                              "behind_camera")})
     write_mesh(outputs["ply"], vertices, faces)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         log_box(rr_stream, "base/carving_box", box_min, box_max, label="carving box")
-        log_voxels(rr_stream, "base/hull/voxels", grid.centres(), grid.voxel_size)
+        for i, (cam, T) in enumerate(zip(cameras, poses, strict=True)):
+            log_camera(rr_stream, f"base/cameras/view_{i:03d}", cam, T)
+        shell = grid.surface()
+        log_voxels(rr_stream, "base/hull/voxels", grid.index_to_points(np.argwhere(shell)),
+                   grid.voxel_size)
         log_mesh(rr_stream, "base/hull/mesh", vertices, faces, albedo=[120, 160, 220, 160])
         log_report(rr_stream, "reports/carve", report)
     write_json(outputs["report"], report)
-    log.info("hull: %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces (%.1f s)", n_occ,
-             grid.voxel_size * 1e3, report["volume_m3"] * 1e6, len(faces), report["seconds"])
+    log.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces (%.1f s)",
+             cc["method"], n_occ, grid.voxel_size * 1e3, report["volume_m3"] * 1e6,
+             len(faces), report["seconds"])
     return report
 
 
+def _mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume of a closed, outward-wound triangle mesh, cubic metres."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def _laser_poses(rec, frames: list, laser_frame: str = "laser") -> np.ndarray:
+    """``T_camera_laser`` (F, 4, 4) of each laser frame at its own time, looked up once per
+    camera frame_id (vectorised over the frames' stamps)."""
+    out = np.zeros((len(frames), 4, 4))
+    if not frames:
+        return out
+    ids = np.array([str(m.frame_id) for m in frames])
+    stamps = np.array([m.timestamp_ns for m in frames], dtype=np.int64)
+    for fid in np.unique(ids):
+        sel = np.nonzero(ids == fid)[0]
+        out[sel] = rec.tf.lookup(str(fid), laser_frame, stamps[sel])
+    return out
+
+
+def _stage_threads(threads: int | None) -> int:
+    """Worker threads of a stage: the job's (Snakemake's ``threads``) or 1."""
+    n = 1 if threads is None else int(threads)
+    if n < 1:
+        raise StageError(f"threads must be >= 1, got {threads}")
+    return n
+
+
 def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
-                  cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Find the laser stripe's sub-pixel centres in every laser frame (seed §4.2)."""
-    from .stripes import extract_stripe_centres
-    from .viz import log_report, rerun_log, spaced_indices
+                  cfg: Mapping[str, Any], rec_name: str,
+                  threads: int | None = None) -> dict[str, Any]:
+    """Find the laser stripe's sub-pixel centres in every laser frame (seed §4.2).
+
+    The frames are decoded and searched on ``threads`` threads (the decoder and the
+    stripe kernels release the GIL); the results do not depend on the number.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .stripes import REJECTION_REASONS, extract_stripe_centres
+    from .viz import log_camera, log_report, rerun_log, spaced_indices
 
     t0 = time.perf_counter()
+    n_threads = _stage_threads(threads)
     rec = _read(inputs["recording"], cfg, roles=("laser",))
     frames = sorted(rec.laser_frames, key=lambda m: m.timestamp_ns)
     cameras = [rec.camera_for(m) for m in frames]
     poses = rec.camera_poses(frames)
-    laser_frame = "laser"
-    T_camera_laser = np.stack([
-        rec.tf.lookup(str(m.frame_id), laser_frame, m.timestamp_ns) for m in frames
-    ]) if frames else np.zeros((0, 4, 4))
+    T_camera_laser = _laser_poses(rec, frames)  # the reader names the role "laser"
     sc = cfg["stripes"]
-    us, vs, confs, offsets = [], [], [], [0]
-    rejected: dict[str, int] = {}
+    kw = {"band": sc["band"], "axis": sc["axis"], "min_peak": sc["min_peak"],
+          "max_width_px": sc["max_width_px"], "method": sc["method"],
+          "reference": sc["reference"], "reference_lines": sc["reference_lines"],
+          "s": sc["s"]}
+
+    def work(i: int):
+        ta = time.perf_counter()
+        image = rec.decode(frames[i])
+        tb = time.perf_counter()
+        sp = extract_stripe_centres(image, **kw)
+        return sp, tb - ta, time.perf_counter() - tb
+
     progress = _Progress("finding stripes", len(frames))
-    empty_frames = 0
-    for i, msg in enumerate(frames):
-        image = rec.decode(msg) if hasattr(rec, "decode") else msg.decode()
-        sp = extract_stripe_centres(image, band=sc["band"], axis=sc["axis"],
-                                    min_peak=sc["min_peak"], max_width_px=sc["max_width_px"],
-                                    method=sc["method"])
-        us.append(sp.u)
-        vs.append(sp.v)
-        confs.append(sp.confidence)
-        offsets.append(offsets[-1] + len(sp.u))
-        empty_frames += len(sp.u) == 0
-        for k, n in getattr(sp, "rejected", {}).items():
-            rejected[k] = rejected.get(k, 0) + int(n)
-        progress(i + 1)
-    n_points = offsets[-1]
+    found, decode_s, detect_s = [], 0.0, 0.0
+    with ThreadPoolExecutor(max_workers=n_threads) as pool:
+        for i, (sp, td, tx) in enumerate(pool.map(work, range(len(frames)))):
+            found.append(sp)
+            decode_s += td
+            detect_s += tx
+            progress(i + 1)
+    counts = np.array([len(sp) for sp in found], dtype=np.int64)
+    n_points = int(counts.sum())
     if frames and n_points == 0:
         raise StageError(f"{inputs['recording']}: topic {frames[0].topic}: no laser stripe "
                          f"found in any of {len(frames)} frames (check stripes.min_peak, "
                          "the exposure and the laser)")
-    if empty_frames:
-        log.warning("%d of %d laser frames have no stripe", empty_frames, len(frames))
-    report = {"n_frames": len(frames), "n_points": n_points, "frames_without_stripe":
-              empty_frames, "rejected": rejected,
-              "points_per_frame_mean": n_points / max(len(frames), 1),
-              "seconds": round(time.perf_counter() - t0, 3)}
-    cat = np.concatenate
-    save_npz(outputs["npz"], u=cat(us) if us else np.zeros(0), v=cat(vs) if vs else np.zeros(0),
-             confidence=cat(confs) if confs else np.zeros(0),
-             offsets=np.array(offsets, dtype=np.int64),
+    rejected = np.array([[sp.rejected[k] for k in REJECTION_REASONS] for sp in found],
+                        dtype=np.int64).reshape(-1, len(REJECTION_REASONS))
+    n_lines = np.array([sp.n_lines for sp in found], dtype=np.int64)
+    empty = counts == 0
+    # why a frame has no stripe: every line too weak (nothing lit brightly enough: the
+    # sheet misses the object, or falls on the dim table only), or the lines that had a
+    # stripe were all rejected for another reason
+    all_weak = empty & (rejected[:, REJECTION_REASONS.index("too_weak")] == n_lines)
+    if empty.any():
+        log.warning("%d of %d laser frames have no stripe (%d with every line too weak: "
+                    "the sheet misses the object or lights only the dim table)",
+                    int(empty.sum()), len(frames), int(all_weak.sum()))
+    s_frame = np.array([sp.s for sp in found], dtype=np.float64)
+    axes = np.array([sp.axis for sp in found], dtype="<U7")
+    with_stripe = ~empty
+    report = {
+        "n_frames": len(frames), "n_points": n_points,
+        "frames_without_stripe": int(empty.sum()),
+        "frames_without_stripe_all_lines_too_weak": int(all_weak.sum()),
+        "rejected": {k: int(rejected[:, j].sum()) for j, k in enumerate(REJECTION_REASONS)},
+        "points_per_frame_mean": n_points / max(len(frames), 1),
+        "points_per_frame_with_stripe_median":
+            float(np.median(counts[with_stripe])) if with_stripe.any() else 0.0,
+        "brightness_s": {"median": float(np.median(s_frame[with_stripe])),
+                         "min": float(s_frame[with_stripe].min()),
+                         "max": float(s_frame[with_stripe].max())} if with_stripe.any()
+        else None,
+        "axis": {a: int((axes == a).sum()) for a in ("columns", "rows")},
+        "method": sc["method"], "reference": sc["reference"] if sc["s"] is None else "frame",
+        "threads": n_threads,
+        "decode_seconds_cpu": round(decode_s, 3), "detect_seconds_cpu": round(detect_s, 3),
+        "seconds": round(time.perf_counter() - t0, 3)}
+
+    def cat(name: str, dtype: type) -> np.ndarray:
+        if not found:
+            return np.zeros(0, dtype=dtype)
+        return np.concatenate([getattr(sp, name) for sp in found]).astype(dtype)
+
+    save_npz(outputs["npz"], u=cat("u", np.float64), v=cat("v", np.float64),
+             confidence=cat("confidence", np.float64), peak=cat("peak", np.float32),
+             width_px=cat("width_px", np.float32), line=cat("line", np.int32),
+             offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+             axis=axes, s=s_frame, n_lines=n_lines, rejected=rejected,
+             rejection_reasons=np.array(REJECTION_REASONS),
              stamps_ns=np.array([m.timestamp_ns for m in frames], dtype=np.int64),
              T_base_camera=poses, T_camera_laser=T_camera_laser,
              **_camera_arrays(cameras), **_workspace_arrays(rec))
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        for i in spaced_indices(len(frames), cfg["rerun"]["max_images"]):
+        # the stripe points of every frame on the "frame" timeline, the camera where it
+        # was; the image itself on a few evenly spaced frames
+        with_image = set(spaced_indices(len(frames), cfg["rerun"]["max_images"]).tolist())
+        for i, sp in enumerate(found):
             rr_stream.set_time("frame", sequence=int(i))
-            uv = np.stack([us[i], vs[i]], axis=1)
-            _log_image_camera(rr_stream, "base/laser_camera", frames[i], cameras[i], poses[i],
-                              points_uv=uv, static=False)
+            if i in with_image:
+                _log_image_camera(rr_stream, "base/laser_camera", frames[i], cameras[i],
+                                  poses[i], points_uv=sp.pixels_uv, static=False)
+            else:
+                log_camera(rr_stream, "base/laser_camera", cameras[i], poses[i],
+                           points_uv=sp.pixels_uv, static=False)
         log_report(rr_stream, "reports/stripes", report)
     write_json(outputs["report"], report)
-    log.info("stripes: %d points in %d frames (%.1f s)", n_points, len(frames),
-             report["seconds"])
+    log.info("stripes: %d points in %d frames on %d threads (%.1f s; decoding %.1f s, "
+             "detection %.1f s of CPU)", n_points, len(frames), n_threads,
+             report["seconds"], decode_s, detect_s)
     return report
+
+
+def _stripes_of_frame(s: Mapping[str, np.ndarray], i: int):
+    """The :class:`~robo3d.stripes.StripePoints` of frame ``i`` of a ``stripes.npz``
+    (older files without axis, line or rejections are read too)."""
+    from .stripes import StripePoints
+
+    a, b = int(s["offsets"][i]), int(s["offsets"][i + 1])
+    opt = {}
+    if "axis" in s:
+        opt["axis"] = str(s["axis"][i])
+    if "line" in s:
+        opt["line"] = s["line"][a:b]
+    for key in ("peak", "width_px"):
+        if key in s:
+            opt[key] = s[key][a:b]
+    if "rejected" in s:
+        opt["rejected"] = {str(k): int(n) for k, n in
+                           zip(s["rejection_reasons"], s["rejected"][i], strict=True)}
+    if "s" in s:
+        opt["s"] = float(s["s"][i])
+    if "n_lines" in s:
+        opt["n_lines"] = int(s["n_lines"][i])
+    return StripePoints(u=s["u"][a:b], v=s["v"][a:b], confidence=s["confidence"][a:b], **opt)
 
 
 def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
@@ -403,32 +646,45 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     """Triangulate the stripe pixels against the laser sheet (seed §4.1), one cloud per
     sweep, in ``base``."""
     from .meshio import write_point_cloud
-    from .stripes import StripePoints
-    from .triangulation import save_clouds_npz, split_sweeps, triangulate_sweep
+    from .triangulation import (
+        DROP_REASONS,
+        laser_transform_from_params,
+        save_clouds_npz,
+        split_sweeps,
+        triangulate_sweep,
+    )
     from .viz import log_points, log_report, rerun_log
 
     t0 = time.perf_counter()
     with np.load(inputs["stripes"]) as z:
         s = {k: z[k] for k in z.files}
     cameras = _cameras_from(s)
-    off = s["offsets"]
     stamps = s["stamps_ns"]
     tc = cfg["triangulation"]
     ws = _workspace_from(s) if tc["crop_to_workspace"] else None
+    if tc["laser_params"] is not None:  # the seed's eq. 11 instead of the recording's tf
+        dx, dy, dz, phi, theta, psi = (float(x) for x in tc["laser_params"])
+        T_laser = laser_transform_from_params(dx, dy, dz, *np.radians([phi, theta, psi]))
+        T_camera_laser = np.broadcast_to(T_laser, (len(stamps), 4, 4))
+        laser_source = "config triangulation.laser_params (seed eq. 11)"
+    else:
+        T_camera_laser = s["T_camera_laser"]
+        laser_source = "recording transforms (camera -> laser)"
     sweep_of = split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)))
     clouds, per_sweep = [], []
     for k in np.unique(sweep_of):
         idx = np.nonzero(sweep_of == k)[0]
-        stripes = [StripePoints(u=s["u"][off[i]:off[i + 1]], v=s["v"][off[i]:off[i + 1]],
-                                confidence=s["confidence"][off[i]:off[i + 1]])
-                   for i in idx]
+        stripes = [_stripes_of_frame(s, int(i)) for i in idx]
         cam = cameras[int(idx[0])]
         try:
             cloud = triangulate_sweep(stripes, cam, s["T_base_camera"][idx],
-                                      s["T_camera_laser"][idx], workspace=ws,
+                                      T_camera_laser[idx], workspace=ws,
                                       frame_indices=idx, sweep=int(k),
                                       min_angle_deg=tc["min_angle_deg"],
-                                      min_range=tc["min_range_m"], max_range=tc["max_range_m"])
+                                      min_range=tc["min_range_m"], max_range=tc["max_range_m"],
+                                      normal_span=tc["normal_span"],
+                                      normal_smooth=tc["normal_smooth"],
+                                      normal_jump=tc["normal_jump"], normal_knn=tc["normal_knn"])
         except StageError as exc:
             log.warning("sweep %d (frames %d..%d) skipped: %s", k, idx[0], idx[-1], exc)
             per_sweep.append({"sweep": int(k), "frames": len(idx), "points": 0,
@@ -439,19 +695,30 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                           **getattr(cloud, "report", {})})
     if not clouds:
         raise StageError(f"{inputs['stripes']}: no sweep produced any point")
-    report = {"n_sweeps": len(clouds), "sweeps": per_sweep,
-              "n_points": int(sum(len(c.points_base) for c in clouds)),
+    dropped = {r: int(sum(p.get("dropped", {}).get(r, 0) for p in per_sweep))
+               for r in (*DROP_REASONS, "outside_workspace")}
+    rej_keys = [str(k) for k in s["rejection_reasons"]] if "rejection_reasons" in s else []
+    report = {"n_sweeps": len(clouds), "n_points": int(sum(len(c.points_base) for c in clouds)),
+              "n_pixels": int(len(s["u"])), "dropped": dropped,
+              "stripe_rejected": {k: int(s["rejected"][:, j].sum())
+                                  for j, k in enumerate(rej_keys)},
+              "laser_pose": laser_source, "sweeps": per_sweep,
               "seconds": round(time.perf_counter() - t0, 3)}
     save_clouds_npz(outputs["npz"], clouds)
     pts = np.concatenate([c.points_base for c in clouds])
-    write_point_cloud(outputs["ply"], pts, normals=np.concatenate([c.normals_base for c in clouds]),
-                      attributes={"sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
-                                                           for c in clouds]).astype(np.int32)})
+    write_point_cloud(
+        outputs["ply"], pts, normals=np.concatenate([c.normals_base for c in clouds]),
+        attributes={
+            "sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
+                                     for c in clouds]).astype(np.int32),
+            "frame_index": np.concatenate([c.frame_index for c in clouds]).astype(np.int32),
+            "confidence": np.concatenate([c.confidence for c in clouds]).astype(np.float32)})
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         for c in clouds:
             color = _sweep_color(c.sweep)
             # the sweep's cloud grows profile by profile along the "frame" timeline
-            for chunk in np.array_split(np.unique(c.frame_index), min(20, len(c.frame_index))):
+            frames_c = np.unique(c.frame_index)
+            for chunk in np.array_split(frames_c, min(20, len(frames_c))):
                 if len(chunk) == 0:
                     continue
                 rr_stream.set_time("frame", sequence=int(chunk[-1]))
@@ -460,8 +727,8 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                            colors=color, static=False)
         log_report(rr_stream, "reports/triangulate", report)
     write_json(outputs["report"], report)
-    log.info("triangulated %d points in %d sweeps (%.1f s)", report["n_points"], len(clouds),
-             report["seconds"])
+    log.info("triangulated %d points in %d sweeps (%.1f s); dropped %s", report["n_points"],
+             len(clouds), report["seconds"], dropped)
     return report
 
 
@@ -473,16 +740,27 @@ def _sweep_color(k: int) -> list[int]:
 
 def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Refine each sweep's pose with ICP against its neighbours (seed §2.3)."""
+    """Refine each sweep's pose (seed §2.3): pairwise ICP and a pose graph, then a joint
+    refinement against the neighbours and, when the recording has views, the
+    silhouettes as absolute reference (:func:`robo3d.registration.align_sweeps`).
+
+    Inputs: ``clouds``; optional ``silhouettes`` (silhouettes.npz) with ``recording``
+    (the views' grey images). Each aligned cloud's report keeps ``correction``: the rigid
+    ``base`` transform applied at the sweep's middle frame (what corrects the robot's
+    pose there), and ``correction_model`` (rotation, translation of
+    :func:`robo3d.registration.apply_correction`).
+    """
     from .meshio import write_point_cloud
-    from .registration import align_sweeps
-    from .transforms import transform_points
+    from .registration import align_sweeps, correction_at
     from .triangulation import load_clouds_npz, save_clouds_npz
     from .viz import log_points, log_report, rerun_log
 
     t0 = time.perf_counter()
     clouds = load_clouds_npz(inputs["clouds"])
     ac = cfg["alignment"]
+    views = None
+    if ac["enabled"] and ac["refine"] and ac["silhouettes"] and inputs.get("silhouettes"):
+        views = _silhouette_views(inputs, cfg)
     if ac["enabled"] and len(clouds) > 1:
         result = align_sweeps([c.points_base for c in clouds], [c.normals_base for c in clouds],
                               voxel_size=ac["voxel_size_m"], max_corr_dist=ac["max_corr_dist_m"],
@@ -490,19 +768,45 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                               max_correction_mm=ac["max_correction_mm"],
                               max_correction_deg=ac["max_correction_deg"],
                               min_overlap=ac["min_overlap"], method=ac["method"],
-                              seed=cfg["seed"])
-        corrections = np.asarray(result.corrections)
-        align_report = {"pairs": result.pairs, "per_sweep": result.per_sweep,
-                        "reference": getattr(result, "reference", None)}
+                              seed=cfg["seed"],
+                              origins=[c.sensor_origin_base for c in clouds],
+                              profiles=[c.frame_index for c in clouds], refine=ac["refine"],
+                              silhouettes=views, prior_mm=ac["prior_mm"],
+                              prior_deg=ac["prior_deg"],
+                              refine_iterations=ac["refine_iterations"])
+        align_report = {"method": result.method, "gauge": result.gauge,
+                        "reference": result.reference, "pairs": result.pairs,
+                        "per_sweep": result.per_sweep, "refinement": result.refinement,
+                        "n_views_used": 0 if views is None else len(views.cameras)}
     else:
-        corrections = np.tile(np.eye(4), (len(clouds), 1, 1))
+        result = None
         align_report = {"skipped": "alignment disabled in the config" if not ac["enabled"]
                         else "a single sweep has nothing to align to"}
-    for c, C in zip(clouds, corrections, strict=True):
-        c.report = {**(c.report or {}), "correction": C.tolist()}
-        c.points_base = transform_points(C, c.points_base)
-        c.normals_base = c.normals_base @ C[:3, :3].T
-        c.sensor_origin_base = transform_points(C, c.sensor_origin_base)
+    corrections = []
+    for k, c in enumerate(clouds):
+        mid = int(np.median(c.frame_index)) if len(c.frame_index) else 0
+        o_mid = (c.sensor_origin_base[int(np.argmin(np.abs(c.frame_index - mid)))]
+                 if len(c.frame_index) else np.zeros(3))
+        if result is None:
+            rot, tr = np.eye(3), np.zeros(3)
+        elif result.rotations is not None:
+            rot, tr = result.rotations[k], result.translations[k]
+        else:  # rigid corrections (no refinement): the same at every frame
+            C = result.corrections[k]
+            rot, tr = C[:3, :3], C[:3, 3] + C[:3, :3] @ o_mid - o_mid
+        if result is not None and result.rotations is None:
+            p, o, n = result.apply(k, c.points_base, c.sensor_origin_base, c.normals_base)
+        else:
+            from .registration import apply_correction
+
+            p, o, n = apply_correction(c.points_base, c.sensor_origin_base, rot, tr,
+                                       c.normals_base)
+        C_mid = correction_at(o_mid, rot, tr)
+        corrections.append(C_mid)
+        c.report = {**(c.report or {}), "correction": C_mid.tolist(), "correction_frame": mid,
+                    "correction_model": {"rotation": np.asarray(rot).tolist(),
+                                         "translation": np.asarray(tr).tolist()}}
+        c.points_base, c.sensor_origin_base, c.normals_base = p, o, n
     report = {"n_sweeps": len(clouds), **align_report,
               "corrections": [C.tolist() for C in corrections],
               "seconds": round(time.perf_counter() - t0, 3)}
@@ -517,14 +821,44 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                        colors=_sweep_color(c.sweep))
         log_report(rr_stream, "reports/align", report)
     write_json(outputs["report"], report)
-    log.info("aligned %d sweeps (%.1f s)", len(clouds), report["seconds"])
+    flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
+    log.info("aligned %d sweeps (gauge: %s, %.1f s)%s", len(clouds),
+             align_report.get("gauge", "-"), report["seconds"],
+             f"; flagged and kept at the robot's pose: {flagged}" if flagged else "")
     return report
+
+
+def _silhouette_views(inputs: Mapping[str, str], cfg: Mapping[str, Any]):
+    """The silhouette views (grey images, masks, cameras, poses) for the alignment's
+    absolute reference; None when the recording's views cannot be matched."""
+    from .registration import SilhouetteViews
+
+    sil = _load_silhouettes(inputs["silhouettes"])
+    cameras = _cameras_from(sil)
+    if not cameras or not inputs.get("recording"):
+        return None
+    rec = _read(inputs["recording"], cfg, roles=("views",))
+    by_stamp = {m.timestamp_ns: m for m in rec.views}
+    images = []
+    for t in sil["stamps_ns"]:
+        msg = by_stamp.get(int(t))
+        if msg is None:
+            log.warning("alignment: view at t=%d ns of the silhouettes is not in %s; the "
+                        "silhouettes are not used as reference", int(t), inputs["recording"])
+            return None
+        images.append(rec.decode(msg))
+    masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cameras)]
+    return SilhouetteViews(images, masks, cameras, sil["T_base_camera"])
 
 
 def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Fuse the aligned clouds into one surface (seed §2.4), bounded by the hull; from
-    views alone the fused mesh is the hull's."""
+    """Fuse the aligned clouds into one watertight surface (seed §2.4): each sweep as range
+    data into a TSDF (Curless & Levoy), holes closed from the visual hull (or screened
+    Poisson, ``fusion.method``); from views alone the fused mesh is the hull's.
+
+    The report says what fraction of the surface came from the laser and from the hull.
+    """
     from .carving import VoxelGrid, hull_to_mesh
     from .fusion import fuse_poisson, fuse_tsdf
     from .meshio import write_mesh
@@ -536,71 +870,105 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
-        pts = np.concatenate([c.points_base for c in clouds])
-        nrm = np.concatenate([c.normals_base for c in clouds])
         crop = hull if (hull is not None and fc["crop_to_hull"]) else None
         if fc["method"] == "tsdf":
-            origins = np.concatenate([c.sensor_origin_base for c in clouds])
-            V, F, fuse_report = fuse_tsdf(pts, nrm, origins, voxel_size=fc["tsdf_voxel_m"],
-                                          trunc_voxels=fc["tsdf_trunc_voxels"], hull=crop)
+            V, F, fuse_report = fuse_tsdf(
+                [c.points_base for c in clouds], [c.normals_base for c in clouds],
+                [c.sensor_origin_base for c in clouds],
+                confidences=[c.confidence for c in clouds], voxel_size=fc["tsdf_voxel_m"],
+                trunc_voxels=int(fc["tsdf_trunc_voxels"]), hull=crop,
+                hull_margin_voxels=fc["hull_margin_voxels"], fill_holes=fc["fill_holes"],
+                carve_free_space=fc["carve_free_space"], min_weight=fc["min_weight"],
+                min_cos_view=fc["min_cos_view"], threads=1)
+            source = "laser (TSDF)" + (", holes closed from the hull" if crop is not None
+                                        and fc["fill_holes"] else "")
         else:
+            pts = np.concatenate([c.points_base for c in clouds])
+            nrm = np.concatenate([c.normals_base for c in clouds])
             V, F, fuse_report = fuse_poisson(pts, nrm, depth=fc["poisson_depth"],
                                              density_quantile=fc["density_quantile"],
                                              hull=crop, seed=cfg["seed"])
-        source = f"laser ({fc['method']})"
-        if crop is not None:
-            cut = str(fuse_report.get("hull_cut", "applied"))
-            source += ", cut to the hull" if cut == "applied" else f", hull cut {cut}"
+            source = "laser (screened Poisson)"
+            if crop is not None:
+                cut = str(fuse_report.get("hull_cut", "applied"))
+                source += ", cut to the hull" if cut == "applied" else f", hull cut {cut}"
     elif hull is not None:
         V, F = hull_to_mesh(hull, smooth_sigma_vox=cfg["carving"]["smooth_sigma_vox"])
-        fuse_report = {"note": "no laser frames: the fused mesh is the visual hull's"}
+        fuse_report = {"note": "no laser frames: the fused mesh is the visual hull's",
+                       "laser_area_fraction": 0.0, "hull_area_fraction": 1.0}
         source = "visual hull"
     else:
         raise StageError("fusion needs aligned clouds or a hull, got neither")
     if len(F) == 0:
         raise StageError(f"fusion produced an empty mesh from {source}")
-    report = {"source": source, **fuse_report, "vertices": len(V), "faces": len(F),
+    report = {"source": source, "method": fc["method"] if inputs.get("aligned") else "hull",
+              **fuse_report, "vertices": len(V), "faces": len(F),
               "seconds": round(time.perf_counter() - t0, 3)}
     write_mesh(outputs["ply"], V, F)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         log_mesh(rr_stream, "base/fused", V, F, albedo=[200, 200, 200, 255])
         log_report(rr_stream, "reports/fuse", report)
     write_json(outputs["report"], report)
-    log.info("fused mesh from %s: %d faces (%.1f s)", source, len(F), report["seconds"])
+    lf = report.get("laser_area_fraction")
+    log.info("fused mesh from %s: %d faces%s (%.1f s)", source, len(F),
+             f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
+             report["seconds"])
     return report
 
 
 def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Clean and simplify the fused mesh (quadric edge collapse)."""
+    """Clean the fused mesh (duplicates, zero-area faces, small floating components) and
+    simplify it by quadric edge collapse to ``simplify.target_faces`` and/or within
+    ``simplify.max_error_m``; the Hausdorff distance to the fused mesh must stay within
+    ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does). Writes
+    ``ply`` and, when given, ``stl`` / ``obj`` outputs."""
     from .meshio import read_mesh, write_mesh
     from .simplify import clean_mesh, simplify_mesh
     from .viz import log_mesh, log_report, rerun_log
 
     t0 = time.perf_counter()
-    V, F = read_mesh(inputs["fused"])
-    V, F, clean_report = clean_mesh(V, F)
     sc = cfg["simplify"]
-    V2, F2, simp_report = simplify_mesh(V, F, target_faces=sc["target_faces"])
+    V, F = read_mesh(inputs["fused"])
+    V, F, clean_report = clean_mesh(V, F, min_component_fraction=sc["min_component_fraction"])
+    bound = sc["hausdorff_tolerance_m"]
+    if sc["max_error_m"] is not None:
+        bound = min(bound, sc["max_error_m"])
+    V2, F2, simp_report = simplify_mesh(V, F, target_faces=sc["target_faces"], max_error=bound,
+                                        seed=cfg["seed"])
     haus = simp_report.get("hausdorff_max_m")
-    if haus is not None and haus > sc["hausdorff_tolerance_m"]:
+    within = haus is None or haus <= sc["hausdorff_tolerance_m"]
+    if not within:
         log.warning("simplified mesh departs %.3f mm from the fused one, more than the "
                     "tolerance %.3f mm", haus * 1e3, sc["hausdorff_tolerance_m"] * 1e3)
     report = {"clean": clean_report, **simp_report, "faces_in": len(F), "faces_out": len(F2),
+              "hausdorff_tolerance_m": sc["hausdorff_tolerance_m"],
+              "within_tolerance": bool(within),
+              "exports": [k for k in ("ply", "stl", "obj") if outputs.get(k)],
               "seconds": round(time.perf_counter() - t0, 3)}
-    write_mesh(outputs["ply"], V2, F2)
+    for key in ("ply", "stl", "obj"):
+        if outputs.get(key):
+            write_mesh(outputs[key], V2, F2)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         log_mesh(rr_stream, "base/mesh", V2, F2, albedo=[230, 200, 160, 255])
         log_report(rr_stream, "reports/simplify", report)
     write_json(outputs["report"], report)
-    log.info("simplified %d -> %d faces (%.1f s)", len(F), len(F2), report["seconds"])
+    log.info("simplified %d -> %d faces, Hausdorff %.3f mm (%.1f s)", len(F), len(F2),
+             (haus or 0.0) * 1e3, report["seconds"])
     return report
 
 
 def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Gather what every stage measured and, when the recording carries ground truth,
-    the errors against it, into ``metrics.json``."""
+    """Gather what every stage measured, its time and peak memory, and, when the
+    recording carries ground truth, the errors against it, into ``metrics.json``; draw
+    the final mesh coloured by its error (``picture``, when given).
+
+    Accuracy of the fused and final meshes is scored on the surface inside the
+    workspace box above ``evaluation.floor_margin_m`` over its floor (below it the mesh
+    closes the face resting on the table, which no sensor sees); ``*_whole`` keeps it.
+    Completeness counts the true surface inside the workspace box.
+    """
     import json
 
     from .carving import VoxelGrid
@@ -623,19 +991,30 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         with open(p, encoding="utf-8") as f:
             stages[p.stem] = json.load(f)
     metrics["stages"] = stages
+    metrics["timings"] = _stage_timings(rec_name, stages)
+    fuse = stages.get("fuse", {})
+    metrics["surface_sources"] = {"laser_area_fraction": fuse.get("laser_area_fraction"),
+                                  "hull_area_fraction": fuse.get("hull_area_fraction")}
     rec = _read(rec_path, cfg, roles=(), require=False)
     mesh_bytes = rec.attachments.get("ground_truth/mesh.ply")
     ev = cfg["evaluation"]
+    V_final, F_final = read_mesh(inputs["mesh"])
+    vertex_error_mm = None
     if mesh_bytes is None:
         metrics["skipped"]["evaluation"] = "the recording carries no ground truth"
     else:
-        from .meshio import read_mesh as _read_mesh
-
-        Vt, Ft = _read_mesh(mesh_bytes)
+        Vt, Ft = read_mesh(mesh_bytes)
         truth = TruthSurface(Vt, Ft)
         region = rec.workspace
+        scored = None
+        if region is not None:
+            scored = (np.asarray(region[0], dtype=np.float64).copy(),
+                      np.asarray(region[1], dtype=np.float64))
+            scored[0][2] += ev["floor_margin_m"]
         ev_out: dict[str, Any] = {"region": None if region is None else
-                                  [region[0].tolist(), region[1].tolist()]}
+                                  [region[0].tolist(), region[1].tolist()],
+                                  "accuracy_region": None if scored is None else
+                                  [scored[0].tolist(), scored[1].tolist()]}
         if inputs.get("hull"):
             g = VoxelGrid.load_npz(inputs["hull"])
             ev_out["hull_volume_iou"] = volume_iou(g.occupancy, g.origin, g.voxel_size, truth,
@@ -646,18 +1025,39 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
             ev_out["clouds"] = cloud_accuracy(np.concatenate([c.points_base for c in raw]), truth)
             ev_out["aligned"] = cloud_accuracy(np.concatenate([c.points_base for c in ali]),
                                                truth)
+        thresholds = tuple(ev["thresholds_mm"])
         for key in ("fused", "mesh"):
-            V, F = read_mesh(inputs[key])
+            V, F = (V_final, F_final) if key == "mesh" else read_mesh(inputs[key])
             ev_out[key] = {
-                **mesh_accuracy(V, F, truth, n_samples=ev["n_samples"], seed=cfg["seed"]),
-                "completeness": completeness(V, F, truth, thresholds_mm=ev["thresholds_mm"],
+                **mesh_accuracy(V, F, truth, n_samples=ev["n_samples"], seed=cfg["seed"],
+                                thresholds_mm=thresholds, region=scored),
+                "completeness": completeness(V, F, truth, thresholds_mm=thresholds,
                                              n_samples=ev["n_samples"], region=region,
                                              seed=cfg["seed"]),
+                "whole": mesh_accuracy(V, F, truth, n_samples=ev["n_samples"] // 4,
+                                       seed=cfg["seed"], thresholds_mm=thresholds),
             }
         if inputs.get("aligned") and "ground_truth/tf.json" in rec.attachments:
             ev_out["poses"] = _pose_errors(rec, inputs)
         metrics["evaluation"] = ev_out
+        vertex_error_mm = truth.distance(V_final) * 1e3
+    if outputs.get("picture"):
+        from .render import error_figure
+
+        title = (f"{rec_name}: final mesh ({len(F_final)} faces) coloured by its distance to "
+                 "the true surface" if vertex_error_mm is not None else
+                 f"{rec_name}: final mesh ({len(F_final)} faces), no ground truth")
+        error_figure(outputs["picture"], V_final, F_final,
+                     vertex_error_mm if vertex_error_mm is not None
+                     else np.full(len(V_final), np.nan),
+                     vmax_mm=ev["picture_vmax_mm"], title=title)
     metrics["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
+    if "evaluate" not in metrics["timings"]:  # its own benchmark file comes after it
+        metrics["timings"]["evaluate"] = {"seconds": metrics["evaluate_seconds"],
+                                          "max_rss_mb": None,
+                                          "source": "measured inside the job"}
+        if metrics["timings"].get("total_seconds") is not None:
+            metrics["timings"]["total_seconds"] += metrics["evaluate_seconds"]
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         if mesh_bytes is not None:
             log_mesh(rr_stream, "base/ground_truth", Vt, Ft, albedo=[120, 220, 120, 90])
@@ -667,11 +1067,47 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     return metrics
 
 
+def _stage_timings(rec_name: str, stages: Mapping[str, Any]) -> dict[str, Any]:
+    """Wall time and peak memory of each stage of one recording: Snakemake's benchmark
+    files (``benchmarks/<rule>/<rec>.tsv`` in the working directory: seconds, max RSS)
+    where they exist, else the seconds the stage reported."""
+    import csv
+
+    out: dict[str, Any] = {}
+    for stage in ("silhouettes", "carve", "stripes", "triangulate", "align", "fuse",
+                  "simplify", "evaluate"):
+        entry: dict[str, Any] = {}
+        tsv = Path("benchmarks") / stage / f"{rec_name}.tsv"
+        if tsv.exists():
+            try:
+                with open(tsv, encoding="utf-8") as f:
+                    row = next(csv.DictReader(f, delimiter="\t"))
+                entry = {"seconds": float(row["s"]), "max_rss_mb": float(row["max_rss"]),
+                         "cpu_seconds": float(row.get("cpu_time") or "nan"),
+                         "source": str(tsv)}
+            except (StopIteration, KeyError, ValueError):
+                entry = {}
+        if not entry and isinstance(stages.get(stage), dict) and "seconds" in stages[stage]:
+            entry = {"seconds": stages[stage]["seconds"], "max_rss_mb": None,
+                     "source": "stage report (inside the job)"}
+        if entry:
+            out[stage] = entry
+    known = [e["seconds"] for e in out.values() if isinstance(e.get("seconds"), float | int)]
+    out["total_seconds"] = float(sum(known)) if known else None
+    return out
+
+
 def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
     """Per-sweep robot pose error before and after alignment, against ground_truth/tf.json.
 
-    The pose of a sweep is its base->flange at the sweep's mid frame: the reported one
-    (before), the reported one corrected by the alignment (after), the true one.
+    The pose of a sweep is its ``base -> flange`` at the sweep's middle frame: the reported
+    one (before), the reported one corrected by the alignment (after: the cloud's
+    ``correction``, the rigid transform the alignment applied at that frame), the true
+    one. Each error is given as the rotation angle (degrees) and as two translations: of
+    the flange's origin (``*_mm``: about 0.3 m from the object, so a rotation error
+    ``r`` alone moves it by ``r * 0.3 m``), and of the sweep's own points (``*_obj_mm``:
+    the displacement of the sweep's centroid by the pose error, what the error does to
+    the scan).
     """
     from .evaluate import pose_error
     from .recording.reader import read_ground_truth_tf
@@ -679,27 +1115,44 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
 
     truth_tf = read_ground_truth_tf(rec)
     clouds = load_clouds_npz(inputs["clouds"])
-    corrections = [np.asarray(c.report.get("correction", np.eye(4)))
-                   for c in load_clouds_npz(inputs["aligned"])]
+    aligned = load_clouds_npz(inputs["aligned"])
     stripes_path = Path(inputs["clouds"]).with_name("stripes.npz")
     with np.load(stripes_path) as z:
         stamps = z["stamps_ns"]
     out = []
     for k, c in enumerate(clouds):
-        mid = int(np.median(c.frame_index))
+        rep = aligned[k].report or {}
+        C = np.asarray(rep.get("correction", np.eye(4)))
+        mid = int(rep.get("correction_frame", int(np.median(c.frame_index))))
         t = int(stamps[mid])
         T_rep = rec.tf.lookup(rec.base_frame, "flange", t)
         T_true = truth_tf.lookup(rec.base_frame, "flange", t)
-        C = corrections[k]
+        centroid = c.points_base.mean(axis=0)
+
         before = pose_error(T_rep, T_true)
         after = pose_error(C @ T_rep, T_true)
         out.append({"sweep": int(c.sweep), "before_mm": float(before[0]),
-                    "before_deg": float(before[1]), "after_mm": float(after[0]),
-                    "after_deg": float(after[1])})
+                    "before_deg": float(before[1]),
+                    "before_obj_mm": _displacement_mm(T_rep, T_true, centroid),
+                    "after_mm": float(after[0]), "after_deg": float(after[1]),
+                    "after_obj_mm": _displacement_mm(C @ T_rep, T_true, centroid)})
+
+    def worst(key: str) -> float:
+        return max(o[key] for o in out)
+
     return {"per_sweep": out,
-            "worst_before_mm": max(o["before_mm"] for o in out),
-            "worst_after_mm": max(o["after_mm"] for o in out),
-            "worst_after_deg": max(o["after_deg"] for o in out)}
+            "worst_before_mm": worst("before_mm"), "worst_before_deg": worst("before_deg"),
+            "worst_before_obj_mm": worst("before_obj_mm"),
+            "worst_after_mm": worst("after_mm"), "worst_after_deg": worst("after_deg"),
+            "worst_after_obj_mm": worst("after_obj_mm")}
+
+
+def _displacement_mm(T_est: np.ndarray, T_true: np.ndarray, point: np.ndarray) -> float:
+    """How far a pose error ``T_est`` (vs ``T_true``) moves ``point`` (base), mm."""
+    from .transforms import invert_transform
+
+    D = T_est @ invert_transform(T_true)
+    return float(np.linalg.norm(D[:3, :3] @ point + D[:3, 3] - point) * 1e3)
 
 
 def _log_summary(metrics: Mapping[str, Any]) -> None:
@@ -710,8 +1163,17 @@ def _log_summary(metrics: Mapping[str, Any]) -> None:
     parts = []
     if "hull_volume_iou" in ev:
         parts.append(f"hull IoU {ev['hull_volume_iou']:.3f}")
+    if "poses" in ev:
+        p = ev["poses"]
+        parts.append(f"worst sweep pose error {p['worst_before_obj_mm']:.3f} -> "
+                     f"{p['worst_after_obj_mm']:.3f} mm at the object, "
+                     f"{p['worst_before_deg']:.3f} -> {p['worst_after_deg']:.4f} deg")
     m = ev["mesh"]
-    parts.append(f"mesh mean {m['mean_mm']:.3f} mm, p95 {m['p95_mm']:.3f} mm")
+    if m.get("median_mm") is not None:
+        parts.append(f"mesh median {m['median_mm']:.3f} mm, p95 {m['p95_mm']:.3f} mm")
+    c = m["completeness"]["within_mm"]
+    parts.append("completeness " + ", ".join(f"{v:.3f} at {k} mm" for k, v in c.items()
+                                             if v is not None))
     log.info("%s: %s", metrics["name"], "; ".join(parts))
 
 
@@ -748,16 +1210,64 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
 
     A robo3d error (bad input, a stage that cannot produce its result) is logged as one
     clear line and ends the job with exit status 1, without a traceback from deep inside a
-    library; Snakemake then removes the job's outputs and, with ``--keep-going``, finishes
-    the other recordings.
+    library; any other exception (a bug) is logged with its traceback, so that the job's
+    log always says why it failed (``robo3d status`` reads the first error line).
+    Snakemake then removes the job's outputs and, with ``--keep-going``, finishes the
+    other recordings. Temporary files that a killed earlier attempt left beside the
+    outputs (``.<name>.*.tmp<suffix>``, never mistaken for outputs) are removed first.
+    A stage that takes ``threads`` gets the job's.
     """
+    import inspect
+
     _setup_logging(smk.log[0] if len(smk.log) else None)
     inputs = {k: str(v) for k, v in smk.input.items()}
     outputs = {k: str(v) for k, v in smk.output.items()}
     rec = smk.wildcards.get("rec", "recording")
+    _remove_stale_temporaries(outputs.values())
+    fn = STAGES[stage]
+    kwargs = {}
+    if "threads" in inspect.signature(fn).parameters and getattr(smk, "threads", None):
+        kwargs["threads"] = int(smk.threads)
     try:
-        STAGES[stage](inputs, outputs, smk.config, rec)
+        fn(inputs, outputs, smk.config, rec, **kwargs)
     except Robo3dError as exc:
         log.error("%s failed for %s: %s", stage, rec, exc)
         logging.shutdown()
         sys.exit(1)
+    except KeyboardInterrupt:  # Ctrl-C: say so, then die by the signal as expected
+        import os
+        import signal
+
+        log.error("%s for %s interrupted; its outputs were not written", stage, rec)
+        logging.shutdown()
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGINT)
+    except Exception as exc:
+        log.exception("%s failed for %s with an unexpected %s: %s (a bug in robo3d: please "
+                      "report it with this log)", stage, rec, type(exc).__name__, exc)
+        logging.shutdown()
+        sys.exit(1)
+
+
+def _remove_stale_temporaries(outputs: Iterable[str]) -> list[Path]:
+    """Delete what killed jobs left of :func:`robo3d.atomic.atomic_path`'s temporaries of
+    these outputs (and of mask folders); returns the paths removed."""
+    import shutil
+
+    removed = []
+    for out in outputs:
+        target = Path(out)
+        if not target.parent.is_dir():
+            continue
+        patterns = (f".{target.stem}.*.tmp{target.suffix}", f".{target.name}.*")
+        for pattern in patterns:
+            for p in target.parent.glob(pattern):
+                if p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)
+                else:
+                    p.unlink(missing_ok=True)
+                removed.append(p)
+    if removed:
+        log.info("removed %d temporary files left by an earlier, killed attempt: %s",
+                 len(removed), ", ".join(p.name for p in removed))
+    return removed

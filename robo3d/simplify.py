@@ -6,11 +6,20 @@ fraction of the mesh: islands of noise, or shreds left by the density and hull c
 
 :func:`simplify_mesh` is quadric edge-collapse decimation (Garland & Heckbert 1997) with
 optimal vertex placement, boundary and normal preservation. It stops at a face count
-(``target_faces``) or at a geometric error (``max_error``), or both (the smallest face count
-not below ``target_faces`` whose error stays within ``max_error``). Quadric decimation has
-no error-driven stop in pymeshlab, so the error-bounded mode searches the face count
-(bisection on a log scale, each trial decimating the original mesh) and measures each
-trial's two-sided Hausdorff distance with pymeshlab's sampling (Cignoni et al. 1998).
+(``target_faces``) or at a geometric error (``max_error``), or both (the fewest faces, not
+below ``target_faces``, whose error stays within ``max_error``). Quadric decimation has no
+error-driven stop in pymeshlab, so the error-bounded mode decimates *progressively*
+(halving the face count from the previous result, which costs about one decimation of
+the input in all) and measures after each step the two-sided distance to the input
+(Open3D/Embree point-to-triangle distances of the vertices and of area samples: fast);
+it keeps the last step within the bound and then searches between that step and the
+next (bisection on a log scale, each trial decimating the kept step). The reported
+Hausdorff distance of the result is pymeshlab's (Cignoni et al. 1998).
+
+Units: pymeshlab's quadric collapse has absolute thresholds inside (measured: a 100 mm
+mesh given in metres decimated to 20 000 faces departed 2.3 mm from its input, the same
+mesh given in millimetres 0.4 mm), so meshes are scaled to a 100-unit bounding box
+diagonal before every pymeshlab filter and scaled back after.
 
 The Hausdorff distance reported is measured on samples (all vertices plus points on the
 faces), so it is a slight underestimate of the exact maximum; reported in metres.
@@ -167,38 +176,75 @@ def hausdorff_distance(vertices_a: np.ndarray, faces_a: np.ndarray,
     vb, fb = _check_mesh(vertices_b, faces_b)
     if len(fa) == 0 or len(fb) == 0:
         raise ValueError("both meshes need faces to measure a Hausdorff distance")
+    scale = _scale_of(np.concatenate([va, vb]))
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=va, face_matrix=fa))
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vb, face_matrix=fb))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=va * scale, face_matrix=fa))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vb * scale, face_matrix=fb))
 
     def n_for(v: np.ndarray, f: np.ndarray) -> int:
         if n_samples is not None:
             return int(n_samples)
         return int(min(max(len(v) + 2 * len(f), 10_000), 2_000_000))
 
-    ab = _one_way(ms, 0, 1, n_for(va, fa))
-    ba = _one_way(ms, 1, 0, n_for(vb, fb))
+    ab = {k: x / scale for k, x in _one_way(ms, 0, 1, n_for(va, fa)).items()}
+    ba = {k: x / scale for k, x in _one_way(ms, 1, 0, n_for(vb, fb)).items()}
     return {"a_to_b": ab, "b_to_a": ba, "max": max(ab["max"], ba["max"])}
+
+
+def _scale_of(v: np.ndarray) -> float:
+    """Factor that brings a mesh to a 100-unit bounding-box diagonal (see module notes)."""
+    if len(v) == 0:
+        return 1.0
+    diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    return 100.0 / diag if diag > 0 else 1.0
 
 
 def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool,
               preserve_normal: bool) -> tuple[np.ndarray, np.ndarray]:
-    ms = _meshset(v, f)
-    ms.meshing_decimation_quadric_edge_collapse(
-        targetfacenum=int(target), qualitythr=0.3, preserveboundary=preserve_boundary,
-        boundaryweight=1.0, preservenormal=preserve_normal, preservetopology=False,
-        optimalplacement=True, planarquadric=True, autoclean=True)
-    out_v, out_f = _arrays(ms)
+    scale = _scale_of(v)
+    ms = _meshset(v * scale, f)
+    kw = dict(targetfacenum=int(target), qualitythr=0.3, preserveboundary=preserve_boundary,
+              boundaryweight=1.0, preservenormal=preserve_normal, preservetopology=False,
+              optimalplacement=True, planarquadric=True, autoclean=True)
+    ms.meshing_decimation_quadric_edge_collapse(**kw)
     # the collapse may stop a few faces above the target on meshes with many boundaries
     tries = 0
-    while len(out_f) > target and tries < 3:
-        ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=int(target), qualitythr=0.3, preserveboundary=preserve_boundary,
-            preservenormal=preserve_normal, optimalplacement=True, planarquadric=True,
-            autoclean=True)
-        out_v, out_f = _arrays(ms)
+    while ms.current_mesh().face_number() > target and tries < 3:
+        ms.meshing_decimation_quadric_edge_collapse(**kw)
         tries += 1
-    return out_v, out_f
+    out_v, out_f = _arrays(ms)
+    return out_v / scale, out_f
+
+
+class _Distance:
+    """Fast two-sided distance between a fixed mesh and candidates (Open3D/Embree)."""
+
+    def __init__(self, v: np.ndarray, f: np.ndarray, n_samples: int, seed: int) -> None:
+        import open3d as o3d
+
+        from .evaluate import sample_surface
+
+        self.shift = v.mean(axis=0)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
+                                 o3d.core.Tensor(f.astype(np.uint32)))
+        self.samples = np.concatenate([v, sample_surface(v, f, n_samples, seed=seed)])
+        self.n_samples, self.seed = n_samples, seed
+
+    def __call__(self, v: np.ndarray, f: np.ndarray) -> float:
+        import open3d as o3d
+
+        from .evaluate import sample_surface
+
+        other = o3d.t.geometry.RaycastingScene()
+        other.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
+                            o3d.core.Tensor(f.astype(np.int64).astype(np.uint32)))
+        a = other.compute_distance(o3d.core.Tensor(
+            (self.samples - self.shift).astype(np.float32))).numpy()
+        q = np.concatenate([v, sample_surface(v, f, self.n_samples // 4, seed=self.seed)])
+        b = self.scene.compute_distance(o3d.core.Tensor((q - self.shift).astype(np.float32)
+                                                        )).numpy()
+        return float(max(a.max(), b.max()))
 
 
 def simplify_mesh(
@@ -210,6 +256,8 @@ def simplify_mesh(
     preserve_boundary: bool = True,
     preserve_normal: bool = True,
     tolerance: float = 0.1,
+    n_samples: int = 200_000,
+    seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Quadric edge-collapse decimation to a face count and/or within an error bound.
 
@@ -220,13 +268,17 @@ def simplify_mesh(
     target_faces : int, optional
         Decimate to at most this many faces (unless ``max_error`` forbids it).
     max_error : float, metres, optional
-        Largest allowed two-sided Hausdorff distance between input and result. The face
-        count is searched (log-scale bisection) for the smallest count, not below
-        ``target_faces``, whose error stays within the bound.
+        Largest allowed two-sided Hausdorff distance between input and result: the fewest
+        faces, not below ``target_faces``, whose distance stays within it (progressive
+        decimation and a log-scale search, see the module notes).
     preserve_boundary, preserve_normal : bool
         Quadric options: keep open borders in place; refuse collapses that flip a face.
     tolerance : float
         Relative precision of the face-count search (stop when hi / lo < 1 + tolerance).
+    n_samples : int
+        Area samples of the input for the search's distance checks (plus its vertices).
+    seed : int
+        Seed of those samples.
 
     Returns
     -------
@@ -234,10 +286,10 @@ def simplify_mesh(
     faces : (F', 3) int64
     report : dict
         ``n_faces_in``, ``n_vertices_in``, ``n_faces``, ``n_vertices``,
-        ``target_faces``, ``max_error_m``, ``n_trials``, ``hausdorff_max_m`` (the two-sided
-        Hausdorff distance, metres) and ``hausdorff_m``:
-        {``fused_to_simplified``: {max, mean, rms}, ``simplified_to_fused``: {...},
-        ``max``} in metres.
+        ``target_faces``, ``max_error_m``, ``n_trials``, ``search_distance_m`` (the fast
+        check of the result), ``hausdorff_max_m`` (pymeshlab's two-sided Hausdorff
+        distance, metres) and ``hausdorff_m``: {``fused_to_simplified``: {max, mean,
+        rms}, ``simplified_to_fused``: {...}, ``max``} in metres.
 
     Raises
     ------
@@ -259,46 +311,55 @@ def simplify_mesh(
                                   target_faces=target_faces, max_error_m=max_error)
     if len(f) == 0:
         report.update(n_faces=0, n_vertices=int(len(v)), n_trials=0, hausdorff_max_m=None,
-                      hausdorff_m=None)
+                      hausdorff_m=None, search_distance_m=None)
         return v, f.astype(np.int64), report
-
-    def trial(n: int) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-        if n >= len(f):
-            return v, f.astype(np.int64), {"a_to_b": _zero(), "b_to_a": _zero(), "max": 0.0}
-        ov, of = _decimate(v, f, n, preserve_boundary, preserve_normal)
-        return ov, of, hausdorff_distance(v, f, ov, of)
-
+    target = int(target_faces) if target_faces is not None else max(4, len(f) // 1000)
     n_trials = 0
-    if max_error is None:
-        best = trial(int(target_faces))
+    search_d = None
+    if max_error is None or target >= len(f):
+        ov, of = (_decimate(v, f, target, preserve_boundary, preserve_normal)
+                  if target < len(f) else (v, f.astype(np.int64)))
         n_trials = 1
     else:
-        lo = int(target_faces) if target_faces is not None else max(4, len(f) // 1000)
-        lo = min(lo, len(f))
-        cand = trial(lo)
-        n_trials = 1
-        if cand[2]["max"] <= max_error:
-            best = cand
-        else:
-            best = trial(len(f))
-            hi = len(f)
+        dist = _Distance(v, f, n_samples, seed)
+        good = (v, f.astype(np.int64), 0.0)
+        cur_v, cur_f = v, f
+        bad_n = None
+        n = len(f)
+        while n > target:  # progressive halving from the previous result
+            n = max(target, n // 2)
+            cand_v, cand_f = _decimate(cur_v, cur_f, n, preserve_boundary, preserve_normal)
+            n_trials += 1
+            d = dist(cand_v, cand_f)
+            if d > max_error:
+                bad_n = n
+                break
+            good = (cand_v, cand_f, d)
+            cur_v, cur_f = cand_v, cand_f
+        if bad_n is not None:  # search between the last good count and the failing one
+            lo, hi = bad_n, len(good[1])
+            base_v, base_f = good[0], good[1]
             while hi > lo * (1.0 + tolerance) and hi - lo > 1:
                 mid = int(round(math.sqrt(lo * hi)))
                 mid = min(max(mid, lo + 1), hi - 1)
-                cand = trial(mid)
+                cand_v, cand_f = _decimate(base_v, base_f, mid, preserve_boundary,
+                                           preserve_normal)
                 n_trials += 1
-                if cand[2]["max"] <= max_error:
-                    best, hi = cand, mid
+                d = dist(cand_v, cand_f)
+                if d <= max_error:
+                    good, hi = (cand_v, cand_f, d), mid
                 else:
                     lo = mid
-    ov, of, hd = best
+        ov, of, search_d = good
+    hd = (hausdorff_distance(v, f, ov, of, n_samples=min(len(v) + n_samples, 2_000_000))
+          if len(of) < len(f) else {"a_to_b": _zero(), "b_to_a": _zero(), "max": 0.0})
     report.update(n_faces=int(len(of)), n_vertices=int(len(ov)), n_trials=n_trials,
-                  hausdorff_max_m=hd["max"],
+                  search_distance_m=search_d, hausdorff_max_m=hd["max"],
                   hausdorff_m={"fused_to_simplified": hd["a_to_b"],
                                "simplified_to_fused": hd["b_to_a"], "max": hd["max"]})
     log.info("simplify_mesh: %d -> %d faces, Hausdorff %.3g m (%d trials)", len(f), len(of),
              hd["max"], n_trials)
-    return ov, of, report
+    return ov, np.asarray(of, dtype=np.int64), report
 
 
 def _zero() -> dict[str, float]:

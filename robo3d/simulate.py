@@ -31,8 +31,15 @@ Choices
   translation mm and rotation degrees).
 - The workspace box is the object's bounding box grown by ``workspace_margin`` (10 mm),
   except its floor, ``workspace_floor`` (0.5 mm) above the table so the table is out.
-- Sweeps: ``sweeps - 1`` passes at ``sweep_elevation_deg`` on evenly spaced azimuths
-  plus one from straight above (``sweep_top``), each moving along the laser sheet's
+- Sweeps: one from straight above (``sweep_top``) and ``sweeps - 1`` side passes on two
+  rings: up to ``sweep_low_count`` low ones at ``sweep_low_elevation_deg`` (diagonal
+  azimuths from ``sweep_low_azimuth0_deg``: each sees two faces of a box, and the low
+  angle reaches steep walls, side pockets and the rounded edges near the table), the
+  rest at ``sweep_elevation_deg`` (from ``sweep_azimuth0_deg``: the top's walls and
+  grooves); ``sweep_low_elevation_deg = None`` puts every side pass on the one ring.
+  The demos' plan (7 sweeps, 2.2 mm per frame) was chosen so that each demo's true
+  surface is seen by the laser nearly everywhere above the table (issue 5); each
+  sweep moves along the laser sheet's
   normal by ``sweep_spacing`` per frame at ``sweep_speed``; ``sweep_frames`` (tests)
   instead fixes the number of frames and stretches the spacing to cover the object.
 - Laser frames are quiet by design (object ``laser_ambient_dn`` = 1 DN, read noise
@@ -109,8 +116,13 @@ class SimulationParams:
     view_encoding, jpeg_quality, view_read_noise_dn
         Views' encoding (``jpeg``, ``png``, ``rgb8``, ``bgr8``), JPEG quality, read noise.
     sweeps, sweep_elevation_deg, sweep_azimuth0_deg, sweep_top
-        Number of laser sweeps, elevation and first azimuth of the side sweeps, whether
-        the last sweep looks from straight above.
+        Number of laser sweeps, elevation and first azimuth of the (upper ring of) side
+        sweeps, whether the last sweep looks from straight above.
+    sweep_low_elevation_deg, sweep_low_count, sweep_low_azimuth0_deg, sweep_low_roll_deg
+        The lower ring of side sweeps (``None``: no lower ring): elevation, how many of
+        the side sweeps it takes at most, first azimuth, and the camera's turn about its
+        axis (90: the laser beside the camera rather than above it, so that it reaches
+        the down-facing surface near the table that the camera sees).
     sweep_spacing, sweep_frames, sweep_speed, sweep_margin, sweep_gap_s, tf_rate_hz
         Camera travel per frame (or ``sweep_frames`` per sweep), speed (m/s), overshoot
         past the object's box, pause between sweeps, ``/tf`` rate while moving.
@@ -143,16 +155,20 @@ class SimulationParams:
     jpeg_quality: int = 92
     view_read_noise_dn: float = 1.0
     # laser sweeps
-    sweeps: int = 5
-    sweep_elevation_deg: float = 45.0
-    sweep_azimuth0_deg: float = 20.0
+    sweeps: int = 7
+    sweep_elevation_deg: float = 55.0
+    sweep_azimuth0_deg: float = 0.0
     sweep_top: bool = True
-    sweep_spacing: float = 0.0018
+    sweep_low_elevation_deg: float | None = 10.0
+    sweep_low_count: int = 4
+    sweep_low_azimuth0_deg: float = 45.0
+    sweep_low_roll_deg: float = 90.0
+    sweep_spacing: float = 0.0022
     sweep_frames: int | None = None
     sweep_speed: float = 0.02
     sweep_margin: float = 0.006
     sweep_gap_s: float = 2.0
-    tf_rate_hz: float = 125.0
+    tf_rate_hz: float = 60.0
     laser_encoding: str = "png"
     laser_read_noise_dn: float = 0.12
     gain_dn_per_electron: float = 0.025
@@ -184,6 +200,9 @@ class SimulationParams:
             ("sweep_gap_s", self.sweep_gap_s > 0), ("view_period_s", self.view_period_s >= 0.1),
             ("jpeg_quality", 1 <= self.jpeg_quality <= 100),
             ("sweep_frames", self.sweep_frames is None or self.sweep_frames >= 2),
+            ("sweep_low_elevation_deg", self.sweep_low_elevation_deg is None
+             or 0 < self.sweep_low_elevation_deg < 90),
+            ("sweep_low_count", self.sweep_low_count >= 0),
             ("view_elevations_deg", len(self.view_elevations_deg) >= 1
              and all(0 < e < 90 for e in self.view_elevations_deg)),
             ("view_encoding", self.view_encoding in ("jpeg", "png", "rgb8", "bgr8")),
@@ -283,15 +302,19 @@ def _error_summary(errors: np.ndarray) -> list[dict[str, float]]:
              "rotation_deg": round(float(rotation_angle_deg(e[:3, :3])), 6)} for e in errors]
 
 
-def _sweep_plan(p: SimulationParams) -> list[tuple[float, float]]:
-    """(azimuth, elevation) in degrees of each sweep."""
+def _sweep_plan(p: SimulationParams) -> list[tuple[float, float, float]]:
+    """(azimuth, elevation, roll) in degrees of each sweep."""
     if p.sweeps == 0:
         return []
     n_side = p.sweeps - 1 if (p.sweep_top and p.sweeps >= 2) else p.sweeps
-    plan = [(p.sweep_azimuth0_deg + 360.0 * k / n_side, p.sweep_elevation_deg)
-            for k in range(n_side)]
+    n_low = 0 if p.sweep_low_elevation_deg is None else min(p.sweep_low_count, n_side)
+    n_high = n_side - n_low
+    plan = [(p.sweep_low_azimuth0_deg + 360.0 * k / n_low, float(p.sweep_low_elevation_deg),
+             p.sweep_low_roll_deg) for k in range(n_low)]
+    plan += [(p.sweep_azimuth0_deg + 360.0 * k / n_high, p.sweep_elevation_deg, 0.0)
+             for k in range(n_high)]
     if n_side < p.sweeps:
-        plan.append((p.sweep_azimuth0_deg, 90.0))
+        plan.append((p.sweep_azimuth0_deg, 90.0, 0.0))
     return plan
 
 
@@ -392,9 +415,10 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     tf_period = int(round(1e9 / p.tf_rate_hz))
     laser_frames: list[tuple[int, int, int, np.ndarray]] = []  # (stamp, sweep, frame, T_cam)
     frames_per_sweep: list[int] = []
-    for k, (az, el) in enumerate(plan):
+    for k, (az, el, roll) in enumerate(plan):
         t_start_cam, direction, length = sweep_poses(az, el, target, p.crossing, t_camera_laser,
-                                                     lo, hi, p.sweep_spacing, p.sweep_margin)
+                                                     lo, hi, p.sweep_spacing, p.sweep_margin,
+                                                     roll_deg=roll)
         if p.sweep_frames is not None:
             n = int(p.sweep_frames)
         else:
@@ -435,7 +459,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             "workspace_max": " ".join(f"{x:.4f}" for x in ws_hi)}
     sim_meta = {"generator": f"robo3d {__version__} simulate", "object": object_name,
                 **p.to_metadata(),
-                "sweep_plan_deg": json.dumps([[round(a, 6), round(e, 6)] for a, e in plan]),
+                "sweep_plan_deg": json.dumps([[round(a, 6), round(e, 6), round(r, 6)]
+                                              for a, e, r in plan]),
                 "frames_per_sweep": json.dumps(frames_per_sweep),
                 "sweep_errors": json.dumps(_error_summary(sweep_err)),
                 "view_errors": json.dumps(_error_summary(view_err)),

@@ -188,3 +188,48 @@ def test_bad_inputs(sphere):
         completeness(v, f, truth, region=(C, C))
     with pytest.raises(ValueError, match="faces index"):
         mesh_accuracy(v, f + len(v), truth)
+
+
+def test_mesh_accuracy_in_a_region(sphere):
+    """Only the reconstruction inside the region is scored (e.g. above the closure of the
+    face on the table): a lower half pushed 1 mm out does not count when cut away."""
+    truth, v, f, sag = sphere
+    bad = v.copy()
+    low = bad[:, 2] < C[2]
+    bad[low] = C + (bad[low] - C) * (R + 1e-3) / R
+    whole = mesh_accuracy(bad, f, truth, n_samples=20000)
+    box = (C - 1.1 * R + np.array([0, 0, 1.1 * R + 2e-3]), C + 1.1 * R)
+    upper = mesh_accuracy(bad, f, truth, n_samples=20000, region=box)
+    assert whole["p95_mm"] > 0.9
+    assert upper["max_mm"] < sag * 1e3 + 1e-3
+    assert upper["fraction_scored"] == pytest.approx((R - 2e-3) / (2 * R), abs=0.03)
+
+
+def test_batch_table(tmp_path):
+    import json
+
+    from robo3d.evaluate import batch_rows, write_batch_table
+
+    m1 = {"name": "a", "evaluation": {"hull_volume_iou": 0.9, "mesh": {
+        "median_mm": 0.02, "p95_mm": 0.1, "completeness": {"within_mm": {"0.5": 0.99}}},
+        "poses": {"worst_before_obj_mm": 1.2, "worst_before_deg": 0.3,
+                  "worst_after_obj_mm": 0.04, "worst_after_mm": 0.1, "worst_after_deg": 0.02}},
+        "surface_sources": {"laser_area_fraction": 0.8},
+        "stages": {"simplify": {"faces_out": 20000, "hausdorff_max_m": 1e-4}},
+        "timings": {"fuse": {"seconds": 7.0, "max_rss_mb": 500.0}, "total_seconds": 40.0}}
+    m2 = {"name": "b", "skipped": {"evaluation": "no ground truth"}}
+    rows = batch_rows([m1, m2])
+    assert rows[0]["recording"] == "a" and rows[0]["complete_0.5mm"] == 0.99
+    assert rows[0]["hausdorff_mm"] == pytest.approx(0.1) and rows[0]["fuse_mb"] == 500.0
+    assert rows[1]["mesh_median_mm"] is None and rows[1]["fuse_s"] is None
+    paths = []
+    for k, m in enumerate((m1, m2)):
+        p = tmp_path / f"m{k}.json"
+        p.write_text(json.dumps(m))
+        paths.append(str(p))
+    write_batch_table(paths, str(tmp_path / "b.tsv"), str(tmp_path / "b.html"))
+    lines = (tmp_path / "b.tsv").read_text().splitlines()
+    assert len(lines) == 3 and lines[0].startswith("recording\thull_iou")
+    assert lines[2].split("\t")[0] == "b"
+    html = (tmp_path / "b.html").read_text()
+    assert "<table>" in html and "2 recording(s)" in html

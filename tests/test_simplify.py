@@ -100,3 +100,15 @@ def test_empty_and_bad_inputs():
         simplify_mesh(*_uv_sphere(10), max_error=-1.0)
     with pytest.raises(ValueError, match="faces index"):
         clean_mesh(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+
+
+def test_decimation_does_not_depend_on_units():
+    """pymeshlab's quadric collapse has absolute thresholds: the same mesh in metres and
+    in millimetres must simplify alike (measured before the fix: 2.3 mm vs 0.4 mm on a
+    100 mm fused mesh at 20 000 faces)."""
+    v, f = _uv_sphere(60)
+    v_m, f_m, rep_m = simplify_mesh(v, f, target_faces=600)
+    v_mm, f_mm, rep_mm = simplify_mesh(v * 1e3, f, target_faces=600)
+    assert len(f_m) == len(f_mm)
+    assert rep_m["hausdorff_max_m"] * 1e3 == pytest.approx(rep_mm["hausdorff_max_m"], rel=0.1)
+    assert rep_m["hausdorff_max_m"] < 0.5e-3  # a 30 mm sphere in 600 faces

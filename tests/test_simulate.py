@@ -301,3 +301,36 @@ def test_triangle_mesh_normals_point_outward():
     radial = (mesh.vertices - CENTRE) / RADIUS
     assert np.all(np.einsum("ij,ij->i", n, radial) > 0.999)
     assert isinstance(mesh, TriangleMesh)
+
+
+def test_sweep_plan_rings_and_roll():
+    from robo3d.simulate import SimulationParams, _sweep_plan
+
+    plan = _sweep_plan(SimulationParams())
+    assert len(plan) == 7
+    low = [p for p in plan if p[1] == 10.0]
+    assert len(low) == 4 and all(r == 90.0 for _, _, r in low)
+    assert sorted(a % 360 for a, _, _ in low) == [45.0, 135.0, 225.0, 315.0]
+    assert [e for _, e, _ in plan].count(55.0) == 2 and plan[-1][1] == 90.0
+    # fewer sweeps: the low ring first, the top last
+    small = _sweep_plan(SimulationParams(sweeps=3))
+    assert [e for _, e, _ in small] == [10.0, 10.0, 90.0]
+    # one ring, as before the low ring existed
+    one = _sweep_plan(SimulationParams(sweeps=5, sweep_low_elevation_deg=None,
+                                       sweep_elevation_deg=45.0))
+    assert [e for _, e, _ in one] == [45.0] * 4 + [90.0]
+
+
+def test_rolled_sweep_puts_the_laser_beside_the_camera():
+    """Roll 90: the laser is level with the camera (the sheet upright), so at a low
+    elevation it sees as far down the object's side as the camera does."""
+    t_cl = default_laser_mount()
+    lo, hi = np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.06])
+    for roll, level in ((0.0, False), (90.0, True)):
+        t0, direction, _ = sweep_poses(45.0, 10.0, CENTRE, 0.27, t_cl, lo, hi, 0.002,
+                                       roll_deg=roll)
+        laser = (t0 @ t_cl)[:3, 3]
+        dz = laser[2] - t0[2, 3]
+        assert (abs(dz) < 0.01) == level, (roll, dz)
+        # the sweep moves along the sheet's normal either way
+        assert abs(abs(direction @ (t0 @ t_cl)[:3, 1]) - 1.0) < 1e-9

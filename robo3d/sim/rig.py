@@ -183,7 +183,7 @@ def view_poses(n_views: int, target: np.ndarray, distance: float,
 def sweep_poses(azimuth_deg: float, elevation_deg: float, target: np.ndarray,
                 crossing: float, T_camera_laser: np.ndarray, box_lo: np.ndarray,
                 box_hi: np.ndarray, spacing: float, margin: float = 0.006,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                roll_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The straight sweep of one laser pass over the object.
 
     The centre pose looks at ``target`` from ``crossing`` metres (so the sheet passes
@@ -203,6 +203,11 @@ def sweep_poses(azimuth_deg: float, elevation_deg: float, target: np.ndarray,
     spacing : float, metres
         Camera travel between two frames.
     margin : float, metres
+    roll_deg : float, degrees
+        Turn of the camera (and the laser with it) about its optical axis: 0 puts the
+        laser above the camera (the sheet spans the image's width), 90 beside it (the
+        sheet upright, sweeping sideways: at low elevation the laser then sees as far
+        down the object's sides as the camera does).
 
     Returns
     -------
@@ -221,7 +226,7 @@ def sweep_poses(azimuth_deg: float, elevation_deg: float, target: np.ndarray,
     up = None
     if elevation_deg > 89.0:  # from above: image up along the azimuth's horizontal direction
         up = -np.array([np.cos(a), np.sin(a), 0.0])
-    t_centre = look_at(eye, target, up=up)
+    t_centre = look_at(eye, target, roll=np.radians(roll_deg), up=up)
     t_base_laser = t_centre @ T_camera_laser
     normal = t_base_laser[:3, 1]
     # signed offsets of the box corners from the sheet at the centre pose

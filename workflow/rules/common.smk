@@ -18,6 +18,15 @@ def get_recording(wildcards):
     return RECORDINGS[wildcards.rec].path
 
 
+def get_align_inputs(wildcards):
+    """The sweep clouds, and the silhouettes with their recording when it has views."""
+    out = {"clouds": f"results/{wildcards.rec}/clouds.npz"}
+    if "hull" in recording_stages(RECORDINGS[wildcards.rec]):
+        out["silhouettes"] = f"results/{wildcards.rec}/silhouettes.npz"
+        out["recording"] = RECORDINGS[wildcards.rec].path
+    return out
+
+
 def get_fuse_inputs(wildcards):
     """What fusion has: the hull (views), the aligned clouds (laser frames), or both."""
     stages = recording_stages(RECORDINGS[wildcards.rec])
@@ -54,4 +63,6 @@ def get_all_outputs():
             out.append(f"results/{name}/aligned.ply")
         out += [f"results/{name}/fused.ply", f"results/{name}/mesh.ply",
                 f"results/{name}/metrics.json"]
+    if RECORDINGS:
+        out.append("results/batch.tsv")
     return out

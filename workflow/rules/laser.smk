@@ -1,4 +1,5 @@
-# The active half (seed §4): stripe pixels -> triangulated clouds -> aligned clouds.
+# The active half (seed §4): stripe pixels -> triangulated clouds (aligned in mesh.smk,
+# where the silhouettes serve as the alignment's absolute reference).
 
 
 rule stripes:
@@ -40,24 +41,3 @@ rule triangulate:
         mem_mb=2000,
     script:
         "../scripts/triangulate.py"
-
-
-rule align:
-    input:
-        clouds="results/{rec}/clouds.npz",
-    output:
-        npz="results/{rec}/aligned.npz",
-        ply="results/{rec}/aligned.ply",
-        report="results/{rec}/reports/align.json",
-        rrd="results/{rec}/align.rrd",
-    log:
-        "logs/align/{rec}.log",
-    benchmark:
-        "benchmarks/align/{rec}.tsv"
-    conda:
-        "../envs/robo3d.yaml"
-    threads: 1
-    resources:
-        mem_mb=4000,
-    script:
-        "../scripts/align.py"

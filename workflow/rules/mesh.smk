@@ -1,4 +1,26 @@
-# Where the halves meet (seed §2.4): fusion, then simplification.
+# Where the halves meet (seed §2.4): alignment (the silhouettes give the sweeps their
+# absolute place), fusion (the hull bounds what the laser did not see), simplification.
+
+
+rule align:
+    input:
+        unpack(get_align_inputs),
+    output:
+        npz="results/{rec}/aligned.npz",
+        ply="results/{rec}/aligned.ply",
+        report="results/{rec}/reports/align.json",
+        rrd="results/{rec}/align.rrd",
+    log:
+        "logs/align/{rec}.log",
+    benchmark:
+        "benchmarks/align/{rec}.tsv"
+    conda:
+        "../envs/robo3d.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    script:
+        "../scripts/align.py"
 
 
 rule fuse:
@@ -26,6 +48,8 @@ rule simplify:
         fused="results/{rec}/fused.ply",
     output:
         ply="results/{rec}/mesh.ply",
+        # simplify.export: the same mesh as STL and/or OBJ too
+        **{ext: f"results/{{rec}}/mesh.{ext}" for ext in config["simplify"]["export"]},
         report="results/{rec}/reports/simplify.json",
         rrd="results/{rec}/simplify.rrd",
     log:

@@ -306,10 +306,15 @@ def _read_mesh_file(path: Path, *, label: str) -> tuple[np.ndarray, np.ndarray]:
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
+    cwd = os.getcwd()
     try:
-        ms.load_new_mesh(str(path))
+        ms.load_new_mesh(str(path.resolve()))
     except pymeshlab.PyMeshLabException as exc:
         raise StageError(f"cannot read mesh {label}: {exc}") from exc
+    finally:
+        # pymeshlab (2025.7) leaves the process in the file's folder when a load fails;
+        # once that (temporary) folder is gone, every later os.getcwd() raises.
+        os.chdir(cwd)
     m = ms.current_mesh()
     v = np.ascontiguousarray(m.vertex_matrix(), dtype=np.float64)
     f = np.ascontiguousarray(m.face_matrix(), dtype=np.int64).reshape(-1, 3)

@@ -151,3 +151,14 @@ def test_bad_inputs(tmp_path):
         meshio.read_point_cloud(tmp_path / "missing.ply")
     with pytest.raises(StageError, match="cannot read mesh"):
         meshio.read_mesh(b"this is not a mesh", suffix=".ply")
+
+
+def test_failed_read_keeps_the_working_directory(tmp_path):
+    """pymeshlab moves the process into the file's folder when a load fails; read_mesh
+    must leave the working directory where it was (its temporary folder is deleted)."""
+    import os
+
+    before = os.getcwd()
+    with pytest.raises(StageError):
+        meshio.read_mesh(b"this is not a mesh", suffix=".ply")
+    assert os.getcwd() == before

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "write_json", "save_npz"]
+__all__ = ["atomic_path", "write_json", "save_npz", "json_default"]
 
 
 @contextlib.contextmanager
@@ -39,7 +39,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
-def _json_default(obj: Any) -> Any:
+def json_default(obj: Any) -> Any:
+    """``json.dump``'s ``default``: numpy scalars and arrays, paths."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
@@ -52,7 +53,7 @@ def _json_default(obj: Any) -> Any:
 def write_json(path: str | os.PathLike[str], data: Any) -> None:
     """Write ``data`` as indented JSON, atomically (numpy scalars and arrays converted)."""
     with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2, sort_keys=False, default=_json_default, allow_nan=True)
+        json.dump(data, f, indent=2, sort_keys=False, default=json_default, allow_nan=True)
         f.write("\n")
 
 

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from .meshio import check_mesh as _check_mesh
 from .transforms import rotation_angle_deg
 
 __all__ = [
@@ -53,22 +54,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-def _check_mesh(vertices: object, faces: object) -> tuple[np.ndarray, np.ndarray]:
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"vertices must be (V, 3), got {v.shape}")
-    if f.size == 0:
-        f = np.zeros((0, 3), dtype=np.int64)
-    if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
-        raise ValueError(f"faces must be (F, 3) integer, got {f.shape} {f.dtype}")
-    if len(f) and (f.min() < 0 or f.max() >= len(v)):
-        raise ValueError(f"faces index vertices {f.min()}..{f.max()} of {len(v)}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices contain non-finite values")
-    return v, f.astype(np.int64)
 
 
 def _check_points(points: object, name: str = "points") -> np.ndarray:

@@ -12,12 +12,11 @@ import contextlib
 import os
 import uuid
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import atomic_path, json_default
 from .camera import CameraModel
 
 __all__ = [
@@ -144,6 +143,13 @@ def log_box(stream: Any, entity: str, box_min: np.ndarray, box_max: np.ndarray, 
                static=static)
 
 
+def _plain(obj: Any) -> Any:
+    try:
+        return json_default(obj)
+    except TypeError:
+        return str(obj)
+
+
 def log_report(stream: Any, entity: str, report: dict[str, Any]) -> None:
     """Log a stage's report (what it measured) as a markdown document."""
     import json
@@ -152,13 +158,3 @@ def log_report(stream: Any, entity: str, report: dict[str, Any]) -> None:
 
     text = "```json\n" + json.dumps(report, indent=2, default=_plain) + "\n```"
     stream.log(entity, rr.TextDocument(text, media_type="text/markdown"), static=True)
-
-
-def _plain(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    return str(obj)

@@ -243,7 +243,7 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     masks, per_view = [], []
     progress = _Progress("segmenting views", len(views))
     for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
-        image = rec.decode(msg) if hasattr(rec, "decode") else msg.decode()
+        image = rec.decode(msg)
         background = backgrounds[i]
         roi, roi_source = None, "image"
         try:

@@ -97,8 +97,6 @@ def test_laser_only_recording_gets_everything_but_the_hull(batch):
 
 
 def test_rerun_logs_share_one_recording_id(batch):
-    import rerun as rr  # noqa: F401  (the viewer's loader is not needed: read the header)
-
     from robo3d.viz import recording_id
 
     rid = recording_id("block").encode()

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # robo3d's one entry point for a fresh machine (Debian/Ubuntu, Python 3.11+):
 #
-#   ./run.sh demo    set up, then run the pipeline on the demo recordings in recordings/
+#   ./run.sh demo    set up, write the demo recordings into recordings/ if missing (about
+#                    50 s each, once), then run the pipeline on the recordings there
 #   ./run.sh test    set up, then run the test suite
 #
 # Set-up is idempotent and fast the second time: the system libraries Open3D needs
@@ -85,6 +86,14 @@ cmd=${1:-demo}
 shift || true
 case "$cmd" in
   demo)
+    case " $* " in
+      *recordings=*) ;;  # the user's own recordings: no demo needed
+      *)
+        # the demo recordings are generated, not kept in the repository (about 7 MB each,
+        # deterministic: the same bytes on every machine); once, about a minute each
+        .venv/bin/robo3d simulate --demo recordings/ --missing --threads 0
+        ;;
+    esac
     say "running the pipeline on the recordings in recordings/ (results in results/)"
     exec .venv/bin/snakemake --cores all --keep-going --rerun-incomplete "$@"
     ;;

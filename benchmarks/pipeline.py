@@ -233,6 +233,10 @@ def main() -> int:
     from robo3d.recording.reader import read_recording
 
     cfg = validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
+    if not args.recordings:  # the demo recordings are generated, not kept in git
+        from robo3d.simulate import write_demos
+
+        write_demos(REPO / "recordings", threads=0, missing_only=True)
     recs = [Path(p).resolve() for p in (args.recordings or sorted(
         str(p) for p in (REPO / "recordings").glob("*.mcap")))]
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="robo3d-bench-"))

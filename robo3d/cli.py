@@ -6,8 +6,9 @@ status. To add a command (``robo3d info``, ...), write the pair and append it.
 
 ``robo3d simulate OBJECT OUT.mcap [options]``
     Simulate a scan recording (see :mod:`robo3d.simulate`).
-``robo3d simulate --demo DIR``
-    Regenerate the demo recordings into ``DIR``, deterministically.
+``robo3d simulate --demo DIR [--missing]``
+    Regenerate the demo recordings into ``DIR``, deterministically (``--missing``: only
+    those not there yet; ``./run.sh demo`` does this first).
 ``robo3d info RECORDING [--config CONFIG] [--topic ROLE=NAME] [--frame ROLE=NAME] [--json]``
     What a recording holds and whether each stage can use it (see :mod:`robo3d.info`);
     exit status 1 when it is not fit, with the reasons.
@@ -50,6 +51,8 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", nargs="?", help="output .mcap file")
     p.add_argument("--demo", metavar="DIR",
                    help="regenerate the demo recordings into DIR (other options ignored)")
+    p.add_argument("--missing", action="store_true",
+                   help="with --demo: only the demo recordings not yet in DIR")
     p.add_argument("--no-views", action="store_true", help="laser sweeps only")
     p.add_argument("--no-laser", action="store_true", help="views only (a photo set)")
     p.add_argument("--encoding", choices=("protobuf", "json"), default="protobuf",
@@ -135,7 +138,7 @@ def _run_simulate(args: argparse.Namespace) -> int:
     from .simulate import simulate_recording, write_demos
 
     if args.demo:  # each recording is logged by the library as it is written
-        write_demos(args.demo, threads=args.threads)
+        write_demos(args.demo, threads=args.threads, missing_only=args.missing)
         return 0
     if not args.object or not args.out:
         raise Robo3dError("simulate needs OBJECT and OUT.mcap (or --demo DIR)")

@@ -334,3 +334,27 @@ def test_rolled_sweep_puts_the_laser_beside_the_camera():
         assert (abs(dz) < 0.01) == level, (roll, dz)
         # the sweep moves along the sheet's normal either way
         assert abs(abs(direction @ (t0 @ t_cl)[:3, 1]) - 1.0) < 1e-9
+
+
+def test_demo_generation_writes_only_the_missing(tmp_path, monkeypatch):
+    """`robo3d simulate --demo DIR --missing` (what ./run.sh demo calls every time) leaves
+    existing demo recordings alone and writes the others."""
+    import robo3d.simulate as sim
+
+    written = []
+
+    def fake(path, object_name, **kw):
+        written.append((path.name, object_name, kw))
+        path.write_bytes(b"x")
+
+    monkeypatch.setattr(sim, "simulate_recording", fake)
+    (tmp_path / "vase.mcap").write_bytes(b"kept")
+    assert main(["simulate", "--demo", str(tmp_path), "--missing"]) == 0
+    assert [w[0] for w in written] == ["dimple_block.mcap"]
+    assert written[0][2]["sweep_spacing"] == pytest.approx(0.0011)
+    assert (tmp_path / "vase.mcap").read_bytes() == b"kept"
+    written.clear()
+    assert main(["simulate", "--demo", str(tmp_path), "--missing"]) == 0
+    assert written == []
+    assert main(["simulate", "--demo", str(tmp_path)]) == 0  # without --missing: all
+    assert sorted(w[0] for w in written) == ["dimple_block.mcap", "vase.mcap"]

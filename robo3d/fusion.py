@@ -520,7 +520,7 @@ def fuse_tsdf(
     max_voxels : int
         Largest grid allowed (memory: about 10 bytes per voxel).
     threads : int
-        Ray-casting threads (results do not depend on it).
+        Ray-casting and nearest-neighbour threads (results do not depend on it).
 
     Returns
     -------
@@ -637,7 +637,7 @@ def fuse_tsdf(
         band = ndimage.maximum_filter(occ, size=2 * trunc_voxels + 1)
         lin = np.flatnonzero(band)
         x = origin + np.stack(np.unravel_index(lin, shape), axis=1) * voxel_size
-        _, nb = cKDTree(p).query(x, k=1)
+        _, nb = cKDTree(p).query(x, k=1, workers=int(threads))
         d = p[nb] - o[nb]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))

@@ -855,7 +855,8 @@ def _silhouette_views(inputs: Mapping[str, str], cfg: Mapping[str, Any]):
 
 
 def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
-               cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+               cfg: Mapping[str, Any], rec_name: str, threads: int | None = None
+               ) -> dict[str, Any]:
     """Fuse the aligned clouds into one watertight surface (seed §2.4): each sweep as range
     data into a TSDF (Curless & Levoy), holes closed from the visual hull (or screened
     Poisson, ``fusion.method``); from views alone the fused mesh is the hull's.
@@ -882,7 +883,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 trunc_voxels=int(fc["tsdf_trunc_voxels"]), hull=crop,
                 hull_margin_voxels=fc["hull_margin_voxels"], fill_holes=fc["fill_holes"],
                 carve_free_space=fc["carve_free_space"], min_weight=fc["min_weight"],
-                min_cos_view=fc["min_cos_view"], threads=1)
+                min_cos_view=fc["min_cos_view"], threads=_stage_threads(threads))
             source = "laser (TSDF)" + (", holes closed from the hull" if crop is not None
                                         and fc["fill_holes"] else "")
         else:

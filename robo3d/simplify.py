@@ -10,10 +10,11 @@ optimal vertex placement, boundary and normal preservation. It stops at a face c
 below ``target_faces``, whose error stays within ``max_error``). Quadric decimation has no
 error-driven stop in pymeshlab, so the error-bounded mode decimates *progressively*
 (halving the face count from the previous result, which costs about one decimation of
-the input in all) and measures after each step the two-sided distance to the input
+the input in all) and measures the two-sided distance of the last step to the input
 (Open3D/Embree point-to-triangle distances of the vertices and of area samples: fast);
-it keeps the last step within the bound and then searches between that step and the
-next (bisection on a log scale, each trial decimating the kept step). The reported
+when that step is beyond the bound it bisects over the steps for the last one within
+it, then searches between that step and the next (bisection on a log scale, each trial
+decimating the kept step). The reported
 Hausdorff distance of the result is pymeshlab's (Cignoni et al. 1998).
 
 Units: pymeshlab's quadric collapse has absolute thresholds inside (measured: a 100 mm
@@ -314,19 +315,32 @@ def simplify_mesh(
     else:
         dist = _Distance(v, f, n_samples, seed)
         good = (v, f.astype(np.int64), 0.0)
-        cur_v, cur_f = v, f
-        bad_n = None
+        steps = [(v, f)]
         n = len(f)
         while n > target:  # progressive halving from the previous result
             n = max(target, n // 2)
-            cand_v, cand_f = _decimate(cur_v, cur_f, n, preserve_boundary, preserve_normal)
+            steps.append(_decimate(*steps[-1], n, preserve_boundary, preserve_normal))
             n_trials += 1
-            d = dist(cand_v, cand_f)
-            if d > max_error:
-                bad_n = n
-                break
-            good = (cand_v, cand_f, d)
-            cur_v, cur_f = cand_v, cand_f
+        # steps[0] is the input itself. Measure the last step first (usually within the
+        # bound: one check instead of one per step); if it is not, bisect over the steps
+        # for the last one within it (the error grows with every halving)
+        bad_n = None
+        lo_k, hi_k = 0, len(steps) - 1
+        d_good = 0.0
+        d = dist(*steps[hi_k])
+        if d <= max_error:
+            lo_k, d_good = hi_k, d
+        else:
+            while hi_k - lo_k > 1:
+                k = (lo_k + hi_k) // 2
+                d = dist(*steps[k])
+                if d <= max_error:
+                    lo_k, d_good = k, d
+                else:
+                    hi_k = k
+            bad_n = len(steps[hi_k][1])
+        good = (steps[lo_k][0], np.asarray(steps[lo_k][1], dtype=np.int64), d_good)
+        del steps
         if bad_n is not None:  # search between the last good count and the failing one
             lo, hi = bad_n, len(good[1])
             base_v, base_f = good[0], good[1]

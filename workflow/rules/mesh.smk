@@ -36,7 +36,7 @@ rule fuse:
         "benchmarks/fuse/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    threads: 2  # ray casting; fusion waits for alignment, so a lone recording has both cores
     resources:
         mem_mb=6000,
     script:

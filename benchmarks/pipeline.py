@@ -336,8 +336,9 @@ def main() -> int:
            for name, e in results.items()},
         "targets": TARGETS, "met": checks,
         "notes": (
-            "Machine: 2 cores shared with three other engineers' jobs while this ran, so "
-            "times are upper bounds. end_to_end_s: one snakemake call on one recording "
+            "Machine: 2 cores; other work on it may inflate the times. Demo recordings "
+            "as robo3d simulate --demo writes them (laser profiles 1.1 mm apart). "
+            "end_to_end_s: one snakemake call on one recording "
             "with --cores 2 (start-up, every job, the report of metrics). pose_err_*_mm: "
             "worst sweep, displacement of the sweep's points by its pose error (at its "
             "middle frame) - the flange's origin is 0.3 m from the object, so its "

@@ -1306,7 +1306,10 @@ def refine_sweeps(
         tens of micrometres (measured on the demos; the rotation part at the sensor's
         distance, about 0.005 degrees); the result is then the mean of the cycle's last
         four estimates. Calling it "not converged" would keep every sweep at its robot
-        pose, a hundred times further off.
+        pose, a hundred times further off. Steps that grow again after the fourth
+        iteration (the cycle) are shortened from then on (by 0.6 each time, to 1/16 at
+        least), so that the iterates settle inside it: a 3-sweep scan with 12 views
+        otherwise jumped by 20-80 micrometres for 30 iterations.
     normal_k, normal_max_deg, normal_reach, normal_max_spacing : int, float, float, float
         The pair term's normals (:func:`_pair_normals`): the principal axes of the
         ``normal_k`` nearest points on a point's own and each adjacent profile (within
@@ -1401,6 +1404,8 @@ def refine_sweeps(
     rim_stats: dict[int, np.ndarray] = {}
     steps: list[float] = []
     history: list[tuple[np.ndarray, np.ndarray]] = []
+    full_steps: list[float] = []
+    damping = 1.0
     for it in range(1, max_iterations + 1):
         cur = [((P[s] - O[s]) @ rot[s].T + O[s] + trans[s]) for s in range(n_s)]
         cur_n = [Nn[s] @ rot[s].T for s in range(n_s)]
@@ -1476,15 +1481,26 @@ def refine_sweeps(
         except np.linalg.LinAlgError:
             log.warning("refinement: singular normal equations at iteration %d", it)
             break
-        biggest = 0.0
+        full = 0.0
         for s in act:
             k = 6 * index[s]
-            dw, dt = delta[k:k + 3], delta[k + 3:k + 6]
-            rot[s] = _exp_so3(dw) @ rot[s]
-            trans[s] = trans[s] + dt
             lever = float(np.linalg.norm(cur[s].mean(axis=0) - org[s].mean(axis=0))) if len(
                 cur[s]) else 0.0
-            biggest = max(biggest, float(np.linalg.norm(dt)) + float(np.linalg.norm(dw)) * lever)
+            full = max(full, float(np.linalg.norm(delta[k + 3:k + 6]))
+                       + float(np.linalg.norm(delta[k:k + 3])) * lever)
+        # a full step larger than one already taken, once the estimate is near the
+        # optimum, is the correspondences (pairs, contour points) switching back and
+        # forth: shorten the steps from then on, so that the iterates settle in the
+        # middle of the cycle instead of jumping across it
+        if it > 4 and full > min(full_steps[3:] or [np.inf]):
+            damping = max(damping * 0.6, 1 / 16)
+        full_steps.append(full)
+        delta = delta * damping
+        biggest = full * damping
+        for s in act:
+            k = 6 * index[s]
+            rot[s] = _exp_so3(delta[k:k + 3]) @ rot[s]
+            trans[s] = trans[s] + delta[k + 3:k + 6]
         if pair_r:
             rr = np.concatenate(pair_r)
             sigma_p = max(1.4826 * float(np.median(np.abs(rr))), 1e-6)

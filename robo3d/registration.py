@@ -1127,9 +1127,12 @@ def _pair_normals(p: np.ndarray, n: np.ndarray, profile: np.ndarray, m: int, max
     rotation. Here each point's normal is the least principal axis (Hoppe et al. 1992)
     of its ``m`` nearest points on its own profile and on each of the two adjacent
     profiles (within ``reach``), so that the neighbourhood always spans the surface in
-    both directions however far apart the profiles are, oriented like ``n``. A point is
-    usable when it has neighbours on its own and at least one adjacent profile and the
-    two normals agree within ``max_deg``.
+    both directions however far apart the profiles are, oriented like ``n``; where the
+    profiles are at most twice as far apart as the points along them (a fast camera),
+    three profiles would be a thin strip, and the ``3 m`` nearest points are taken
+    instead. A point is usable when its neighbourhood spans two directions (neighbours
+    on its own and at least one adjacent profile; second principal axis at least 5 % of
+    the first) and the two normals agree within ``max_deg``.
 
     Parameters
     ----------
@@ -1158,6 +1161,7 @@ def _pair_normals(p: np.ndarray, n: np.ndarray, profile: np.ndarray, m: int, max
     members = [order[f:f + c] for f, c in zip(first, counts, strict=True)]
     trees = [cKDTree(p[mb]) for mb in members]
     nbr = np.full((n_pts, 3, m), -1, dtype=np.int64)
+    gap = np.full((n_pts, 2), np.inf)  # nearest other point: on the own / an adjacent profile
     for j, mb in enumerate(members):  # loop over profiles (tens per sweep), not points
         for slot, jj in ((0, j), (1, j - 1), (2, j + 1)):
             if not (0 <= jj < len(ids)) or abs(int(ids[jj]) - int(ids[j])) != (slot > 0):
@@ -1168,11 +1172,24 @@ def _pair_normals(p: np.ndarray, n: np.ndarray, profile: np.ndarray, m: int, max
             ok = np.isfinite(d)
             nbr[mb, slot, :kk] = np.where(ok, members[jj][np.minimum(nb, len(members[jj]) - 1)],
                                           -1)
-    valid = nbr >= 0
-    per_slot = valid.sum(axis=2)
-    spans = (per_slot[:, 0] >= 3) & ((per_slot[:, 1] >= 3) | (per_slot[:, 2] >= 3))
-    flat = nbr.reshape(n_pts, -1)
-    w = valid.reshape(n_pts, -1).astype(np.float64)
+            near = d[:, 1] if slot == 0 and kk > 1 else d[:, 0]
+            g = 0 if slot == 0 else 1
+            gap[mb, g] = np.minimum(gap[mb, g], np.inf if slot == 0 and kk < 2 else near)
+    own, adj = gap[np.isfinite(gap[:, 0]), 0], gap[np.isfinite(gap[:, 1]), 1]
+    if len(own) and len(adj) and np.median(adj) <= 2.0 * np.median(own):
+        # profiles as close as the points along them (a fast camera): m points on three
+        # profiles would be a thin strip across them; a plain 3 m-neighbourhood is round
+        d, nb = cKDTree(p).query(p, k=min(3 * m, n_pts), distance_upper_bound=reach)
+        flat = np.where(np.isfinite(d), nb, -1)
+        valid = flat >= 0
+        spans = valid.sum(axis=1) >= 6
+    else:
+        valid = nbr >= 0
+        per_slot = valid.sum(axis=2)
+        spans = (per_slot[:, 0] >= 3) & ((per_slot[:, 1] >= 3) | (per_slot[:, 2] >= 3))
+        flat = nbr.reshape(n_pts, -1)
+        valid = valid.reshape(n_pts, -1)
+    w = valid.astype(np.float64)
     q = p[np.maximum(flat, 0)]
     cnt = np.maximum(w.sum(axis=1), 1.0)
     mean = np.einsum("nk,nki->ni", w, q) / cnt[:, None]

@@ -71,8 +71,14 @@ Method
    own edge (the largest gradient along the silhouette's normal), not from the
    segmented mask: measured, the masks are eroded by 0.15-0.25 px (more on shaded
    sides), which biased the absolute position by 0.1-0.3 mm; the image edges by
-   0.02-0.04 mm. The bounds are checked again on the refined corrections; if the
-   refinement does not converge, every sweep stays at its robot pose, flagged.
+   0.02-0.04 mm. The pair term's normals are principal axes over three adjacent
+   profiles (:func:`_pair_normals`), points whose grid normal disagrees left out; the
+   silhouette term weighs three times its robust scale. Measured with the true poses on
+   the demos (laser profiles 1.1 mm apart) and two held-out scans: worst sweep
+   0.013-0.017 degrees, 0.017-0.047 mm at the object. When the correspondences cycle
+   near the optimum the steps are shortened and the cycle's mean taken (``settle_tol``).
+   The bounds are checked again on the refined corrections; if the refinement does not
+   converge, every sweep stays at its robot pose, flagged.
 
 All computations run in a frame centred on the centroid of all points (better conditioned
 than ``base``, whose origin may be half a metre away); results are returned in ``base``.

@@ -25,6 +25,7 @@ from robo3d.carving import (
 )
 from robo3d.errors import StageError
 from robo3d.silhouettes import _distortion_limit_r2
+from robo3d.sim.rig import look_at
 from robo3d.transforms import invert_transform
 
 CENTRE = np.array([0.1, -0.05, 0.3])
@@ -35,22 +36,6 @@ SPHERE_VOLUME = 4.0 / 3.0 * np.pi * RADIUS**3
 
 
 # ---------------------------------------------------------------------- synthetic scene
-def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """T_base_camera of an optical-frame camera at ``eye`` looking at ``target``."""
-    eye = np.asarray(eye, float)
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    up = np.asarray(up, float)
-    if abs(z @ up) > 0.99:
-        up = np.array([0.0, 1.0, 0.0])
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T
-
-
 def _fib_dirs(n: int) -> np.ndarray:
     """n unit vectors spread evenly over the sphere (Fibonacci lattice)."""
     i = np.arange(n) + 0.5
@@ -105,7 +90,7 @@ def _camera(D=None, size=(320, 240)) -> CameraModel:
 @pytest.fixture(scope="module")
 def sphere_views():
     cam = _camera()
-    Ts = np.stack([_look_at(CENTRE + DIST * d, CENTRE) for d in _fib_dirs(24)])
+    Ts = np.stack([look_at(CENTRE + DIST * d, CENTRE) for d in _fib_dirs(24)])
     masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
     return cam, Ts, masks
 
@@ -184,7 +169,7 @@ def test_carve_with_distortion_matches_truth():
         # aim beside the sphere so it appears ~80 px off-centre, where the lens bends it
         side = np.cross(d, rng.normal(size=3))
         side /= np.linalg.norm(side)
-        Ts.append(_look_at(CENTRE + DIST * d, CENTRE + 0.11 * side))
+        Ts.append(look_at(CENTRE + DIST * d, CENTRE + 0.11 * side))
     Ts = np.stack(Ts)
     masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
     assert not any(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()
@@ -211,7 +196,7 @@ def test_voxel_pixels_match_opencv():
     """The carver's pixel of a voxel is OpenCV's projection rounded (distortion on)."""
     D = np.array([-0.25, 0.08, 0.001, 0.002, -0.01])
     cam = _camera(D)
-    T = _look_at([0.0, -0.5, 0.2], [0.02, 0.0, 0.0])
+    T = look_at([0.0, -0.5, 0.2], [0.02, 0.0, 0.0])
     grid = make_grid([-0.08, -0.08, -0.08], [0.08, 0.08, 0.08], resolution=24)
     uv = _cv2_pixels(grid.centres(False), cam, T)
     pix = np.floor(uv + 0.5).astype(int)
@@ -230,7 +215,7 @@ def test_voxel_pixels_match_opencv():
 def _partial_view():
     """A narrow camera that sees only the middle of a grid in front of it."""
     cam = CameraModel("narrow", 64, 48, [[100, 0, 31.5], [0, 100, 23.5], [0, 0, 1]])
-    T = _look_at([0.0, 0.0, -0.3], [0.0, 0.0, 0.0], up=(0.0, -1.0, 0.0))
+    T = look_at([0.0, 0.0, -0.3], [0.0, 0.0, 0.0], up=(0.0, -1.0, 0.0))
     grid = make_grid([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1], resolution=20)
     uv = _cv2_pixels(grid.centres(False), cam, T)
     pix = np.floor(uv + 0.5).astype(int)
@@ -262,7 +247,7 @@ def test_outside_image_keep_vs_carve():
 def test_behind_camera_keep_vs_carve():
     cam = _camera()
     grid = make_grid([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1], resolution=20)
-    T = _look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], up=(0.0, -1.0, 0.0))  # inside the grid
+    T = look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], up=(0.0, -1.0, 0.0))  # inside the grid
     z = grid.centres(False)[:, 2]
     assert not np.any(z == 0)
     full = np.ones((cam.height, cam.width), bool)
@@ -397,7 +382,7 @@ def test_box_from_silhouettes_recovers_sphere_centre():
     dirs = _fib_dirs(12)
     # the cameras aim up to 2 cm beside the sphere: its silhouette is off-centre and
     # perspective shifts the silhouette centroid off the centre's projection
-    Ts = np.stack([_look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.02, 0.02, 3))
+    Ts = np.stack([look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.02, 0.02, 3))
                    for d in dirs])
     masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
     centroids = np.array([np.argwhere(m)[:, ::-1].mean(axis=0) for m in masks])
@@ -420,7 +405,7 @@ def test_box_from_silhouettes_errors(sphere_views):
     with pytest.raises(StageError, match="at least 2 views"):
         box_from_silhouettes(c[:1], masks[:1], cam, Ts[:1])
     # two cameras 1 cm apart looking the same way: rays ~1.4 deg apart
-    T0 = _look_at(CENTRE + [0.0, -DIST, 0.0], CENTRE)
+    T0 = look_at(CENTRE + [0.0, -DIST, 0.0], CENTRE)
     T1 = T0.copy()
     T1[:3, 3] += [0.01, 0.0, 0.0]
     pair = np.stack([T0, T1])

@@ -26,6 +26,7 @@ from robo3d.octree import (
     _view_table,
     carve_octree,
 )
+from robo3d.sim.rig import look_at
 from robo3d.transforms import invert_transform
 
 CENTRE = np.array([0.1, -0.05, 0.3])
@@ -33,20 +34,6 @@ RADIUS = 0.05
 DIST = 0.4
 F = 150.0
 D_STRONG = np.array([-0.3, 0.1, 0.002, -0.001, 0.0])
-
-
-def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    eye = np.asarray(eye, float)
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    up = np.asarray(up, float)
-    if abs(z @ up) > 0.99:
-        up = np.array([0.0, 1.0, 0.0])
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
-    return T
 
 
 def _fib_dirs(n: int) -> np.ndarray:
@@ -79,7 +66,7 @@ def _sphere_views(n=16, D=None, offset=0.0, seed=0):
     for d in _fib_dirs(n):
         side = np.cross(d, rng.normal(size=3))
         side /= np.linalg.norm(side)
-        Ts.append(_look_at(CENTRE + DIST * d, CENTRE + offset * side))
+        Ts.append(look_at(CENTRE + DIST * d, CENTRE + offset * side))
     Ts = np.stack(Ts)
     return cam, Ts, [_render_sphere(cam, T) for T in Ts]
 
@@ -135,7 +122,7 @@ def test_octree_equals_dense_on_random_masks():
     voxels, and the exact centre test decides; with a few big octants decided early."""
     rng = np.random.default_rng(3)
     cams = [_camera(D_STRONG), _camera(None, size=(120, 100)), _camera([0.2, 0.0, 0, 0, 0])]
-    Ts = np.stack([_look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.03, 0.03, 3))
+    Ts = np.stack([look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.03, 0.03, 3))
                    for d in _fib_dirs(3)])
     masks = []
     for c in cams:
@@ -152,8 +139,8 @@ def test_octree_outside_image_and_behind_camera_policies():
     """A wide grid around a camera inside it: voxels behind the camera, outside its
     image, beyond its lens's fold-back radius; each policy as the dense carver."""
     cam = _camera([-0.4, 0.0, 0.0, 0.0, 0.0], size=(64, 48), f=60.0)
-    T = _look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], up=(0.0, -1.0, 0.0))
-    T2 = _look_at([0.3, 0.3, 0.35], [0.0, 0.0, 0.0])
+    T = look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0], up=(0.0, -1.0, 0.0))
+    T2 = look_at([0.3, 0.3, 0.35], [0.0, 0.0, 0.0])
     mask = np.zeros((48, 64), bool)
     mask[10:40, 12:50] = True
     mask2 = np.ones((48, 64), bool)
@@ -228,7 +215,7 @@ def test_white_and_black_boxes_hold_no_contrary_point():
     each; a white box must hold only carved ones, a black box only kept ones."""
     rng = np.random.default_rng(11)
     cam = _camera(D_STRONG, size=(160, 120))
-    Ts = np.stack([_look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.1, 0.1, 3))
+    Ts = np.stack([look_at(CENTRE + DIST * d, CENTRE + rng.uniform(-0.1, 0.1, 3))
                    for d in _fib_dirs(4)])
     masks = [_render_sphere(cam, T) for T in Ts]
     grid = make_grid(CENTRE - 0.2, CENTRE + 0.2, resolution=200)
@@ -287,7 +274,7 @@ def test_octree_input_errors(sphere):
 
 def test_single_voxel_grid():
     cam = _camera()
-    T = _look_at([0.0, 0.0, -0.5], [0.0, 0.0, 0.0], up=(0.0, -1.0, 0.0))
+    T = look_at([0.0, 0.0, -0.5], [0.0, 0.0, 0.0], up=(0.0, -1.0, 0.0))
     mask = np.zeros((cam.height, cam.width), bool)
     mask[50:70, 70:90] = True
     g = VoxelGrid(np.zeros(3), 0.01, np.ones((1, 1, 1), bool))

@@ -20,6 +20,7 @@ from robo3d.silhouettes import (
     segment_silhouette,
     to_grey,
 )
+from robo3d.sim.rig import look_at
 from robo3d.transforms import invert_transform
 
 H, W = 160, 200
@@ -223,17 +224,6 @@ def test_bad_inputs_raise():
 
 
 # ---------------------------------------------------------------------- the box ROI
-def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    eye = np.asarray(eye, float)
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
-    return T
-
-
 def _cam(D=(0.0, 0.0, 0.0, 0.0, 0.0)) -> CameraModel:
     return CameraModel("camera", 320, 240, [[300, 0, 159.5], [0, 300, 119.5], [0, 0, 1]],
                        np.asarray(D, float))
@@ -241,7 +231,7 @@ def _cam(D=(0.0, 0.0, 0.0, 0.0, 0.0)) -> CameraModel:
 
 def test_roi_from_box_contains_the_box_image():
     cam = _cam([-0.3, 0.1, 0.002, -0.001, 0.0])
-    T = _look_at([0.05, -0.5, 0.2], [0.0, 0.0, 0.0])
+    T = look_at([0.05, -0.5, 0.2], [0.0, 0.0, 0.0])
     lo, hi = np.array([-0.05, -0.04, -0.03]), np.array([0.05, 0.04, 0.06])
     roi = roi_from_box(lo, hi, cam, T, margin_px=10)
     t_cb = invert_transform(T)
@@ -264,12 +254,12 @@ def test_roi_from_box_contains_the_box_image():
 def test_roi_from_box_special_cases():
     cam = _cam()
     lo, hi = np.array([-0.05, -0.05, -0.05]), np.array([0.05, 0.05, 0.05])
-    away = _look_at([0.0, -0.5, 0.0], [0.0, -1.0, 0.0])
+    away = look_at([0.0, -0.5, 0.0], [0.0, -1.0, 0.0])
     with pytest.raises(StageError, match="entirely behind camera"):
         roi_from_box(lo, hi, cam, away)
-    inside = _look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    inside = look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
     assert roi_from_box(lo, hi, cam, inside) == (0, 0, 320, 240)
-    aside = _look_at([0.0, -0.5, 0.0], [0.6, 0.1, 0.0])
+    aside = look_at([0.0, -0.5, 0.0], [0.6, 0.1, 0.0])
     with pytest.raises(StageError, match="projects outside"):
         roi_from_box(lo, hi, cam, aside, margin_px=0)
     with pytest.raises(ValueError, match="box_max must exceed box_min"):
@@ -350,7 +340,7 @@ def _write_views_recording(path, images, backgrounds, bg_offsets_m):
         w.write_calibration("/camera/calibration", t0, cam)
         w.write_transforms("/tf_static", t0, [("flange", "camera", np.eye(4))])
         for i, (img, bg, off) in enumerate(zip(images, backgrounds, bg_offsets_m, strict=True)):
-            T = _look_at([0.3 * np.cos(i), 0.3 * np.sin(i), 0.2], [0.0, 0.0, 0.0])
+            T = look_at([0.3 * np.cos(i), 0.3 * np.sin(i), 0.2], [0.0, 0.0, 0.0])
             Tb = T.copy()
             Tb[0, 3] += off
             tv = t0 + (2 * i + 1) * 1_000_000_000

@@ -65,7 +65,7 @@ import numpy as np
 
 from .camera import CameraModel, pixel_rays
 from .errors import StageError
-from .silhouettes import _distortion_limit_r2
+from .silhouettes import _check_box, _distortion_limit_r2
 from .transforms import invert_transform
 
 __all__ = [
@@ -300,12 +300,7 @@ def make_grid(
         Neither or both of ``resolution`` and ``voxel_size``, a degenerate box, or more
         than 2**30 voxels.
     """
-    lo = np.asarray(box_min, dtype=np.float64).reshape(-1)
-    hi = np.asarray(box_max, dtype=np.float64).reshape(-1)
-    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
-        raise ValueError(f"box_min and box_max must be finite (3,) arrays, got {lo} and {hi}")
-    if np.any(hi <= lo):
-        raise ValueError(f"box_max must exceed box_min on every axis, got {lo} and {hi}")
+    lo, hi = _check_box(box_min, box_max)
     if (resolution is None) == (voxel_size is None):
         raise ValueError("give exactly one of resolution and voxel_size, got "
                          f"resolution={resolution}, voxel_size={voxel_size}")

@@ -558,6 +558,18 @@ def _edge_samples(box_min: np.ndarray, box_max: np.ndarray, n: int = 9) -> np.nd
     return box_min + unit * (box_max - box_min)
 
 
+def _check_box(box_min: object, box_max: object) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned box's corners as finite (3,) float64 arrays, ``max > min`` on every
+    axis; ``ValueError`` otherwise."""
+    lo = np.asarray(box_min, dtype=np.float64).reshape(-1)
+    hi = np.asarray(box_max, dtype=np.float64).reshape(-1)
+    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
+        raise ValueError(f"box_min and box_max must be finite (3,) arrays, got {lo} and {hi}")
+    if np.any(hi <= lo):
+        raise ValueError(f"box_max must exceed box_min on every axis, got {lo} and {hi}")
+    return lo, hi
+
+
 def roi_from_box(
     box_min: np.ndarray,
     box_max: np.ndarray,
@@ -592,12 +604,7 @@ def roi_from_box(
     StageError
         The box is entirely behind the camera or projects entirely outside the image.
     """
-    lo = np.asarray(box_min, dtype=np.float64).reshape(-1)
-    hi = np.asarray(box_max, dtype=np.float64).reshape(-1)
-    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
-        raise ValueError(f"box_min and box_max must be finite (3,) arrays, got {lo} and {hi}")
-    if np.any(hi <= lo):
-        raise ValueError(f"box_max must exceed box_min on every axis, got {lo} and {hi}")
+    lo, hi = _check_box(box_min, box_max)
     if margin_px < 0:
         raise ValueError(f"margin_px must be >= 0, got {margin_px}")
     T = np.asarray(T_base_camera, dtype=np.float64)

@@ -1178,9 +1178,10 @@ def _pair_normals(p: np.ndarray, n: np.ndarray, profile: np.ndarray, m: int, max
             ok = np.isfinite(d)
             nbr[mb, slot, :kk] = np.where(ok, members[jj][np.minimum(nb, len(members[jj]) - 1)],
                                           -1)
-            near = d[:, 1] if slot == 0 and kk > 1 else d[:, 0]
-            g = 0 if slot == 0 else 1
-            gap[mb, g] = np.minimum(gap[mb, g], np.inf if slot == 0 and kk < 2 else near)
+            if slot == 0 and kk > 1:  # d[:, 0] is the point itself
+                gap[mb, 0] = d[:, 1]
+            elif slot > 0:
+                gap[mb, 1] = np.minimum(gap[mb, 1], d[:, 0])
     own, adj = gap[np.isfinite(gap[:, 0]), 0], gap[np.isfinite(gap[:, 1]), 1]
     if len(own) and len(adj) and np.median(adj) <= 2.0 * np.median(own):
         # profiles as close as the points along them (a fast camera): m points on three

@@ -775,8 +775,8 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                               prior_deg=ac["prior_deg"],
                               refine_iterations=ac["refine_iterations"],
                               rim_weight=ac["rim_weight"],
-                              pair_normals_k=ac["pair_normals_k"],
-                              pair_normals_max_spacing=ac["pair_normals_max_spacing_m"])
+                              normal_k=ac["pair_normals_k"],
+                              normal_max_spacing=ac["pair_normals_max_spacing_m"])
         align_report = {"method": result.method, "gauge": result.gauge,
                         "reference": result.reference, "pairs": result.pairs,
                         "per_sweep": result.per_sweep, "refinement": result.refinement,

@@ -382,8 +382,8 @@ def align_sweeps(
     prior_deg: float = 0.3,
     refine_iterations: int = 30,
     rim_weight: float = 3.0,
-    pair_normals_k: int = 8,
-    pair_normals_max_spacing: float = 1.5e-3,
+    normal_k: int = 8,
+    normal_max_spacing: float = 1.5e-3,
 ) -> AlignmentResult:
     """Align laser sweeps to each other, starting from the robot's poses.
 
@@ -430,9 +430,8 @@ def align_sweeps(
         The robot's expected per-sweep error (refinement prior).
     refine_iterations : int
         Gauss-Newton iterations of the refinement at most.
-    rim_weight, pair_normals_k, pair_normals_max_spacing : float, int, float
-        The refinement's ``rim_weight``, ``normal_k`` and ``normal_max_spacing``
-        (:func:`refine_sweeps`).
+    rim_weight, normal_k, normal_max_spacing : float, int, float
+        Passed to the refinement (:func:`refine_sweeps`).
 
     Returns
     -------
@@ -487,8 +486,8 @@ def align_sweeps(
                         max_correction_deg=max_correction_deg, min_overlap=min_overlap,
                         prior_mm=prior_mm, prior_deg=prior_deg,
                         max_iterations=refine_iterations, seed=seed,
-                        extra=dict(rim_weight=rim_weight, normal_k=pair_normals_k,
-                                   normal_max_spacing=pair_normals_max_spacing))
+                        extra=dict(rim_weight=rim_weight, normal_k=normal_k,
+                                   normal_max_spacing=normal_max_spacing))
     return result
 
 

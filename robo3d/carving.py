@@ -369,6 +369,12 @@ def _check_policy(name: str, value: str) -> None:
         raise ValueError(f"{name} must be one of {_POLICIES}, got {value!r}")
 
 
+def _check_min_views(k: int) -> int:
+    if isinstance(k, bool) or int(k) != k or k < 1:
+        raise ValueError(f"min_views_background must be an integer >= 1, got {k!r}")
+    return int(k)
+
+
 # ---------------------------------------------------------------------- the box
 def box_from_silhouettes(
     silhouettes_centroids_uv: np.ndarray | None,
@@ -532,13 +538,15 @@ def carve_dense(
     *,
     outside_image: str = "keep",
     behind_camera: str = "carve",
+    min_views_background: int = 1,
     chunk_voxels: int = 1 << 19,
 ) -> tuple[VoxelGrid, dict]:
     """Carve a voxel grid with silhouettes: the visual hull (seed §3.1.2, §3.4, eq. 1–6).
 
     Every occupied voxel's centre is projected (distortion included) into each view; it
-    is removed when its pixel is background in that view's mask. Views are applied in
-    order to the survivors of the previous ones.
+    is removed when its pixel is background in ``min_views_background`` views (1: in any
+    view, the seed's exact hull). Views are applied in order to the survivors of the
+    previous ones.
 
     Parameters
     ----------
@@ -554,6 +562,11 @@ def carve_dense(
         module notes).
     behind_camera : {"carve", "keep"}
         What a view does to a voxel behind its camera.
+    min_views_background : int
+        ``k``: a voxel is carved when at least ``k`` views vote to carve it (background
+        there, or outside the image / behind the camera under a carving policy). 1 is
+        the visual hull; ``k > 1`` survives ``k - 1`` views that wrongly carve the
+        object away, at the price of a fatter hull where few views disagree.
     chunk_voxels : int
         Voxels per processing chunk (bounds the memory).
 
@@ -563,7 +576,9 @@ def carve_dense(
         A new grid with the carved occupancy.
     report : dict
         ``voxels_before``, ``voxels_after``, ``volume_m3``, ``time_s``, the policies,
-        and ``views``: per view ``tested`` (survivors it saw), ``carved``, ``after``,
+        ``min_views_background``, and ``views``: per view ``tested`` (survivors it saw),
+        ``carved`` (voxels this view's vote removed: the ``k``-th vote), ``after``,
+        ``votes`` (its votes to carve, those that removed a voxel included),
         ``outside_image`` and ``behind_camera`` (how many tested voxels were so),
         ``kept_outside_image`` and ``kept_behind_camera`` (how many of those the policy
         kept).
@@ -579,6 +594,7 @@ def carve_dense(
         raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
     if int(chunk_voxels) < 1:
         raise ValueError(f"chunk_voxels must be >= 1, got {chunk_voxels}")
+    k_bg = _check_min_views(min_views_background)
     ms, cams, T = _as_views(masks, cameras, T_base_cameras)
     n_views = T.shape[0]
     if n_views == 0:
@@ -592,6 +608,7 @@ def carve_dense(
 
     tested = np.zeros(n_views, dtype=np.int64)
     carved = np.zeros(n_views, dtype=np.int64)
+    n_votes = np.zeros(n_views, dtype=np.int64)
     n_out = np.zeros(n_views, dtype=np.int64)
     n_behind = np.zeros(n_views, dtype=np.int64)
     view_time = np.zeros(n_views)
@@ -602,6 +619,7 @@ def carve_dense(
     step = int(chunk_voxels)
     for start in range(0, occ_in.size, step):
         idx = start + np.flatnonzero(occ_in[start:start + step])
+        votes = np.zeros(idx.size, dtype=np.int32) if k_bg > 1 else None
         for v in range(n_views):
             if idx.size == 0:
                 break
@@ -618,10 +636,16 @@ def carve_dense(
             tested[v] += idx.size
             n_out[v] += int(np.count_nonzero(outside))
             n_behind[v] += int(np.count_nonzero(behind))
+            n_votes[v] += idx.size - int(np.count_nonzero(keep))
+            if votes is not None:  # k-of-n: carved once k views have voted so
+                votes += ~keep
+                keep = votes < k_bg
             n_keep = int(np.count_nonzero(keep))
             carved[v] += idx.size - n_keep
             if n_keep != idx.size:
                 idx = idx[keep]
+                if votes is not None:
+                    votes = votes[keep]
             view_time[v] += time.perf_counter() - tv
         occ_out[idx] = True
 
@@ -636,6 +660,7 @@ def carve_dense(
             "tested": int(tested[v]),
             "carved": int(carved[v]),
             "after": int(tested[v] - carved[v]),
+            "votes": int(n_votes[v]),
             "outside_image": int(n_out[v]),
             "behind_camera": int(n_behind[v]),
             "kept_outside_image": int(n_out[v]) if keep_out else 0,
@@ -650,6 +675,7 @@ def carve_dense(
         "volume_m3": float(out.volume_m3),
         "outside_image": outside_image,
         "behind_camera": behind_camera,
+        "min_views_background": int(k_bg),
         "n_views": int(n_views),
         "views": views,
         "time_s": float(elapsed),
@@ -676,6 +702,7 @@ def carve_visual_hull(
     behind_camera: str = "carve",
     leaf_rule: str = "centre",
     threads: int = 1,
+    min_views_background: int = 1,
 ) -> tuple[VoxelGrid, dict]:
     """Carve the visual hull with the method the configuration selects.
 
@@ -694,6 +721,8 @@ def carve_visual_hull(
         only ``"centre"``, the rule it implements.
     threads : int
         Octree only: threads of the compiled kernel (0: all cores).
+    min_views_background : int
+        Votes to carve a voxel (k of n; 1 = the visual hull), for both methods.
 
     Returns
     -------
@@ -712,12 +741,14 @@ def carve_visual_hull(
             raise ValueError(f"the dense method tests voxel centres only (leaf_rule "
                              f"'centre'), got leaf_rule={leaf_rule!r}")
         out, report = carve_dense(grid, masks, cameras, T_base_cameras,
-                                  outside_image=outside_image, behind_camera=behind_camera)
+                                  outside_image=outside_image, behind_camera=behind_camera,
+                                  min_views_background=min_views_background)
         return out, {"method": "dense", **report}
     from .octree import carve_octree
 
     return carve_octree(grid, masks, cameras, T_base_cameras, outside_image=outside_image,
-                        behind_camera=behind_camera, leaf_rule=leaf_rule, threads=threads)
+                        behind_camera=behind_camera, leaf_rule=leaf_rule, threads=threads,
+                        min_views_background=min_views_background)
 
 
 # ---------------------------------------------------------------------- mesh

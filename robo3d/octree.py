@@ -28,6 +28,14 @@ Szeliski's rule: octants are the voxels' full cubes, and grey octants of the min
 size count as black; the result is a superset of the dense one (every voxel the dense
 carver keeps is kept), larger by the voxels the silhouette rims cross.
 
+k of n (``min_views_background = k``): a voxel is carved when at least ``k`` views
+vote to carve it. An octant is white once ``k`` views are white for it, black once the
+views white for it plus those still grey number fewer than ``k``, grey otherwise; a view
+white for an octant is a certain vote for each of its descendants and is not tested
+again below it, so each stack entry carries that count beside its grey views. The leaf
+test counts votes the same way; the occupancy is the dense carver's for every ``k``
+(tested against an independent per-view vote count). ``k = 1`` is the rule above.
+
 Why the footprint bound is conservative (never carves a voxel the dense test keeps)
 -----------------------------------------------------------------------------------
 1. Camera coordinates are affine in the voxel indices, so the depth range of a box is
@@ -83,7 +91,7 @@ import numpy as np
 from numba import njit
 
 from .camera import CameraModel
-from .carving import VoxelGrid, _as_views, _check_policy
+from .carving import VoxelGrid, _as_views, _check_min_views, _check_policy
 from .errors import StageError
 from .silhouettes import _distortion_limit_r2
 from .transforms import invert_transform
@@ -282,15 +290,18 @@ def _keep_point(P, M, w, i, j, k, keep_out, keep_behind):
 
 @njit(cache=True)
 def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
-                   keep_behind, conservative, occ, stats, carved_by):
+                   keep_behind, conservative, k_bg, occ, stats, carved_by):
     """Depth-first Szeliski traversal of one octant; writes occ inside it only.
 
+    k_bg: views that must vote to carve (k of n). Each stack entry carries the views
+    still grey for it (bit set) and the number of views white for an ancestor (votes
+    every point of it has for certain).
     stats[level] = (octants tested, white, black, grey, view tests, point tests).
-    carved_by[w] = voxels removed by view w.
+    carved_by[w] = voxels removed by view w (the view that cast the k-th vote).
     """
     n_words = (n_views + 63) // 64
     cap = 8 * (levr + 2)
-    st = np.zeros((cap, 4), dtype=np.int64)
+    st = np.zeros((cap, 5), dtype=np.int64)
     sm = np.zeros((cap, n_words), dtype=np.uint64)
     cur = np.zeros(n_words, dtype=np.uint64)
     for q in range(n_words):
@@ -312,6 +323,7 @@ def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
         j0 = st[sp, 1]
         k0 = st[sp, 2]
         lev = st[sp, 3]
+        cnt = st[sp, 4]
         for q in range(n_words):
             cur[q] = sm[sp, q]
         size = 1 << lev
@@ -328,10 +340,12 @@ def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
                 if (cur[w >> 6] >> np.uint64(w & 63)) & one:
                     stats[0, 5] += 1
                     if not _keep_point(P, M, w, i0, j0, k0, keep_out, keep_behind):
-                        keep = False
-                        carved_by[w] += 1
-                        hint = w
-                        break
+                        cnt += 1
+                        if cnt >= k_bg:
+                            keep = False
+                            carved_by[w] += 1
+                            hint = w
+                            break
             if keep:
                 occ[i0, j0, k0] = True
                 stats[0, 2] += 1
@@ -353,7 +367,7 @@ def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
             fz0 = float(k0)
             fz1 = float(k1)
         white = False
-        grey = False
+        n_grey = 0
         for t in range(n_views):
             w = hint + t
             if w >= n_views:
@@ -363,19 +377,24 @@ def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
                 stats[lev, 4] += 1
                 c = _classify_box(P, S, w, fx0, fx1, fy0, fy1, fz0, fz1, keep_out,
                                   keep_behind)
-                if c == _WHITE:
-                    white = True
-                    hint = w
-                    carved_by[w] += (i1 - i0 + 1) * (j1 - j0 + 1) * (k1 - k0 + 1)
-                    break
-                if c == _BLACK:
+                if c == _WHITE:  # a certain vote for every point: never tested again
+                    cur[w >> 6] &= ~bit
+                    cnt += 1
+                    if cnt >= k_bg:
+                        white = True
+                        hint = w
+                        carved_by[w] += (i1 - i0 + 1) * (j1 - j0 + 1) * (k1 - k0 + 1)
+                        break
+                elif c == _BLACK:
                     cur[w >> 6] &= ~bit
                 else:
-                    grey = True
+                    n_grey += 1
         if white:
             stats[lev, 1] += 1
             continue
-        if not grey or lev == 0:  # black, or a grey octant of the minimum size
+        # black: too few views left that could vote for any point; or a grey octant of
+        # the minimum size
+        if cnt + n_grey < k_bg or lev == 0:
             stats[lev, 2] += 1
             occ[i0:i1 + 1, j0:j1 + 1, k0:k1 + 1] = True
             continue
@@ -391,6 +410,7 @@ def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
             st[sp, 1] = cj
             st[sp, 2] = ck
             st[sp, 3] = lev - 1
+            st[sp, 4] = cnt
             for q in range(n_words):
                 sm[sp, q] = cur[q]
             sp += 1
@@ -398,19 +418,19 @@ def _carve_subtree(i0r, j0r, k0r, levr, nx, ny, nz, P, S, M, n_views, keep_out,
 
 @njit(cache=True)
 def _carve_roots(roots, nx, ny, nz, P, S, M, n_views, keep_out, keep_behind,
-                 conservative, occ, stats, carved_by):
+                 conservative, k_bg, occ, stats, carved_by):
     for r in range(roots.shape[0]):
         _carve_subtree(roots[r, 0], roots[r, 1], roots[r, 2], roots[r, 3], nx, ny, nz,
-                       P, S, M, n_views, keep_out, keep_behind, conservative, occ,
+                       P, S, M, n_views, keep_out, keep_behind, conservative, k_bg, occ,
                        stats, carved_by)
 
 
 @numba.njit(cache=True, parallel=True)
 def _carve_roots_parallel(roots, nx, ny, nz, P, S, M, n_views, keep_out, keep_behind,
-                          conservative, occ, stats_r, carved_r):
+                          conservative, k_bg, occ, stats_r, carved_r):
     for r in numba.prange(roots.shape[0]):
         _carve_subtree(roots[r, 0], roots[r, 1], roots[r, 2], roots[r, 3], nx, ny, nz,
-                       P, S, M, n_views, keep_out, keep_behind, conservative, occ,
+                       P, S, M, n_views, keep_out, keep_behind, conservative, k_bg, occ,
                        stats_r[r], carved_r[r])
 
 
@@ -507,6 +527,7 @@ def carve_octree(
     behind_camera: str = "carve",
     leaf_rule: str = "centre",
     threads: int = 1,
+    min_views_background: int = 1,
 ) -> tuple[VoxelGrid, dict]:
     """Carve a voxel grid with silhouettes by Szeliski's octree (seed §3.1.1).
 
@@ -538,6 +559,12 @@ def carve_octree(
     threads : int
         Threads of the compiled kernel (0: numba's default, all cores). The result does
         not depend on it.
+    min_views_background : int
+        ``k``: a voxel is carved when at least ``k`` views vote to carve it, as in
+        ``carve_dense`` (1: the visual hull). An octant is white once ``k`` views are
+        white for it, black once fewer than ``k`` views could still vote for any of its
+        points, grey otherwise; a view white for an octant is a certain vote for all
+        its descendants.
 
     Returns
     -------
@@ -549,8 +576,9 @@ def carve_octree(
         depth), ``octants`` (per level, finest first: ``size_vox``, ``tested``,
         ``white``, ``black``, ``grey``, ``view_tests``), ``view_tests`` and
         ``point_tests`` (totals), ``views`` (per view: ``carved``, the voxels its tests
-        removed), ``threads``, ``time_s`` and ``kernel_first_call`` (True when this call
-        also compiled the kernel or loaded it from numba's cache, ~0.3 s, included in
+        removed, i.e. where it cast the ``k``-th vote), ``min_views_background``,
+        ``threads``, ``time_s`` and ``kernel_first_call`` (True when this call also
+        compiled the kernel or loaded it from numba's cache, ~0.3 s, included in
         ``time_s``).
 
     Raises
@@ -573,6 +601,7 @@ def carve_octree(
         raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
     if int(threads) != threads or threads < 0:
         raise ValueError(f"threads must be an integer >= 0, got {threads}")
+    k_bg = _check_min_views(min_views_background)
     ms, cams, T = _as_views(masks, cameras, T_base_cameras)
     n_views = T.shape[0]
     if n_views == 0:
@@ -596,7 +625,7 @@ def carve_octree(
         stats = np.zeros((top + 1, 6), dtype=np.int64)
         carved = np.zeros(n_views, dtype=np.int64)
         _carve_roots(roots, shape[0], shape[1], shape[2], P, S, M, n_views, keep_out,
-                         keep_behind, conservative, occ, stats, carved)
+                     keep_behind, conservative, k_bg, occ, stats, carved)
     else:
         # subtrees of 1/8 or 1/64 of the root: enough to balance a few threads
         root_level = max(0, top - (3 if top >= 6 else 2 if top >= 3 else 0))
@@ -608,8 +637,8 @@ def carve_octree(
         numba.set_num_threads(n_threads)
         try:
             _carve_roots_parallel(roots, shape[0], shape[1], shape[2], P, S, M, n_views,
-                                      keep_out, keep_behind, conservative, occ, stats_r,
-                                      carved_r)
+                                  keep_out, keep_behind, conservative, k_bg, occ, stats_r,
+                                  carved_r)
         finally:
             numba.set_num_threads(previous)
         stats = stats_r.sum(axis=0)
@@ -633,6 +662,7 @@ def carve_octree(
         "volume_m3": float(out.volume_m3),
         "outside_image": outside_image,
         "behind_camera": behind_camera,
+        "min_views_background": int(k_bg),
         "n_views": int(n_views),
         "levels": int(top + 1),
         "octants": octants,

@@ -437,7 +437,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     grid, carve_report = carve_visual_hull(grid, masks, cameras, poses, method=cc["method"],
                                            outside_image=cc["outside_image"],
                                            behind_camera=cc["behind_camera"],
-                                           leaf_rule=cc["leaf_rule"], threads=cc["threads"])
+                                           leaf_rule=cc["leaf_rule"], threads=cc["threads"],
+                                           min_views_background=cc["min_views_background"])
     n_occ = grid.n_occupied
     if n_occ == 0:
         raise StageError(f"{inputs['silhouettes']}: carving removed every voxel: the "
@@ -457,7 +458,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "seconds": round(time.perf_counter() - t0, 3)}
     grid.save_npz(outputs["npz"], carving={k: cc[k] for k in ("method", "leaf_rule",
                                                               "outside_image",
-                                                              "behind_camera")})
+                                                              "behind_camera",
+                                                              "min_views_background")})
     write_mesh(outputs["ply"], vertices, faces)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         log_box(rr_stream, "base/carving_box", box_min, box_max, label="carving box")

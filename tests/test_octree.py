@@ -135,6 +135,38 @@ def test_octree_equals_dense_on_random_masks():
         _same(grid, masks, cams, Ts, outside_image=outside)
 
 
+@pytest.mark.parametrize("outside", ["keep", "carve"])
+def test_k_of_n_octree_equals_dense_equals_vote_count(outside):
+    """k of n carving: a voxel goes when at least k views vote to carve it. The oracle
+    counts each view's votes alone (one single-view dense carve per view); the dense
+    and octree carvers (one and two threads) must give exactly that, for every k."""
+    rng = np.random.default_rng(5)
+    cam, Ts, masks = _sphere_views(6, D=D_STRONG, offset=0.1, seed=4)
+    masks = [m ^ (rng.random(m.shape) < 0.03) for m in masks]  # mixed footprints
+    masks[0][:, : cam.width // 2] = False  # a view that carves half the sphere away
+    grid = make_grid(CENTRE - 0.07, CENTRE + 0.07, resolution=33)
+    votes = sum((~carve_dense(grid, [m], cam, T[None], outside_image=outside)[0].occupancy
+                 ).astype(int) for m, T in zip(masks, Ts, strict=True))
+    sizes = []
+    for k in range(1, 8):
+        expect = votes < k
+        dense, octo, rep = _same(grid, masks, cam, Ts, outside_image=outside,
+                                 min_views_background=k)
+        assert np.array_equal(dense.occupancy, expect), k
+        octo2, _ = carve_octree(grid, masks, cam, Ts, outside_image=outside,
+                                min_views_background=k, threads=2)
+        assert np.array_equal(octo2.occupancy, expect), k
+        assert rep["min_views_background"] == k
+        assert sum(v["carved"] for v in rep["views"]) == grid.n_occupied - octo.n_occupied
+        sizes.append(octo.n_occupied)
+    assert sizes == sorted(sizes) and sizes[0] < sizes[1]  # more votes needed, fatter
+    assert sizes[-1] == grid.n_occupied  # 7 votes of 6 views: nothing carved
+    with pytest.raises(ValueError, match="min_views_background"):
+        carve_octree(grid, masks, cam, Ts, min_views_background=0)
+    with pytest.raises(ValueError, match="min_views_background"):
+        carve_dense(grid, masks, cam, Ts, min_views_background=1.5)
+
+
 def test_octree_outside_image_and_behind_camera_policies():
     """A wide grid around a camera inside it: voxels behind the camera, outside its
     image, beyond its lens's fold-back radius; each policy as the dense carver."""

@@ -47,7 +47,8 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
     from .simulate import OBJECT_NAMES, SimulationParams
 
     d = SimulationParams()
-    p.add_argument("object", nargs="?", choices=OBJECT_NAMES, help="object to scan")
+    p.add_argument("object", nargs="?", metavar="OBJECT",
+                   help=f"object to scan: {', '.join(OBJECT_NAMES)} (omit with --object-mesh)")
     p.add_argument("out", nargs="?", help="output .mcap file")
     p.add_argument("--demo", metavar="DIR",
                    help="regenerate the demo recordings into DIR (other options ignored)")
@@ -59,6 +60,32 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
                    help="message encoding (default %(default)s)")
     p.add_argument("--threads", type=int, default=1,
                    help="ray-casting threads, 0 for all cores (default %(default)s)")
+    r = p.add_argument_group("scene (issue 10: what real cells record)")
+    r.add_argument("--scene", choices=("demo", "cell"), default="demo",
+                   help="demo: the demo cell (dark table, dimmed laser frames, red laser, "
+                        "grey object); cell: room light in the laser frames, a coloured "
+                        "laser, a coloured textured glossy object on a bright marker table "
+                        "before a wall, JPEG 80, a webcam's noise (default %(default)s)")
+    r.add_argument("--preset", choices=("full", "small"), default="full",
+                   help="small: 320x240, 10 views, 3 sweeps of 40 frames (default "
+                        "%(default)s)")
+    r.add_argument("--laser", choices=("red", "green", "blue"), default=None,
+                   help="laser colour (cell scene; default red)")
+    r.add_argument("--object-color", nargs="+", metavar="NAME_OR_RGB", default=None,
+                   help="object colour: a name (grey, white, orange, red, green, blue, "
+                        "yellow, brown, black) or three albedos R G B (cell scene; default "
+                        "orange)")
+    r.add_argument("--object-texture", choices=("none", "blotches", "checker", "stripes"),
+                   default=None, help="procedural texture (cell scene; default blotches)")
+    r.add_argument("--table-markers", choices=("none", "aruco", "checker", "dots"),
+                   default=None, help="printed pattern on the table (cell scene; default "
+                                      "aruco)")
+    r.add_argument("--no-wall", action="store_true", help="cell scene without the wall")
+    r.add_argument("--object-mesh", metavar="FILE", default=None,
+                   help="a mesh file (STL, PLY, OBJ) as the object, placed standing on the "
+                        "table at the workspace centre")
+    r.add_argument("--mesh-unit", choices=("m", "cm", "mm", "um", "in"), default=None,
+                   help="unit of --object-mesh's coordinates (default m)")
     # every option below defaults to SimulationParams' value (shown), so that a bare
     # command line gives exactly the library's defaults
     g = p.add_argument_group("simulation parameters")
@@ -131,6 +158,21 @@ _SIM_OPTIONS: list[tuple[str, str, object, str, str]] = [
      "robot rotation error per view"),
     ("--mesh-faces", "mesh_faces", int, "N",
      "triangles of the truth mesh"),
+    ("--robot-error", "robot_error", ("constant", "drift"), "",
+     "robot error model: constant per sweep, or drifting within a sweep plus a "
+     "pose-dependent term"),
+    ("--drift-mm", "drift_mm", "range", "mm",
+     "drift model: translation drift within a sweep"),
+    ("--drift-deg", "drift_deg", "range", "degrees",
+     "drift model: rotation drift within a sweep"),
+    ("--pose-error-mm-per-m", "pose_error_mm_per_m", float, "MM_PER_M",
+     "drift model: pose-dependent translation error gradient"),
+    ("--pose-error-deg-per-m", "pose_error_deg_per_m", float, "DEG_PER_M",
+     "drift model: pose-dependent rotation error gradient"),
+    ("--clock-lag-ms", "clock_lag_ms", float, "MS",
+     "the camera clock is late: each image is stamped this much before it was taken"),
+    ("--vignetting", "vignetting", float, "FRACTION",
+     "light lost in the image corners"),
 ]
 
 
@@ -140,16 +182,52 @@ def _run_simulate(args: argparse.Namespace) -> int:
     if args.demo:  # each recording is logged by the library as it is written
         write_demos(args.demo, threads=args.threads, missing_only=args.missing)
         return 0
-    if not args.object or not args.out:
-        raise Robo3dError("simulate needs OBJECT and OUT.mcap (or --demo DIR)")
+    from .simulate import OBJECT_NAMES, SimulationParams
+
+    obj, out = args.object, args.out
+    if args.object_mesh and out is None:  # "simulate --object-mesh part.stl OUT.mcap"
+        obj, out = None, obj
+    if not out or (obj is None and not args.object_mesh):
+        raise Robo3dError("simulate needs OBJECT and OUT.mcap, or --object-mesh FILE and "
+                          "OUT.mcap (or --demo DIR)")
+    if obj is not None and obj not in OBJECT_NAMES:
+        raise Robo3dError(f"unknown object {obj!r}; expected one of {', '.join(OBJECT_NAMES)} "
+                          "(or --object-mesh FILE)")
     overrides = {field: getattr(args, field) for _, field, _, _, _ in _SIM_OPTIONS
                  if getattr(args, field) is not None}
     if args.no_views:
         overrides["views"] = 0
     if args.no_laser:
         overrides["sweeps"] = 0
-    simulate_recording(args.out, args.object, threads=args.threads,
-                       message_encoding=args.encoding, **overrides)
+    if args.object_mesh:
+        overrides["object_mesh"] = args.object_mesh
+    if args.mesh_unit:
+        overrides["mesh_unit"] = args.mesh_unit
+    cell_opts = {k: v for k, v in (("laser", args.laser),
+                                   ("texture", args.object_texture),
+                                   ("markers", args.table_markers)) if v is not None}
+    if args.object_color is not None:
+        c = args.object_color
+        try:
+            cell_opts["object_color"] = c[0] if len(c) == 1 else tuple(float(x) for x in c)
+        except ValueError:
+            raise Robo3dError(f"--object-color takes a name or three numbers, got {c}") from None
+        if len(c) not in (1, 3):
+            raise Robo3dError(f"--object-color takes a name or three numbers, got {c}")
+    if args.scene == "cell":
+        params = SimulationParams.cell(small=args.preset == "small", wall=not args.no_wall,
+                                       **cell_opts)
+    else:
+        if cell_opts or args.no_wall:
+            raise Robo3dError("--laser, --object-color, --object-texture, --table-markers "
+                              "and --no-wall need --scene cell")
+        params = (SimulationParams.small() if args.preset == "small"
+                  else SimulationParams())
+    try:
+        simulate_recording(out, obj, params=params, threads=args.threads,
+                           message_encoding=args.encoding, **overrides)
+    except ValueError as exc:  # a parameter out of range, an unknown colour
+        raise Robo3dError(str(exc)) from None
     return 0
 
 

@@ -65,11 +65,26 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from .sim.render import Appearance, SimScene, render_laser_frame, render_view, sensor_noise
+from .errors import Robo3dError
+from .recording.images import encode_image
+from .sim.render import (
+    _LEGACY_FIELDS,
+    Appearance,
+    SimScene,
+    StripeTruth,
+    render_laser_frame,
+    render_view,
+    sensor_noise,
+    vignetting,
+    visible_stripe_points,
+)
 from .sim.rig import (
+    PoseDependentError,
     default_camera,
     default_hand_eye,
     default_laser_mount,
+    drift_error,
+    random_drift,
     random_rigid_error,
     sweep_poses,
     view_poses,
@@ -85,12 +100,27 @@ __all__ = [
     "simulate_recording",
     "write_demos",
     "object_mesh",
+    "load_object_mesh",
+    "truth_scene",
+    "image_poses",
+    "stripe_truth",
+    "SMALL_PRESET",
+    "CELL_SENSOR",
+    "MESH_UNITS",
+    "ROBOT_ERROR_MODELS",
+    "SILHOUETTES",
+    "IMAGE_POSES",
 ]
 
 _log = logging.getLogger(__name__)
 
 #: Objects the simulator knows.
 OBJECT_NAMES: tuple[str, ...] = tuple(OBJECTS)
+
+#: Attachment prefix of the true silhouettes (``NNN.png``, the NNN-th view in time order).
+SILHOUETTES = "ground_truth/silhouettes/"
+#: Attachment of the true camera (and laser) pose of every image at its exposure.
+IMAGE_POSES = "ground_truth/image_poses.json"
 
 _VIEW_TOPIC = "/camera/image"
 _LASER_TOPIC = "/camera/laser_image"
@@ -188,6 +218,49 @@ class SimulationParams:
     workspace_floor: float = 0.0005
     start_time_ns: int = 1_700_000_000_000_000_000
     appearance: Appearance = field(default_factory=Appearance)
+    # ---- realism (issue 10); the defaults give the demo recordings exactly
+    vignetting: float = 0.0
+    robot_error: str = "constant"
+    drift_mm: tuple[float, float] = (0.02, 0.05)
+    drift_deg: tuple[float, float] = (0.005, 0.015)
+    pose_error_mm_per_m: float = 0.3
+    pose_error_deg_per_m: float = 0.1
+    clock_lag_ms: float = 0.0
+    object_mesh: str | None = None
+    mesh_unit: str = "m"
+
+    @classmethod
+    def cell(cls, laser: str | tuple[float, float, float] = "red",
+             object_color: str | tuple[float, float, float] = "orange",
+             texture: str = "blotches", markers: str = "aruco", wall: bool = True,
+             small: bool = False, **overrides: Any) -> SimulationParams:
+        """A real-looking cell (``robo3d simulate --scene cell``).
+
+        Room light in the laser frames, a coloured laser (RGB laser frames), a coloured
+        textured glossy object on a bright marker table before a wall
+        (:meth:`Appearance.cell`), JPEG quality 80 for views and laser frames, a cheap
+        camera's noise (read noise 2 DN, 0.25 DN per electron, 25 % vignetting).
+
+        Parameters
+        ----------
+        laser, object_color, texture, markers, wall
+            As :meth:`robo3d.sim.render.Appearance.cell`.
+        small : bool
+            Start from :data:`SMALL_PRESET` (320 x 240, 10 views, 3 sweeps of 40 frames).
+        **overrides
+            Any field (``appearance`` replaces the whole appearance).
+        """
+        kw: dict[str, Any] = dict(SMALL_PRESET) if small else {}
+        kw.update(CELL_SENSOR)
+        kw["appearance"] = Appearance.cell(laser=laser, object_color=object_color,
+                                           texture=texture, markers=markers, wall=wall)
+        kw.update(overrides)
+        return cls(**kw)
+
+    @classmethod
+    def small(cls, **overrides: Any) -> SimulationParams:
+        """The demo cell's look at test size (:data:`SMALL_PRESET`)."""
+        return cls(**{**SMALL_PRESET, **overrides})
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first parameter out of range."""
@@ -215,22 +288,61 @@ class SimulationParams:
             ("view_error_mm", 0 <= self.view_error_mm[0] <= self.view_error_mm[1]),
             ("view_error_deg", 0 <= self.view_error_deg[0] <= self.view_error_deg[1]),
             ("start_time_ns", self.start_time_ns >= 10_000_000_000),
+            ("vignetting", 0 <= self.vignetting < 1),
+            ("robot_error", self.robot_error in ROBOT_ERROR_MODELS),
+            ("drift_mm", 0 <= self.drift_mm[0] <= self.drift_mm[1]),
+            ("drift_deg", 0 <= self.drift_deg[0] <= self.drift_deg[1]),
+            ("pose_error_mm_per_m", self.pose_error_mm_per_m >= 0),
+            ("pose_error_deg_per_m", self.pose_error_deg_per_m >= 0),
+            ("clock_lag_ms", abs(self.clock_lag_ms) <= 30),
+            ("mesh_unit", self.mesh_unit in MESH_UNITS),
+            ("laser_encoding", self.appearance.laser_rgb is None
+             or self.laser_encoding != "mono8"),  # RGB laser frames
         ]
         for name, ok in checks:
             if not ok:
                 raise ValueError(f"simulation parameter {name} out of range: "
                                  f"{getattr(self, name)!r}")
 
-    def to_metadata(self) -> dict[str, str]:
-        """Every parameter as ``{name: JSON string}`` (appearance fields prefixed)."""
+    def to_metadata(self, full: bool = True) -> dict[str, str]:
+        """Every parameter as ``{name: JSON string}`` (appearance fields prefixed).
+
+        Parameters
+        ----------
+        full : bool
+            False: the parameters added for issue 10 only where they differ from their
+            defaults (how the demo recordings are written, so that they stay
+            byte-identical to those written before the options existed).
+        """
         out: dict[str, str] = {}
+        d = SimulationParams()
         for k, v in dataclasses.asdict(self).items():
             if k == "appearance":
                 for ka, va in v.items():
-                    out[f"appearance.{ka}"] = json.dumps(va)
-            else:
+                    if (full or ka in _LEGACY_APPEARANCE
+                            or va != getattr(d.appearance, ka)):
+                        out[f"appearance.{ka}"] = json.dumps(va)
+            elif full or k not in _NEW_FIELDS or getattr(self, k) != getattr(d, k):
                 out[k] = json.dumps(v)
         return out
+
+
+#: Robot error models (``SimulationParams.robot_error``).
+ROBOT_ERROR_MODELS: tuple[str, ...] = ("constant", "drift")
+#: Length units of a user's mesh file (``--mesh-unit``), metres per unit.
+MESH_UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254}
+#: The small, fast scene for tests and benchmarks (a cell scene in a few seconds).
+SMALL_PRESET: dict[str, Any] = dict(width=320, height=240, views=10, sweeps=3,
+                                    sweep_frames=40, mesh_faces=20_000, mesh_voxel=0.0012)
+#: The sensor of :meth:`SimulationParams.cell`: a cheap webcam's JPEG and noise.
+CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
+                                   jpeg_quality=80, view_read_noise_dn=2.0,
+                                   laser_read_noise_dn=2.0, gain_dn_per_electron=0.25,
+                                   vignetting=0.25)
+_NEW_FIELDS = frozenset({"vignetting", "robot_error", "drift_mm", "drift_deg",
+                         "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
+                         "object_mesh", "mesh_unit"})
+_LEGACY_APPEARANCE = frozenset(_LEGACY_FIELDS)
 
 
 @dataclass
@@ -292,6 +404,133 @@ def object_mesh(name: str, voxel: float = 0.0006, faces: int = 40_000) -> Triang
     return mesh
 
 
+def load_object_mesh(path: str | os.PathLike[str], unit: str = "m") -> TriangleMesh:
+    """A user's mesh file as the simulated object (``--object-mesh``).
+
+    The mesh is scaled from ``unit`` to metres and placed standing on the table: its
+    lowest vertex at ``z = 0``, its bounding box centred on the base's z axis (the
+    workspace's centre). Vertices are rounded to float32 (the truth is what is rendered).
+
+    Parameters
+    ----------
+    path : str or path-like
+        STL, PLY or OBJ (any format :func:`robo3d.meshio.read_mesh` reads).
+    unit : str
+        One of :data:`MESH_UNITS` (``m``, ``cm``, ``mm``, ``um``, ``in``).
+
+    Raises
+    ------
+    Robo3dError
+        The file is missing, unreadable, empty, non-finite or flat, naming the file.
+    """
+    from .meshio import read_mesh
+
+    if unit not in MESH_UNITS:
+        raise ValueError(f"unknown mesh unit {unit!r}; expected one of {', '.join(MESH_UNITS)}")
+    try:
+        v, f = read_mesh(path)
+    except FileNotFoundError as exc:
+        raise Robo3dError(f"object mesh {str(path)!r}: no such file") from exc
+    except Robo3dError as exc:
+        raise Robo3dError(f"object mesh {str(path)!r}: cannot be read ({exc})") from exc
+    if len(v) == 0 or len(f) == 0:
+        raise Robo3dError(f"object mesh {str(path)!r} is empty ({len(v)} vertices, "
+                          f"{len(f)} faces)")
+    if not np.all(np.isfinite(v)):
+        raise Robo3dError(f"object mesh {str(path)!r} has non-finite vertex coordinates")
+    used = np.unique(f)
+    v = v[used] * MESH_UNITS[unit]
+    f = np.searchsorted(used, f)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    if np.any(hi - lo < 1e-4):
+        raise Robo3dError(f"object mesh {str(path)!r} is flat or tiny: its box is "
+                          f"{(hi - lo) * 1e3} mm (unit {unit!r}; wrong --mesh-unit?)")
+    if np.any(hi - lo > 1.0):
+        raise Robo3dError(f"object mesh {str(path)!r} is {(hi - lo).max():.2f} m across "
+                          f"(unit {unit!r}; wrong --mesh-unit?); the simulated table is "
+                          "1.2 m wide")
+    v = v - np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    return TriangleMesh(v.astype(np.float32).astype(np.float64), f.astype(np.int64))
+
+
+def truth_scene(recording: Any, threads: int = 1) -> SimScene:
+    """The scene a simulated recording was rendered from (for stripe truth).
+
+    Rebuilt from the ``ground_truth/mesh.ply`` attachment and the ``appearance.*`` entries
+    of the ``robo3d.simulation`` metadata (a recording written with ``demo_format``
+    lists the demo's appearance completely too).
+
+    Parameters
+    ----------
+    recording : robo3d.recording.Recording
+    threads : int
+    """
+    from .meshio import read_mesh
+
+    meta = recording.metadata.get("robo3d.simulation")
+    data = recording.attachments.get("ground_truth/mesh.ply")
+    if meta is None or data is None:
+        raise Robo3dError(f"{recording.path}: not a simulated recording (needs metadata "
+                          "robo3d.simulation and attachment ground_truth/mesh.ply)")
+    kw = {}
+    for k, v in meta.items():
+        if k.startswith("appearance."):
+            val = json.loads(v)
+            kw[k.split(".", 1)[1]] = tuple(val) if isinstance(val, list) else val
+    fields = {f.name for f in dataclasses.fields(Appearance)}
+    v, f = read_mesh(bytes(data), suffix=".ply")
+    return SimScene(TriangleMesh(v, f), Appearance(**{k: x for k, x in kw.items()
+                                                      if k in fields}), threads=threads)
+
+
+def image_poses(recording: Any) -> dict[str, Any]:
+    """The ``ground_truth/image_poses.json`` attachment, poses as ``(4, 4)`` arrays.
+
+    Returns
+    -------
+    dict
+        ``clock_lag_ns`` and per image topic a list of ``{"index", "stamp_ns",
+        "exposure_ns", "T_base_camera", ("T_base_laser", "sweep", "frame")}``: the TRUE
+        poses at the moment each image was taken (its stamp plus the clock lag).
+    """
+    data = recording.attachments.get(IMAGE_POSES)
+    if data is None:
+        raise Robo3dError(f"{recording.path}: no {IMAGE_POSES} attachment (a recording "
+                          "simulated with demo_format, or not simulated)")
+    doc = json.loads(data)
+    for topic in (_VIEW_TOPIC, _LASER_TOPIC):
+        for e in doc.get(topic, []):
+            for key in ("T_base_camera", "T_base_laser"):
+                if key in e:
+                    e[key] = np.asarray(e[key], dtype=np.float64).reshape(4, 4)
+    return doc
+
+
+def stripe_truth(recording: Any, index: int, scene: SimScene | None = None,
+                 poses: dict[str, Any] | None = None) -> StripeTruth:
+    """The true visible stripe of the ``index``-th laser frame of a simulated recording.
+
+    Parameters
+    ----------
+    recording : robo3d.recording.Recording
+    index : int
+        Position of the frame on ``/camera/laser_image`` in time order.
+    scene, poses : optional
+        :func:`truth_scene` and :func:`image_poses` of the recording (pass them when
+        calling for many frames).
+
+    Returns
+    -------
+    StripeTruth
+        See :func:`robo3d.sim.render.visible_stripe_points`.
+    """
+    scene = scene or truth_scene(recording)
+    poses = poses or image_poses(recording)
+    e = poses[_LASER_TOPIC][index]
+    camera = next(iter(recording.calibrations.values()))
+    return visible_stripe_points(scene, camera, e["T_base_camera"], e["T_base_laser"])
+
+
 def _blas_one_thread() -> contextlib.AbstractContextManager[Any]:
     try:
         from threadpoolctl import threadpool_limits
@@ -321,23 +560,30 @@ def _sweep_plan(p: SimulationParams) -> list[tuple[float, float, float]]:
     return plan
 
 
-def simulate_recording(path: str | os.PathLike[str], object_name: str = "dimple_block", *,
-                       params: SimulationParams | None = None, threads: int = 1,
-                       message_encoding: str = "protobuf", **overrides: Any,
-                       ) -> SimulationResult:
+def simulate_recording(path: str | os.PathLike[str], object_name: str | None = "dimple_block",
+                       *, params: SimulationParams | None = None, threads: int = 1,
+                       message_encoding: str = "protobuf", demo_format: bool = False,
+                       **overrides: Any) -> SimulationResult:
     """Simulate a scan of one object and write it as an MCAP recording.
 
     Parameters
     ----------
     path : str or path-like
         The ``.mcap`` file to write (atomically).
-    object_name : str
-        One of :data:`OBJECT_NAMES`.
+    object_name : str or None
+        One of :data:`OBJECT_NAMES`; ignored when ``object_mesh`` is set (the recording
+        then names the object after the mesh file's stem).
     params : SimulationParams, optional
         All parameters (defaults: the demo settings).
     threads : int
         Ray-casting threads (0: all cores); the output does not depend on it.
     message_encoding : {"protobuf", "json"}
+    demo_format : bool
+        Write the ground truth as the demo recordings have it (``ground_truth/tf.json`` in
+        robo3d's first form, no silhouettes or image poses, the issue-10 parameters in
+        the metadata only where not default), so that :func:`write_demos` gives files
+        byte-identical to earlier versions. Otherwise the attachments follow
+        ``recording-format.md`` (see ``recordings/README.md``).
     **overrides
         Any :class:`SimulationParams` field, e.g. ``views=8, sweeps=2, width=320``;
         ``appearance`` fields may be given as ``appearance=Appearance(...)``.
@@ -351,21 +597,26 @@ def simulate_recording(path: str | os.PathLike[str], object_name: str = "dimple_
     >>> simulate_recording("s.mcap", "sphere", width=320, height=240, views=8,
     ...                    sweeps=2, sweep_frames=20)                  # doctest: +SKIP
     """
-    if object_name not in OBJECTS:
-        raise ValueError(f"unknown object {object_name!r}; expected one of "
-                         f"{', '.join(OBJECT_NAMES)}")
     p = params or SimulationParams()
     unknown = set(overrides) - {f.name for f in dataclasses.fields(SimulationParams)}
     if unknown:
         raise ValueError(f"unknown simulation parameter(s): {', '.join(sorted(unknown))}")
     p = dataclasses.replace(p, **overrides)
+    if p.object_mesh is not None:
+        p = dataclasses.replace(p, object_mesh=str(p.object_mesh))
+        object_name = Path(p.object_mesh).stem
+    elif object_name not in OBJECTS:
+        raise ValueError(f"unknown object {object_name!r}; expected one of "
+                         f"{', '.join(OBJECT_NAMES)} (or a mesh file: object_mesh)")
     for name in ("view_elevations_deg", "sweep_error_mm", "sweep_error_deg",
-                 "view_error_mm", "view_error_deg"):  # lists from JSON/CLI -> tuples
+                 "view_error_mm", "view_error_deg", "drift_mm",
+                 "drift_deg"):  # lists from JSON/CLI -> tuples
         p = dataclasses.replace(p, **{name: tuple(float(x) for x in getattr(p, name))})
     p.validate()
     wall = time.perf_counter()
     with _blas_one_thread():
-        result = _simulate(Path(path), object_name, p, threads, message_encoding)
+        result = _simulate(Path(path), str(object_name), p, threads, message_encoding,
+                           legacy=demo_format)
     result.seconds = time.perf_counter() - wall
     _log.info("simulated %s (%s): %d views, %d laser frames in %d sweeps (%s frames), "
               "%.2f MB, %.1f s", result.path, object_name, result.n_views,
@@ -376,10 +627,13 @@ def simulate_recording(path: str | os.PathLike[str], object_name: str = "dimple_
 
 
 def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
-              message_encoding: str) -> SimulationResult:
+              message_encoding: str, legacy: bool = False) -> SimulationResult:
     from .recording.writer import RecordingWriter
 
-    mesh = object_mesh(object_name, p.mesh_voxel, p.mesh_faces)
+    if p.object_mesh is not None:
+        mesh = load_object_mesh(p.object_mesh, p.mesh_unit)
+    else:
+        mesh = object_mesh(object_name, p.mesh_voxel, p.mesh_faces)
     scene = SimScene(mesh, p.appearance, threads=threads)
     camera = default_camera(p.width, p.height)
     t_flange_camera = default_hand_eye()
@@ -390,6 +644,11 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     target = 0.5 * (lo + hi)
     t0 = int(p.start_time_ns)
     ms = 1_000_000
+    drift = p.robot_error == "drift"
+    lag_ns = int(round(p.clock_lag_ms * 1e6))
+    pose_err = (PoseDependentError(np.random.default_rng([p.seed, 5]), p.pose_error_mm_per_m,
+                                   p.pose_error_deg_per_m, target) if drift else None)
+    vig = (vignetting(p.height, p.width, p.vignetting) if p.vignetting > 0 else None)
 
     # ---------------------------------------------------------------- views
     view_cams = (view_poses(p.views, target, p.view_distance, p.view_elevations_deg,
@@ -399,6 +658,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     view_err = np.stack([random_rigid_error(rng_ve, tuple(np.array(p.view_error_mm) * 1e-3),
                                             p.view_error_deg) for _ in range(p.views)]) \
         if p.views else np.zeros((0, 4, 4))
+    if pose_err is not None and p.views:  # the robot's pose-dependent error, at each view
+        view_err = view_err @ pose_err((view_cams @ t_camera_flange)[:, :3, 3])
     view_stamps = t0 + 1000 * ms + np.arange(p.views, dtype=np.int64) * int(p.view_period_s * 1e9)
     tf_true: list[tuple[int, np.ndarray]] = []
     tf_reported: list[tuple[int, np.ndarray]] = []
@@ -415,9 +676,11 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     sweep_err = np.stack([random_rigid_error(rng_se, tuple(np.array(p.sweep_error_mm) * 1e-3),
                                              p.sweep_error_deg) for _ in plan]) \
         if plan else np.zeros((0, 4, 4))
+    rng_drift = np.random.default_rng([p.seed, 4])
     tf_period = int(round(1e9 / p.tf_rate_hz))
     laser_frames: list[tuple[int, int, int, np.ndarray]] = []  # (stamp, sweep, frame, T_cam)
     frames_per_sweep: list[int] = []
+    error_span: list[dict[str, float]] = []
     for k, (az, el, roll) in enumerate(plan):
         t_start_cam, direction, length = sweep_poses(az, el, target, p.crossing, t_camera_laser,
                                                      lo, hi, p.sweep_spacing, p.sweep_margin,
@@ -436,14 +699,31 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                          dtype=np.int64)
         for j, tj in enumerate(frame_t):
             cam = t_start_cam.copy()
-            cam[:3, 3] += direction * p.sweep_speed * (tj - ts) * 1e-9
+            # a late camera clock: the image stamped tj was taken lag_ns later
+            cam[:3, 3] += direction * p.sweep_speed * (tj + lag_ns - ts) * 1e-9
             laser_frames.append((int(tj), k, j, cam))
+        trues = []
         for tj in tf_t:
             cam = t_start_cam.copy()
             cam[:3, 3] += direction * p.sweep_speed * (tj - ts) * 1e-9
-            t_true = cam @ t_camera_flange
+            trues.append(cam @ t_camera_flange)
+        if drift:
+            frac = (tf_t - tf_t[0]) / max(int(tf_t[-1] - tf_t[0]), 1)
+            d_k = random_drift(rng_drift, tuple(np.array(p.drift_mm) * 1e-3), p.drift_deg)
+            errs = (sweep_err[k] @ drift_error(d_k, frac)
+                    @ pose_err(np.stack([t[:3, 3] for t in trues])))
+            mid = errs[len(errs) // 2]
+            rel = invert_transform(mid) @ errs
+            error_span.append({
+                "translation_mm": round(float(np.linalg.norm(rel[:, :3, 3], axis=1).max())
+                                        * 1e3, 6),
+                "rotation_deg": round(max(float(rotation_angle_deg(r[:3, :3])) for r in rel),
+                                      6)})
+        else:
+            errs = np.broadcast_to(sweep_err[k], (len(tf_t), 4, 4))
+        for tj, t_true, e in zip(tf_t, trues, errs, strict=True):
             tf_true.append((int(tj), t_true))
-            tf_reported.append((int(tj), t_true @ sweep_err[k]))
+            tf_reported.append((int(tj), t_true @ e))
         frames_per_sweep.append(n)
         t_next = int(tf_t[-1]) + int(p.sweep_gap_s * 1e9)
 
@@ -460,17 +740,77 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     info = {"kind": "scan", "object": object_name, "units": "m",
             "workspace_min": " ".join(f"{x:.4f}" for x in ws_lo),
             "workspace_max": " ".join(f"{x:.4f}" for x in ws_hi)}
+    model = ("T_base_flange_reported = T_base_flange_true @ E "
+             "(E constant per sweep / per view)")
+    if drift:
+        model = ("T_base_flange_reported = T_base_flange_true @ E(t), E(t) = E_k @ D_k(s) "
+                 "@ P(x): E_k constant per sweep (sweep_errors), D_k a smooth drift within "
+                 "the sweep, P the flange-position-dependent error (robo3d.sim.rig); views: "
+                 "E_i @ P(x)")
     sim_meta = {"generator": f"robo3d {__version__} simulate", "object": object_name,
-                **p.to_metadata(),
+                **p.to_metadata(full=not legacy),
                 "sweep_plan_deg": json.dumps([[round(a, 6), round(e, 6), round(r, 6)]
                                               for a, e, r in plan]),
                 "frames_per_sweep": json.dumps(frames_per_sweep),
                 "sweep_errors": json.dumps(_error_summary(sweep_err)),
                 "view_errors": json.dumps(_error_summary(view_err)),
-                "robot_error_model": "T_base_flange_reported = T_base_flange_true @ E "
-                                     "(E constant per sweep / per view)"}
+                "robot_error_model": model}
+    if drift:
+        sim_meta["sweep_error_span"] = json.dumps(error_span)
     order = np.argsort([s for s, _ in tf_true], kind="stable")
-    truth = {"transforms": [{
+    if legacy:
+        truth = _legacy_truth(tf_true, order, t0, t_flange_camera, t_flange_laser)
+    else:
+        truth = _contract_truth(tf_true, order)
+
+    with RecordingWriter(path, message_encoding=message_encoding) as w:
+        w.add_metadata("robo3d.recording", info)
+        w.add_metadata("robo3d.simulation", sim_meta)
+        w.add_attachment("ground_truth/mesh.ply", mesh_to_ply_bytes(mesh), "application/x-ply")
+        w.add_attachment("ground_truth/tf.json",
+                         json.dumps(truth, separators=(",", ":")).encode(), "application/json")
+        if not legacy:
+            w.add_attachment(IMAGE_POSES, _image_poses_json(
+                view_stamps, view_cams, laser_frames, t_camera_laser, lag_ns),
+                "application/json")
+        w.write_calibration(_CAL_TOPIC, t0, camera)
+        w.write_transforms("/tf_static", t0, [("flange", "camera", t_flange_camera),
+                                              ("flange", "laser", t_flange_laser)])
+        for stamp, kind, i in events:
+            if kind == 0:
+                w.write_transforms("/tf", stamp, [("base", "flange", tf_reported[i][1])])
+            elif kind == 1:
+                signal, sil = render_view(scene, camera, view_cams[i], return_silhouette=True)
+                if vig is not None:
+                    signal = signal * vig[..., None]
+                img = sensor_noise(signal, np.random.default_rng([p.seed, 10, i]),
+                                   p.gain_dn_per_electron, p.view_read_noise_dn)
+                w.write_image(_VIEW_TOPIC, stamp, camera.frame_id, img, p.view_encoding,
+                              p.jpeg_quality)
+                if not legacy:  # the true silhouette, at the pose the image was taken
+                    w.add_attachment(f"{SILHOUETTES}{i:03d}.png",
+                                     encode_image(sil.astype(np.uint8) * 255, "png"),
+                                     "image/png")
+            else:
+                _, k, j, cam = laser_frames[i]
+                signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
+                if vig is not None:
+                    signal = signal * (vig if signal.ndim == 2 else vig[..., None])
+                img = sensor_noise(signal, np.random.default_rng([p.seed, 11, k, j]),
+                                   p.gain_dn_per_electron, p.laser_read_noise_dn)
+                w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
+                              p.jpeg_quality)
+    return SimulationResult(path=path, object_name=object_name, n_views=p.views,
+                            n_laser_frames=len(laser_frames), frames_per_sweep=frames_per_sweep,
+                            sweep_errors=sweep_err, view_errors=view_err,
+                            T_flange_camera=t_flange_camera, T_flange_laser=t_flange_laser,
+                            size_bytes=path.stat().st_size, seconds=0.0)
+
+
+def _legacy_truth(tf_true: list[tuple[int, np.ndarray]], order: np.ndarray, t0: int,
+                  t_flange_camera: np.ndarray, t_flange_laser: np.ndarray) -> dict[str, Any]:
+    """``ground_truth/tf.json`` in robo3d's first form (the demos keep it, byte for byte)."""
+    truth: dict[str, Any] = {"transforms": [{
         "parent": "base", "child": "flange",
         "stamps_ns": [tf_true[i][0] for i in order],
         # nanometre / 1e-12 resolution keeps the JSON short and far below any error
@@ -483,37 +823,42 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             "parent": "flange", "child": child, "static": True, "stamps_ns": [t0],
             "translations": [[round(float(x), 9) for x in t_fc[:3, 3]]],
             "quaternions": [[round(float(x), 12) for x in matrix_to_quat(t_fc[:3, :3])]]})
+    return truth
 
-    with RecordingWriter(path, message_encoding=message_encoding) as w:
-        w.add_metadata("robo3d.recording", info)
-        w.add_metadata("robo3d.simulation", sim_meta)
-        w.add_attachment("ground_truth/mesh.ply", mesh_to_ply_bytes(mesh), "application/x-ply")
-        w.add_attachment("ground_truth/tf.json",
-                         json.dumps(truth, separators=(",", ":")).encode(), "application/json")
-        w.write_calibration(_CAL_TOPIC, t0, camera)
-        w.write_transforms("/tf_static", t0, [("flange", "camera", t_flange_camera),
-                                              ("flange", "laser", t_flange_laser)])
-        for stamp, kind, i in events:
-            if kind == 0:
-                w.write_transforms("/tf", stamp, [("base", "flange", tf_reported[i][1])])
-            elif kind == 1:
-                signal = render_view(scene, camera, view_cams[i])
-                img = sensor_noise(signal, np.random.default_rng([p.seed, 10, i]),
-                                   p.gain_dn_per_electron, p.view_read_noise_dn)
-                w.write_image(_VIEW_TOPIC, stamp, camera.frame_id, img, p.view_encoding,
-                              p.jpeg_quality)
-            else:
-                _, k, j, cam = laser_frames[i]
-                signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
-                img = sensor_noise(signal, np.random.default_rng([p.seed, 11, k, j]),
-                                   p.gain_dn_per_electron, p.laser_read_noise_dn)
-                w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
-                              p.jpeg_quality)
-    return SimulationResult(path=path, object_name=object_name, n_views=p.views,
-                            n_laser_frames=len(laser_frames), frames_per_sweep=frames_per_sweep,
-                            sweep_errors=sweep_err, view_errors=view_err,
-                            T_flange_camera=t_flange_camera, T_flange_laser=t_flange_laser,
-                            size_bytes=path.stat().st_size, seconds=0.0)
+
+def _contract_truth(tf_true: list[tuple[int, np.ndarray]], order: np.ndarray) -> dict[str, Any]:
+    """``ground_truth/tf.json`` as ``recording-format.md`` defines it: a
+    ``foxglove.FrameTransforms`` message in JSON with the true ``base -> flange`` samples
+    (the static mounts carry no error: ``/tf_static`` is their truth)."""
+    out = []
+    for i in order:
+        stamp, t = tf_true[i]
+        q = matrix_to_quat(t[:3, :3])
+        out.append({"timestamp": {"sec": int(stamp) // 1_000_000_000,
+                                  "nsec": int(stamp) % 1_000_000_000},
+                    "parent_frame_id": "base", "child_frame_id": "flange",
+                    "translation": dict(zip("xyz", (round(float(x), 9) for x in t[:3, 3]),
+                                            strict=True)),
+                    "rotation": dict(zip("xyzw", (round(float(x), 12) for x in q),
+                                         strict=True))})
+    return {"transforms": out}
+
+
+def _image_poses_json(view_stamps: np.ndarray, view_cams: np.ndarray,
+                      laser_frames: list[tuple[int, int, int, np.ndarray]],
+                      t_camera_laser: np.ndarray, lag_ns: int) -> bytes:
+    def flat(t: np.ndarray) -> list[float]:
+        return [round(float(x), 12) for x in np.asarray(t).ravel()]
+
+    doc = {"clock_lag_ns": lag_ns,
+           _VIEW_TOPIC: [{"index": i, "stamp_ns": int(s), "exposure_ns": int(s) + lag_ns,
+                          "T_base_camera": flat(view_cams[i])}
+                         for i, s in enumerate(view_stamps)],
+           _LASER_TOPIC: [{"index": i, "stamp_ns": s, "exposure_ns": s + lag_ns,
+                           "sweep": k, "frame": j, "T_base_camera": flat(cam),
+                           "T_base_laser": flat(cam @ t_camera_laser)}
+                          for i, (s, k, j, cam) in enumerate(laser_frames)]}
+    return json.dumps(doc, separators=(",", ":")).encode()
 
 
 def write_demos(directory: str | os.PathLike[str], *, threads: int = 1,
@@ -545,5 +890,5 @@ def write_demos(directory: str | os.PathLike[str], *, threads: int = 1,
         raise ValueError(f"unknown demo(s) {', '.join(bad)}; expected {', '.join(DEMOS)}")
     if missing_only:
         todo = [n for n in todo if not (d / f"{n}.mcap").exists()]
-    return [simulate_recording(d / f"{n}.mcap", DEMOS[n][0], threads=threads, **DEMOS[n][1])
-            for n in todo]
+    return [simulate_recording(d / f"{n}.mcap", DEMOS[n][0], threads=threads, demo_format=True,
+                               **DEMOS[n][1]) for n in todo]

@@ -1598,12 +1598,22 @@ def _probe(path: str, topics: TopicMap) -> RecordingSummary:
 
 # =========================================================================== ground truth
 def read_ground_truth_tf(recording: Recording) -> TransformBuffer:
-    """The true transforms of a simulated recording (attachment ``ground_truth/tf.json``).
+    """The true transforms of a recording (attachment ``ground_truth/tf.json``).
 
-    The attachment is ``{"transforms": [{"parent", "child", "stamps_ns": [N],
-    "translations": [[x, y, z]] * N, "quaternions": [[x, y, z, w]] * N}, ...]}`` (metres,
-    nanoseconds; an optional ``"static": true`` marks a fixed link). Evaluation only:
-    the pipeline must never use it to measure.
+    Two forms are read:
+
+    - the contract's (``recording-format.md``): a ``foxglove.FrameTransforms`` message in
+      JSON, ``{"transforms": [{"timestamp": {"sec", "nsec"}, "parent_frame_id",
+      "child_frame_id", "translation": {"x", "y", "z"}, "rotation": {"x", "y", "z",
+      "w"}}, ...]}``, one entry per sample (the protobuf-style ``{"seconds", "nanos"}``
+      timestamp is accepted too). The truth names only the links that carry error; every
+      static link of the recording (``/tf_static``) that the truth does not name is
+      taken as true and added;
+    - robo3d's first form (the demo recordings): ``{"transforms": [{"parent", "child",
+      "stamps_ns": [N], "translations": [[x, y, z]] * N, "quaternions": [[x, y, z, w]] *
+      N}, ...]}`` (an optional ``"static": true`` marks a fixed link).
+
+    Metres, nanoseconds. Evaluation only: the pipeline must never use it to measure.
 
     Parameters
     ----------
@@ -1637,6 +1647,17 @@ def read_ground_truth_tf(recording: Recording) -> TransformBuffer:
     if not isinstance(entries, list):
         raise fail('must be {"transforms": [...]}')
     buf = TransformBuffer(max_gap_ns=recording.tf.max_gap_ns, path=path)
+    if entries and isinstance(entries[0], dict) and "child_frame_id" in entries[0]:
+        from ..transforms import matrix_to_quat
+
+        _ground_truth_frame_transforms(entries, buf, fail)
+        named = {child for _, child, _, _ in buf.links()}
+        for parent, child, static, _ in recording.tf.links():
+            if static and child not in named:
+                st, t = recording.tf.link_samples(parent, child)
+                buf.add(parent, child, st, t[:, :3, 3], matrix_to_quat(t[:, :3, :3]),
+                        static=True, topic="/tf_static")
+        return buf
     for i, e in enumerate(entries):
         try:
             parent, child = str(e["parent"]), str(e["child"])
@@ -1659,3 +1680,37 @@ def read_ground_truth_tf(recording: Recording) -> TransformBuffer:
                        f"(norms {norm.min():.6g} .. {norm.max():.6g})")
         buf.add(parent, child, stamps, tr, q, static=static, topic=GROUND_TRUTH_TF)
     return buf
+
+
+def _ground_truth_frame_transforms(entries: list[Any], buf: TransformBuffer,
+                                   fail: Callable[[str], RecordingError]) -> None:
+    """Add the samples of a ``foxglove.FrameTransforms`` JSON truth to ``buf``, per link."""
+    links: dict[tuple[str, str], tuple[list[int], list[list[float]], list[list[float]]]] = {}
+    for i, e in enumerate(entries):
+        try:
+            parent, child = str(e["parent_frame_id"]), str(e["child_frame_id"])
+            ts = e["timestamp"]
+            if "sec" in ts:
+                stamp = int(ts["sec"]) * 1_000_000_000 + int(ts.get("nsec", 0))
+            else:
+                stamp = int(ts["seconds"]) * 1_000_000_000 + int(ts.get("nanos", 0))
+            tr = [float(e["translation"][k]) for k in "xyz"]
+            q = [float(e["rotation"][k]) for k in "xyzw"]
+        except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
+            raise fail(f"transforms[{i}] needs timestamp {{sec, nsec}}, parent_frame_id, "
+                       f"child_frame_id, translation {{x, y, z}}, rotation {{x, y, z, w}} "
+                       f"({type(exc).__name__}: {exc})") from None
+        if not (np.all(np.isfinite(tr)) and np.all(np.isfinite(q))):
+            raise fail(f"transforms[{i}] ({parent} -> {child}) has non-finite values")
+        if abs(float(np.linalg.norm(q)) - 1) > _QUAT_TOL:
+            raise fail(f"transforms[{i}] ({parent} -> {child}) has a non-unit quaternion "
+                       f"(norm {np.linalg.norm(q):.6g})")
+        if stamp < 0:
+            raise fail(f"transforms[{i}] ({parent} -> {child}) has a negative timestamp")
+        s_, t_, q_ = links.setdefault((parent, child), ([], [], []))
+        s_.append(stamp)
+        t_.append(tr)
+        q_.append(q)
+    for (parent, child), (st, tr, q) in links.items():
+        buf.add(parent, child, np.array(st, dtype=np.int64), np.array(tr), np.array(q),
+                topic=GROUND_TRUTH_TF)

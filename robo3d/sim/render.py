@@ -30,6 +30,7 @@ mesh); hit points are on the mesh's exact triangles.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -45,9 +46,37 @@ __all__ = [
     "render_laser_frame",
     "sensor_noise",
     "pixel_grid_rays",
+    "vignetting",
+    "visible_stripe_points",
+    "StripeTruth",
+    "LASER_RGB",
+    "OBJECT_COLORS",
+    "OBJECT_TEXTURES",
+    "TABLE_MARKERS",
+    "object_texture_weight",
+    "table_marker_ink",
 ]
 
-MISS, OBJECT, TABLE = 0, 1, 2
+MISS, OBJECT, TABLE, WALL = 0, 1, 2, 3
+
+#: The laser's colour as a webcam's Bayer RGB sensor records it (relative response of
+#: R, G, B to the laser's single wavelength: 650 nm red, 520 nm green, 450 nm blue;
+#: the colour filters overlap, so the other channels see a little of it).
+LASER_RGB: dict[str, tuple[float, float, float]] = {
+    "red": (1.0, 0.12, 0.06),
+    "green": (0.22, 1.0, 0.32),
+    "blue": (0.10, 0.38, 1.0),
+}
+#: Named RGB albedos for ``object_color`` (``Appearance.cell``, ``--object-color``).
+OBJECT_COLORS: dict[str, tuple[float, float, float]] = {
+    "grey": (0.74, 0.70, 0.64), "white": (0.88, 0.87, 0.84), "orange": (0.86, 0.40, 0.10),
+    "red": (0.72, 0.12, 0.10), "green": (0.22, 0.56, 0.26), "blue": (0.14, 0.30, 0.72),
+    "yellow": (0.85, 0.75, 0.15), "brown": (0.48, 0.28, 0.15), "black": (0.07, 0.07, 0.07),
+}
+#: Procedural solid textures of the object (``Appearance.object_texture``).
+OBJECT_TEXTURES: tuple[str, ...] = ("none", "blotches", "checker", "stripes")
+#: Printed patterns on the table (``Appearance.table_markers``).
+TABLE_MARKERS: tuple[str, ...] = ("none", "aruco", "checker", "dots")
 
 
 @dataclass(frozen=True)
@@ -85,6 +114,50 @@ class Appearance:
     laser_reference_range : float, metres
     supersample : int
         Rays per pixel side near the stripe.
+
+    The fields below make the cell look like a real one (issue 10); at their defaults
+    the images are exactly those of the demo cell. :meth:`cell` sets them all.
+
+    laser_rgb : (3,) float or None
+        The laser's colour on the RGB sensor (:data:`LASER_RGB`): laser frames become
+        RGB, the stripe is ``laser_rgb`` times the albedo at the laser's wavelength (the
+        object's albedo in the laser's strongest channel). ``None``: grey frames.
+    laser_ambient_fraction : float or None
+        Room light in the laser frames: they are the view's rendering (ambient, direct
+        light, shadows, texture, glints) times this fraction (0.4-0.7 in a lit room),
+        plus the laser. ``None``: the dimmed ``laser_ambient_dn``.
+        With either of the two set, the stripe's peak is ``laser_peak_dn`` per unit
+        albedo (a dark surface gets a weak stripe, as a real one does).
+    object_texture : str
+        Procedural solid texture (:data:`OBJECT_TEXTURES`): ``blotches`` (smooth
+        random patches), ``checker`` (3-D checker), ``stripes`` (horizontal bands);
+        it blends ``object_albedo`` with ``object_albedo2``.
+    object_albedo2 : (3,) float
+        The texture's second colour.
+    object_texture_scale : float, metres
+        Size of the texture's features (checker square, band width, blotch size).
+    specular, shininess : float
+        Blinn-Phong highlight of the object (Blinn 1977): ``specular * max(0, n.h) **
+        shininess`` in units of ``view_exposure_dn``, under the directional light (views
+        and the room light of laser frames).
+    laser_specular : float
+        The same glint of the laser light (the stripe brightens where the object mirrors
+        the laser toward the camera).
+    table_tint : (3,) float
+        RGB multiplier of the table's albedo.
+    table_markers : str
+        Printed dark pattern on the table (:data:`TABLE_MARKERS`): ``aruco`` (a grid of
+        ArUco-like squares: black border, random 4 x 4 bits), ``checker``, ``dots``;
+        none within ``marker_clearance`` of the object's footprint.
+    marker_size, marker_pitch, marker_albedo, marker_clearance : float
+        Marker (or checker square, or dot diameter) size and grid pitch (metres), ink
+        albedo, free margin around the object (metres).
+    wall_distance : float or None, metres
+        A vertical wall at this horizontal distance from the origin (``None``: none),
+        its inward normal toward azimuth ``wall_azimuth_deg + 180``; the laser line
+        continues onto it.
+    wall_azimuth_deg, wall_height, wall_albedo, wall_tint
+        Where the wall stands (degrees from base +x), its height (m), albedo, tint.
     """
 
     object_albedo: tuple[float, float, float] = (0.74, 0.70, 0.64)
@@ -101,6 +174,104 @@ class Appearance:
     laser_fan_deg: float = 30.0
     laser_reference_range: float = 0.28
     supersample: int = 3
+    # ---- realism (issue 10); the defaults leave the demo cell exactly as it was
+    laser_rgb: tuple[float, float, float] | None = None
+    laser_ambient_fraction: float | None = None
+    object_texture: str = "none"
+    object_albedo2: tuple[float, float, float] = (0.25, 0.22, 0.20)
+    object_texture_scale: float = 0.012
+    specular: float = 0.0
+    shininess: float = 60.0
+    laser_specular: float = 0.0
+    table_tint: tuple[float, float, float] = (1.08, 1.0, 0.9)
+    table_markers: str = "none"
+    marker_size: float = 0.02
+    marker_pitch: float = 0.032
+    marker_albedo: float = 0.05
+    marker_clearance: float = 0.012
+    wall_distance: float | None = None
+    wall_azimuth_deg: float = 180.0
+    wall_height: float = 0.5
+    wall_albedo: float = 0.55
+    wall_tint: tuple[float, float, float] = (1.0, 0.96, 0.88)
+
+    def __post_init__(self) -> None:
+        checks = [
+            ("object_texture", self.object_texture in OBJECT_TEXTURES),
+            ("table_markers", self.table_markers in TABLE_MARKERS),
+            ("laser_rgb", self.laser_rgb is None or (len(self.laser_rgb) == 3
+                                                     and min(self.laser_rgb) >= 0
+                                                     and max(self.laser_rgb) > 0)),
+            ("laser_ambient_fraction", self.laser_ambient_fraction is None
+             or 0 <= self.laser_ambient_fraction <= 2),
+            ("object_texture_scale", self.object_texture_scale > 0),
+            ("specular", self.specular >= 0), ("laser_specular", self.laser_specular >= 0),
+            ("shininess", self.shininess >= 1),
+            ("marker_size", 0 < self.marker_size < self.marker_pitch),
+            ("wall_distance", self.wall_distance is None or self.wall_distance > 0),
+            ("wall_height", self.wall_height > 0),
+        ]
+        for name, ok in checks:
+            if not ok:
+                raise ValueError(f"appearance parameter {name} out of range: "
+                                 f"{getattr(self, name)!r}")
+
+    @property
+    def realistic(self) -> bool:
+        """Whether any realism option (issue 10) is on (else: the demo cell exactly)."""
+        return self != Appearance(**{k: getattr(self, k) for k in _LEGACY_FIELDS})
+
+    @classmethod
+    def cell(cls, laser: str | tuple[float, float, float] = "red",
+             object_color: str | tuple[float, float, float] = "orange",
+             texture: str = "blotches", markers: str = "aruco", wall: bool = True,
+             **overrides: object) -> Appearance:
+        """A cell as real ones are: room light, a coloured laser, a coloured textured
+        glossy object on a bright marker table in front of a wall.
+
+        Parameters
+        ----------
+        laser : {"red", "green", "blue"} or (3,) float
+            The laser's colour as the RGB sensor sees it (:data:`LASER_RGB`).
+        object_color : str or (3,) float
+            A name of :data:`OBJECT_COLORS` or an RGB albedo.
+        texture : str
+            One of :data:`OBJECT_TEXTURES` (``none`` for a plain object).
+        markers : str
+            One of :data:`TABLE_MARKERS`.
+        wall : bool
+            A wall behind the table (0.40 m from the centre, at azimuth 180 degrees).
+        **overrides
+            Any other field.
+        """
+        rgb = LASER_RGB[laser] if isinstance(laser, str) else tuple(map(float, laser))
+        if isinstance(laser, str) and laser not in LASER_RGB:
+            raise ValueError(f"unknown laser colour {laser!r}; expected one of "
+                             f"{', '.join(LASER_RGB)}")
+        if isinstance(object_color, str):
+            if object_color not in OBJECT_COLORS:
+                raise ValueError(f"unknown object colour {object_color!r}; expected one of "
+                                 f"{', '.join(OBJECT_COLORS)} or R G B")
+            albedo = OBJECT_COLORS[object_color]
+        else:
+            albedo = tuple(float(x) for x in object_color)
+        kw: dict[str, object] = dict(
+            object_albedo=albedo,
+            object_albedo2=tuple(round(0.45 * x, 4) for x in albedo),
+            object_texture=texture, specular=0.35, shininess=40.0, laser_specular=0.25,
+            table_albedo=0.82, table_texture=0.04, table_tint=(1.0, 0.99, 0.95),
+            table_markers=markers, background=0.30, ambient=0.45, direct=0.55,
+            view_exposure_dn=250.0, laser_rgb=rgb, laser_ambient_fraction=0.55,
+            laser_peak_dn=320.0, laser_width=0.0006, wall_distance=0.40 if wall else None)
+        kw.update(overrides)
+        return cls(**kw)  # type: ignore[arg-type]
+
+
+#: The fields of the demo cell's appearance (all others are issue 10's realism options).
+_LEGACY_FIELDS: tuple[str, ...] = (
+    "object_albedo", "table_albedo", "table_texture", "background", "light_dir", "ambient",
+    "direct", "view_exposure_dn", "laser_ambient_dn", "laser_peak_dn", "laser_width",
+    "laser_fan_deg", "laser_reference_range", "supersample")
 
 
 @dataclass
@@ -110,7 +281,7 @@ class Hits:
     Attributes
     ----------
     kind : (N,) int8
-        0 miss, 1 object, 2 table.
+        0 miss, 1 object, 2 table, 3 wall.
     t : (N,) float64, metres
         Distance along the (unit) ray; ``inf`` on a miss.
     points : (N, 3) float64, metres
@@ -131,6 +302,88 @@ def _table_pattern(xy: np.ndarray) -> np.ndarray:
     warp = 0.004 * np.sin(2 * np.pi * 7.0 * y + 1.3) + 0.002 * np.sin(2 * np.pi * 19.0 * x)
     return (0.6 * np.sin(2 * np.pi * 61.0 * (x + warp))
             + 0.4 * np.sin(2 * np.pi * 23.0 * (0.8 * x + 0.6 * y) + 0.7))
+
+
+#: Half-size (metres) of the printed marker board: markers cover ``|x|, |y| <= 0.2``.
+MARKER_BOARD_HALF = 0.2
+_TEXTURE_WAVES = np.array([[0.83, 0.31, 0.46], [-0.27, 0.91, 0.31], [0.12, -0.45, 0.88],
+                           [0.64, 0.64, -0.42], [-0.71, 0.05, 0.70]])
+_TEXTURE_PHASES = np.array([0.3, 2.1, 4.0, 1.2, 5.3])
+
+
+def object_texture_weight(points: np.ndarray, kind: str, scale: float) -> np.ndarray:
+    """Weight ``(N,)`` in [0, 1] of the second colour of a procedural solid texture.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, metres
+    kind : str
+        One of :data:`OBJECT_TEXTURES`.
+    scale : float, metres
+        Feature size.
+    """
+    p = np.asarray(points, dtype=np.float64) / scale
+    if kind == "none":
+        return np.zeros(len(p))
+    if kind == "checker":
+        return (np.floor(p).astype(np.int64).sum(axis=1) % 2).astype(np.float64)
+    if kind == "stripes":
+        return (np.floor(p[:, 2]).astype(np.int64) % 2).astype(np.float64)
+    # blotches: a sum of five plane waves, squashed to patches with soft edges
+    w = np.sin(np.pi * (p @ _TEXTURE_WAVES.T) + _TEXTURE_PHASES).sum(axis=1)
+    return 0.5 + 0.5 * np.tanh(1.6 * w)
+
+
+def _hash_bits(*ints: np.ndarray) -> np.ndarray:
+    """A deterministic pseudo-random bit per tuple of integer arrays."""
+    h = np.zeros(np.broadcast(*ints).shape, dtype=np.uint64)
+    for k, v in zip((73856093, 19349663, 83492791, 2654435761), ints, strict=False):
+        h ^= v.astype(np.int64).astype(np.uint64) * np.uint64(k)
+    h ^= h >> np.uint64(13)
+    h *= np.uint64(1274126177)
+    h ^= h >> np.uint64(16)
+    return ((h >> np.uint64(7)) & np.uint64(1)).astype(bool)
+
+
+def table_marker_ink(xy: np.ndarray, kind: str, size: float, pitch: float,
+                     keep_out: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Where the table's printed pattern is dark: ``(N,)`` bool.
+
+    Parameters
+    ----------
+    xy : (N, 2) float64, metres
+        Table points.
+    kind : str
+        One of :data:`TABLE_MARKERS`: ``aruco`` (squares of ``size`` on a grid of
+        ``pitch``, a black border of one cell of six and random 4 x 4 inner bits),
+        ``checker`` (squares of ``size``), ``dots`` (discs of diameter ``size``).
+    size, pitch : float, metres
+    keep_out : ((2,), (2,)) float64
+        A box ``(lo, hi)`` in x, y left blank (the object's footprint and margin).
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    on_board = np.all(np.abs(xy) <= MARKER_BOARD_HALF, axis=1)
+    lo, hi = keep_out
+    if kind == "none":
+        return np.zeros(len(xy), dtype=bool)
+    if kind == "checker":
+        ij = np.floor(xy / size).astype(np.int64)
+        ink = (ij.sum(axis=1) % 2) == 0
+        c_lo, c_hi = ij * size, (ij + 1) * size
+    else:
+        ij = np.floor(xy / pitch).astype(np.int64)
+        centre = (ij + 0.5) * pitch
+        d = xy - centre
+        if kind == "dots":
+            ink = np.einsum("ij,ij->i", d, d) <= (0.5 * size) ** 2
+        else:
+            inside = np.all(np.abs(d) < 0.5 * size, axis=1)
+            b = np.clip(np.floor((d + 0.5 * size) / (size / 6.0)).astype(np.int64), 0, 5)
+            border = (b[:, 0] == 0) | (b[:, 0] == 5) | (b[:, 1] == 0) | (b[:, 1] == 5)
+            ink = inside & (border | _hash_bits(ij[:, 0], ij[:, 1], b[:, 0], b[:, 1]))
+        c_lo, c_hi = centre - 0.5 * size, centre + 0.5 * size
+    clear = np.any(c_hi < lo, axis=1) | np.any(c_lo > hi, axis=1)
+    return ink & clear & on_board
 
 
 class SimScene:
@@ -163,6 +416,23 @@ class SimScene:
         tv = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], dtype=np.float32)
         tf = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
         self._table_id = self._scene.add_triangles(o3d.core.Tensor(tv), o3d.core.Tensor(tf))
+        a = self.appearance
+        self._wall_id: int | None = None
+        self._wall_normal = np.zeros(3)
+        self._wall_tangent = np.zeros(3)
+        if a.wall_distance is not None:  # a vertical quad facing the origin
+            az = np.radians(a.wall_azimuth_deg)
+            out = np.array([np.cos(az), np.sin(az), 0.0])
+            tangent = np.array([-out[1], out[0], 0.0])
+            c = a.wall_distance * out
+            wv = np.array([c - s * tangent, c + s * tangent,
+                           c + s * tangent + [0, 0, a.wall_height],
+                           c - s * tangent + [0, 0, a.wall_height]], dtype=np.float32)
+            self._wall_id = self._scene.add_triangles(o3d.core.Tensor(wv), o3d.core.Tensor(tf))
+            self._wall_normal = -out
+            self._wall_tangent = tangent
+        lo, hi = mesh.bounds
+        self._keep_out = (lo[:2] - a.marker_clearance, hi[:2] + a.marker_clearance)
         self._vertex_normals = mesh.vertex_normals()
         self._faces = mesh.faces
         self._ray_cache: dict[tuple, np.ndarray] = {}
@@ -198,6 +468,8 @@ class SimScene:
         kind = np.zeros(len(t), dtype=np.int8)
         kind[gid == self._object_id] = OBJECT
         kind[gid == self._table_id] = TABLE
+        if self._wall_id is not None:
+            kind[gid == self._wall_id] = WALL
         hit = kind != MISS
         points = origins + np.where(hit, t, 0.0)[:, None] * dirs
         points[~hit] = 0.0
@@ -213,6 +485,7 @@ class SimScene:
             normals_[obj] = n / np.linalg.norm(n, axis=1, keepdims=True)
         if normals:
             normals_[kind == TABLE] = (0.0, 0.0, 1.0)
+            normals_[kind == WALL] = self._wall_normal
         return Hits(kind, t, points, normals_)
 
     def first_hit_distance(self, origins: np.ndarray, vectors: np.ndarray) -> np.ndarray:
@@ -232,7 +505,7 @@ class SimScene:
         """Grey albedo ``(N,)`` at the hits (0 on a miss); ``texture=False`` gives the
         table its mean albedo."""
         a = self.appearance
-        lut = np.array([0.0, float(np.mean(a.object_albedo)), a.table_albedo])
+        lut = np.array([0.0, float(np.mean(a.object_albedo)), a.table_albedo, a.wall_albedo])
         out = lut[hits.kind]
         if texture and a.table_texture:
             table = hits.kind == TABLE
@@ -243,11 +516,37 @@ class SimScene:
         """RGB albedo ``(N, 3)`` at the hits (0 on a miss)."""
         a = self.appearance
         out = np.zeros((len(hits.kind), 3))
-        out[hits.kind == OBJECT] = a.object_albedo
+        obj = hits.kind == OBJECT
+        out[obj] = a.object_albedo
+        if a.object_texture != "none" and np.any(obj):
+            wt = object_texture_weight(hits.points[obj], a.object_texture,
+                                       a.object_texture_scale)[:, None]
+            out[obj] = (1 - wt) * np.asarray(a.object_albedo) + wt * np.asarray(a.object_albedo2)
         table = hits.kind == TABLE
         grain = a.table_albedo * (1 + a.table_texture * _table_pattern(hits.points[table]))
-        out[table] = grain[:, None] * np.array([1.08, 1.0, 0.9])
+        out[table] = grain[:, None] * np.array(a.table_tint)
+        if a.table_markers != "none" and np.any(table):
+            ink = table_marker_ink(hits.points[table, :2], a.table_markers, a.marker_size,
+                                   a.marker_pitch, self._keep_out)
+            sub = out[table]
+            sub[ink] = a.marker_albedo
+            out[table] = sub
+        wall = hits.kind == WALL
+        if np.any(wall):
+            pw = hits.points[wall]
+            st = np.stack([pw @ self._wall_tangent, pw[:, 2]], axis=1)
+            plaster = a.wall_albedo * (1 + 0.08 * _table_pattern(0.3 * st))
+            out[wall] = plaster[:, None] * np.asarray(a.wall_tint)
         return out
+
+    def albedo_at_laser(self, hits: Hits) -> np.ndarray:
+        """Albedo ``(N,)`` at the laser's wavelength: the RGB albedo's channel where the
+        laser is strongest (the mean of the channels for a grey laser)."""
+        rgb = self.albedo_rgb(hits)
+        a = self.appearance
+        if a.laser_rgb is None:
+            return rgb.mean(axis=1)
+        return rgb[:, int(np.argmax(a.laser_rgb))]
 
     def pixel_rays(self, camera: CameraModel) -> np.ndarray:
         """Unit ray directions ``(H * W, 3)`` of every pixel centre in the camera frame
@@ -266,7 +565,8 @@ def pixel_grid_rays(camera: CameraModel) -> np.ndarray:
     return camera.rays(np.stack([u.ravel(), v.ravel()], axis=1))
 
 
-def render_view(scene: SimScene, camera: CameraModel, T_base_camera: np.ndarray) -> np.ndarray:
+def render_view(scene: SimScene, camera: CameraModel, T_base_camera: np.ndarray, *,
+                return_silhouette: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Noise-free ambient-lit view of the scene.
 
     Parameters
@@ -274,12 +574,26 @@ def render_view(scene: SimScene, camera: CameraModel, T_base_camera: np.ndarray)
     scene : SimScene
     camera : CameraModel
     T_base_camera : (4, 4) float64
+    return_silhouette : bool
+        Also return the true silhouette: the pixels whose centre ray hits the object.
 
     Returns
     -------
     (H, W, 3) float64, DN
         RGB signal before sensor noise.
+    silhouette : (H, W) bool
+        Only with ``return_silhouette``.
     """
+    rgb, hits = _view_signal(scene, camera, T_base_camera)
+    image = rgb.reshape(camera.height, camera.width, 3)
+    if return_silhouette:
+        return image, (hits.kind == OBJECT).reshape(camera.height, camera.width)
+    return image
+
+
+def _view_signal(scene: SimScene, camera: CameraModel,
+                 T_base_camera: np.ndarray) -> tuple[np.ndarray, Hits]:
+    """The view's RGB signal ``(H * W, 3)`` (DN) and the pixel-centre hits."""
     a = scene.appearance
     t = np.asarray(T_base_camera, dtype=np.float64)
     dirs = scene.pixel_rays(camera) @ t[:3, :3].T
@@ -296,8 +610,14 @@ def render_view(scene: SimScene, camera: CameraModel, T_base_camera: np.ndarray)
         shade[lit_idx[blocked]] = 0.0
     irradiance = a.ambient + a.direct * shade
     rgb = scene.albedo_rgb(hits) * irradiance[:, None]
+    if a.specular > 0:  # Blinn-Phong glint of the directional light on the object
+        obj = np.flatnonzero((hits.kind == OBJECT) & (shade > 0))
+        half = light - dirs[obj]
+        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        nh = np.maximum(np.einsum("ij,ij->i", hits.normals[obj], half), 0.0)
+        rgb[obj] += (a.specular * a.direct * nh ** a.shininess)[:, None]
     rgb[~hit] = a.background
-    return (rgb * a.view_exposure_dn).reshape(camera.height, camera.width, 3)
+    return rgb * a.view_exposure_dn, hits
 
 
 def _laser_dn(scene: SimScene, hits: Hits, T_base_laser: np.ndarray) -> np.ndarray:
@@ -341,12 +661,16 @@ def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.n
 
     Returns
     -------
-    (H, W) float64, DN
-        Grey signal before sensor noise.
+    (H, W) or (H, W, 3) float64, DN
+        Grey signal before sensor noise; RGB when ``appearance.laser_rgb`` is set. With
+        ``appearance.laser_ambient_fraction`` the room light is the view's rendering
+        times that fraction (see :class:`Appearance`).
     """
     a = scene.appearance
     t = np.asarray(T_base_camera, dtype=np.float64)
     t_l = np.asarray(T_base_laser, dtype=np.float64)
+    if a.laser_rgb is not None or a.laser_ambient_fraction is not None:
+        return _render_laser_frame_lit(scene, camera, t, t_l)
     h, w = camera.height, camera.width
     ambient = a.laser_ambient_dn / float(np.mean(a.object_albedo))
     dirs = scene.pixel_rays(camera) @ t[:3, :3].T
@@ -373,6 +697,177 @@ def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.n
     return image.reshape(h, w)
 
 
+def _stripe_pixels(scene: SimScene, camera: CameraModel, hits: Hits,
+                   t_l: np.ndarray) -> np.ndarray:
+    """Flat indices of the pixels to supersample: centre hit near the sheet, dilated."""
+    a = scene.appearance
+    h, w = camera.height, camera.width
+    d = np.abs((hits.points - t_l[:3, 3]) @ t_l[:3, 1])
+    footprint = np.where(np.isfinite(hits.t), hits.t, 0.0) / camera.fx
+    near = (hits.kind != MISS) & (d < 2.0 * a.laser_width + 1.0 * footprint)
+    near = cv2.dilate(near.reshape(h, w).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return np.flatnonzero(near)
+
+
+def _laser_dn_lit(scene: SimScene, hits: Hits, T_base_laser: np.ndarray,
+                  view_dirs: np.ndarray) -> np.ndarray:
+    """Laser-lit DN ``(N,)`` of hit points in a room-lit / coloured-laser frame.
+
+    ``laser_peak_dn`` per unit albedo at the laser's wavelength, times the sheet's
+    Gaussian profile, ``cos(theta)`` and ``r_ref / r``; plus the laser's Blinn-Phong
+    glint on the object (``laser_specular``); zero where the laser is shadowed.
+    """
+    a = scene.appearance
+    out = np.zeros(len(hits.kind))
+    o = T_base_laser[:3, 3]
+    p_l = (hits.points - o) @ T_base_laser[:3, :3]
+    gauss = np.exp(-2.0 * (p_l[:, 1] / a.laser_width) ** 2)
+    in_fan = (p_l[:, 2] > 0) & (np.abs(np.arctan2(p_l[:, 0], p_l[:, 2]))
+                                <= np.radians(a.laser_fan_deg))
+    cand = np.nonzero((hits.kind != MISS) & in_fan & (gauss > 1e-6))[0]
+    if len(cand) == 0:
+        return out
+    vec = hits.points[cand] - o
+    rng_ = np.linalg.norm(vec, axis=1)
+    n = hits.normals[cand]
+    cos = np.maximum(-np.einsum("ij,ij->i", n, vec) / rng_, 0.0)
+    lit = scene.first_hit_distance(o, vec) >= 1.0 - 5e-5 / rng_
+    sub = Hits(hits.kind[cand], hits.t[cand], hits.points[cand], n)
+    albedo = scene.albedo_at_laser(sub)
+    value = albedo * cos
+    if a.laser_specular > 0:
+        half = -vec / rng_[:, None] - view_dirs[cand]
+        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        nh = np.maximum(np.einsum("ij,ij->i", n, half), 0.0)
+        value = value + np.where(sub.kind == OBJECT, a.laser_specular * nh ** a.shininess, 0.0)
+    out[cand] = a.laser_peak_dn * value * gauss[cand] * (a.laser_reference_range / rng_) * lit
+    return out
+
+
+def _render_laser_frame_lit(scene: SimScene, camera: CameraModel, t: np.ndarray,
+                            t_l: np.ndarray) -> np.ndarray:
+    """A laser frame in room light and/or with a coloured laser (see render_laser_frame).
+
+    The room light is rendered at the pixel centres (one ray each, as the views); the
+    laser is added as the mean over ``supersample x supersample`` rays of the pixels
+    near the sheet.
+    """
+    a = scene.appearance
+    h, w = camera.height, camera.width
+    if a.laser_ambient_fraction is not None:
+        room, hits = _view_signal(scene, camera, t)
+        room *= a.laser_ambient_fraction
+    else:
+        dirs = scene.pixel_rays(camera) @ t[:3, :3].T
+        hits = scene.cast(t[:3, 3], dirs, normals=False)
+        room = scene.albedo_rgb(hits) * (a.laser_ambient_dn / float(np.mean(a.object_albedo)))
+    idx = _stripe_pixels(scene, camera, hits, t_l)
+    laser = np.zeros(h * w)
+    if len(idx):
+        s = max(int(a.supersample), 1)
+        offs = (np.arange(s) + 0.5) / s - 0.5
+        du, dv = np.meshgrid(offs, offs)
+        uv = np.stack([idx % w, idx // w], axis=1).astype(np.float64)
+        sub_uv = (uv[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=1)[None]
+                  ).reshape(-1, 2)
+        sub_dirs = camera.rays(sub_uv) @ t[:3, :3].T
+        sub = scene.cast(t[:3, 3], sub_dirs)
+        laser[idx] = _laser_dn_lit(scene, sub, t_l, sub_dirs).reshape(len(idx), s * s).mean(1)
+    if a.laser_rgb is None:
+        return (room.mean(axis=1) + laser).reshape(h, w)
+    colour = np.asarray(a.laser_rgb, dtype=np.float64)
+    return (room + laser[:, None] * colour).reshape(h, w, 3)
+
+
+class StripeTruth(NamedTuple):
+    """The true laser stripe of one frame (:func:`visible_stripe_points`).
+
+    Attributes
+    ----------
+    points_base : (N, 3) float64, metres
+        Surface points on the laser sheet, lit by the laser and seen by the camera, in
+        the order of the laser's fan angle (a connected curve between depth jumps).
+    pixels_uv : (N, 2) float64
+        Their (distorted) pixels, inside the image.
+    on_object : (N,) bool
+        On the object (else on the table or the wall).
+    kind : (N,) int8
+        1 object, 2 table, 3 wall.
+    signal_dn : (N,) float64
+        The stripe's expected peak signal there (DN above the room light, before the
+        sensor clips it), as the renderer computes it; a benchmark may ignore points too
+        faint to be seen (grazing incidence, dark surfaces).
+    """
+
+    points_base: np.ndarray
+    pixels_uv: np.ndarray
+    on_object: np.ndarray
+    kind: np.ndarray
+    signal_dn: np.ndarray
+
+
+def visible_stripe_points(scene: SimScene, camera: CameraModel, T_base_camera: np.ndarray,
+                          T_base_laser: np.ndarray, n_rays: int | None = None
+                          ) -> StripeTruth:
+    """The truth of a laser frame's stripe: where the sheet lights the scene and the
+    camera sees it.
+
+    Rays are cast from the laser's origin in its sheet (the x-z plane of the laser
+    frame) over the fan, ``n_rays`` evenly spaced in angle; their first hits are the lit
+    points (the laser's own shadowing is exact). A point is kept when the camera's ray
+    toward it first hits the point itself (not occluded), it is in front of the camera
+    and its projection falls inside the image.
+
+    Parameters
+    ----------
+    scene : SimScene
+    camera : CameraModel
+    T_base_camera, T_base_laser : (4, 4) float64
+        The TRUE poses at the frame's exposure (a recording's ground truth: see
+        ``ground_truth/image_poses.json`` in ``recordings/README.md``).
+    n_rays : int, optional
+        Rays over the fan (default ``8 * max(width, height)``: a few tenths of a pixel
+        apart in the image at the working distance).
+
+    Returns
+    -------
+    StripeTruth
+    """
+    a = scene.appearance
+    t = np.asarray(T_base_camera, dtype=np.float64)
+    t_l = np.asarray(T_base_laser, dtype=np.float64)
+    n = int(n_rays) if n_rays is not None else 8 * max(camera.width, camera.height)
+    if n < 2:
+        raise ValueError(f"n_rays must be >= 2, got {n}")
+    ang = np.radians(a.laser_fan_deg) * np.linspace(-1.0, 1.0, n)
+    dirs_l = np.stack([np.sin(ang), np.zeros(n), np.cos(ang)], axis=1)
+    o = t_l[:3, 3]
+    hits = scene.cast(o, dirs_l @ t_l[:3, :3].T)
+    keep = np.flatnonzero(hits.kind != MISS)
+    pts = hits.points[keep]
+    c = t[:3, 3]
+    vec = pts - c
+    dist = np.linalg.norm(vec, axis=1)
+    seen = scene.first_hit_distance(c, vec) >= 1.0 - 5e-5 / np.maximum(dist, 1e-9)
+    p_cam = (pts - c) @ t[:3, :3]
+    uv, front = camera.project(p_cam)
+    inside = (front & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5)
+              & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5))
+    ok = seen & inside
+    keep, pts, uv = keep[ok], pts[ok], uv[ok]
+    kind = hits.kind[keep]
+    sub = Hits(kind, hits.t[keep], pts, hits.normals[keep])
+    vec_l = pts - o
+    rng_ = np.linalg.norm(vec_l, axis=1)
+    cos = np.maximum(-np.einsum("ij,ij->i", sub.normals, vec_l) / rng_, 0.0)
+    if a.laser_rgb is None and a.laser_ambient_fraction is None:
+        albedo = scene.albedo_grey(sub) / float(np.mean(a.object_albedo))
+    else:
+        albedo = scene.albedo_at_laser(sub)
+    signal = a.laser_peak_dn * albedo * cos * (a.laser_reference_range / rng_)
+    return StripeTruth(pts, uv, kind == OBJECT, kind.astype(np.int8), signal)
+
+
 def sensor_noise(signal_dn: np.ndarray, rng: np.random.Generator, gain: float,
                  read_noise: float) -> np.ndarray:
     """Add shot and read noise to a signal and quantise it to 8 bits.
@@ -396,3 +891,11 @@ def sensor_noise(signal_dn: np.ndarray, rng: np.random.Generator, gain: float,
     if read_noise > 0:
         s = s + rng.normal(0.0, read_noise, s.shape)
     return np.clip(np.rint(s), 0, 255).astype(np.uint8)
+
+
+def vignetting(height: int, width: int, strength: float) -> np.ndarray:
+    """A lens's vignetting, ``(H, W)`` gain: ``1 - strength * (r / r_corner)^2`` (a
+    cheap lens's light fall-off; ``strength`` 0.2-0.35 loses 20-35 % in the corners)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    r2 = ((u - (width - 1) / 2) ** 2 + (v - (height - 1) / 2) ** 2)
+    return 1.0 - strength * r2 / r2.max()

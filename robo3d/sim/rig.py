@@ -19,6 +19,16 @@ Choices
   the flange frame: ``T_base_flange_reported = T_base_flange_true @ E``. Its translation
   and rotation magnitudes are drawn uniformly from the given ranges, along uniformly
   random directions/axes.
+- The ``drift`` model (issue 10: an error the per-sweep rigid alignment does not
+  assume) multiplies two more factors onto it: ``E(t) = E_k @ D_k(s) @ P(x)``.
+  ``D_k(s)`` drifts smoothly within sweep ``k`` (``s`` in [0, 1] from its first to its
+  last ``/tf`` sample): a ramp ``a (2 s - 1) u`` plus a wave ``b sin(2 pi f s + phi) w``
+  of its translation and likewise of its rotation vector (``a``, ``b`` each half of a
+  magnitude drawn from the range, ``f`` 0.5-1.5 cycles per sweep). ``P(x)`` depends on
+  where the flange is (a stand-in for the joint configuration, as a robot's kinematic
+  errors do): translation ``G (x - x_ref)`` and rotation vector ``H (x - x_ref)`` with
+  random matrices of spectral norm ``mm_per_m`` and ``deg_per_m``, ``x_ref`` the
+  object's centre; the views get ``P`` too.
 """
 
 from __future__ import annotations
@@ -37,6 +47,9 @@ __all__ = [
     "sweep_poses",
     "random_rigid_error",
     "rotation_about_axis",
+    "PoseDependentError",
+    "random_drift",
+    "drift_error",
 ]
 
 
@@ -263,3 +276,79 @@ def random_rigid_error(rng: np.random.Generator, translation_range: tuple[float,
 
 def _flange_from_camera(T_base_camera: np.ndarray, T_flange_camera: np.ndarray) -> np.ndarray:
     return np.asarray(T_base_camera) @ invert_transform(T_flange_camera)
+
+
+def _exp_se3(rotvec: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """``(N, 4, 4)`` rigid transforms from rotation vectors and translations ``(N, 3)``."""
+    rv = np.atleast_2d(np.asarray(rotvec, dtype=np.float64))
+    tr = np.atleast_2d(np.asarray(translation, dtype=np.float64))
+    theta = np.linalg.norm(rv, axis=1)
+    axis = rv / np.where(theta > 0, theta, 1.0)[:, None]
+    k = np.zeros((len(rv), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    out = np.tile(np.eye(4), (len(rv), 1, 1))
+    out[:, :3, :3] = np.eye(3) + s * k + (1 - c) * (k @ k)
+    out[:, :3, 3] = tr
+    return out
+
+
+class PoseDependentError:
+    """A robot error that depends on where the flange is: ``P(x)``, see the module notes.
+
+    Parameters
+    ----------
+    rng : numpy Generator
+    mm_per_m, deg_per_m : float
+        Spectral norms of the translation and rotation gradients.
+    reference : (3,) float64, metres
+        Where the error is zero (the object's centre).
+    """
+
+    def __init__(self, rng: np.random.Generator, mm_per_m: float, deg_per_m: float,
+                 reference: np.ndarray) -> None:
+        def gradient(scale: float) -> np.ndarray:
+            m = rng.normal(size=(3, 3))
+            return scale * m / np.linalg.norm(m, 2)
+
+        self.G = gradient(mm_per_m * 1e-3)
+        self.H = gradient(np.radians(deg_per_m))
+        self.reference = np.asarray(reference, dtype=np.float64)
+
+    def __call__(self, positions: np.ndarray) -> np.ndarray:
+        """``(N, 4, 4)`` error at flange positions ``(N, 3)`` (metres, in ``base``)."""
+        d = np.atleast_2d(np.asarray(positions, dtype=np.float64)) - self.reference
+        return _exp_se3(d @ self.H.T, d @ self.G.T)
+
+
+def random_drift(rng: np.random.Generator, translation_range: tuple[float, float],
+                 rotation_range_deg: tuple[float, float]) -> dict[str, np.ndarray]:
+    """The random parameters of one sweep's drift ``D_k(s)`` (see the module notes).
+
+    Parameters
+    ----------
+    rng : numpy Generator
+    translation_range : (lo, hi), metres
+    rotation_range_deg : (lo, hi), degrees
+    """
+    def unit() -> np.ndarray:
+        v = rng.normal(size=3)
+        return v / np.linalg.norm(v)
+
+    out = {}
+    for name, (lo, hi), scale in (("t", translation_range, 1.0),
+                                  ("r", rotation_range_deg, np.pi / 180)):
+        out[f"{name}_ramp"] = 0.5 * scale * rng.uniform(lo, hi) * unit()
+        out[f"{name}_wave"] = 0.5 * scale * rng.uniform(lo, hi) * unit()
+    out["freq"] = np.array(rng.uniform(0.5, 1.5))
+    out["phase"] = np.array(rng.uniform(0.0, 2 * np.pi))
+    return out
+
+
+def drift_error(drift: dict[str, np.ndarray], s: np.ndarray) -> np.ndarray:
+    """``(N, 4, 4)`` drift ``D_k(s)`` at sweep fractions ``s`` ``(N,)`` in [0, 1]."""
+    s = np.atleast_1d(np.asarray(s, dtype=np.float64))[:, None]
+    wave = np.sin(2 * np.pi * drift["freq"] * s + drift["phase"])
+    return _exp_se3(drift["r_ramp"] * (2 * s - 1) + drift["r_wave"] * wave,
+                    drift["t_ramp"] * (2 * s - 1) + drift["t_wave"] * wave)

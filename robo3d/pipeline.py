@@ -219,13 +219,17 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
     """Segment every silhouette view (seed §3.2) and keep its camera and pose.
 
-    Outputs: ``npz`` (masks, cameras, poses), ``report`` (per view: threshold, area,
-    components, whether the silhouette touches the ROI's or the image's border, the ROI,
-    whether an empty-scene image was subtracted), ``rrd`` (images with their masks at
-    their cameras) and, when given, ``masks``: a folder of one PNG per view
-    (``view_000.png``, 255 = silhouette).
+    Outputs: ``npz`` (masks, cameras, poses, ``qa_flagged`` per view), ``report`` (per
+    view: threshold, area, components, whether the silhouette touches the ROI's or the
+    image's border, the ROI, whether an empty-scene image was subtracted, where the
+    background was sampled, whether GrabCut refined it, and ``qa``: ``flags`` of an absurd
+    mask, see :func:`robo3d.silhouettes.silhouette_qa`; ``qa_flagged_views`` lists the
+    flagged views), ``rrd`` (images with their masks at their cameras) and, when given,
+    ``masks``: a folder of one PNG per view (``view_000.png``, 255 = silhouette).
+    A view whose segmentation fails (empty, uniform, or covering its whole region) is
+    an error naming it; a mask that is merely absurd is flagged, not dropped.
     """
-    from .silhouettes import find_roi, roi_from_box, segment_silhouette
+    from .silhouettes import segment_view
     from .viz import log_box, log_report, rerun_log, spaced_indices
 
     t0 = time.perf_counter()
@@ -236,25 +240,13 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     seg = cfg["segmentation"]
     ws = rec.workspace
     backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses)
-    kwargs = dict(polarity=seg["polarity"], threshold=seg["threshold"],
-                  blur_sigma_px=seg["blur_sigma_px"], min_component_px=seg["min_component_px"],
-                  min_component_fraction=seg["min_component_fraction"],
-                  fill_holes=seg["fill_holes"], max_hole_fraction=seg["max_hole_fraction"])
     masks, per_view = [], []
     progress = _Progress("segmenting views", len(views))
     for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
         image = rec.decode(msg)
         background = backgrounds[i]
-        roi, roi_source = None, "image"
         try:
-            if ws is not None and seg["roi_from_workspace"]:
-                roi = roi_from_box(ws[0], ws[1], cam, T, margin_px=seg["roi_margin_px"])
-                roi_source = "workspace box"
-            elif seg["roi_auto"]:
-                roi = find_roi(image, margin_px=seg["roi_margin_px"], background=background,
-                               **kwargs)
-                roi_source = "automatic"
-            sil = segment_silhouette(image, roi=roi, background=background, **kwargs)
+            sil, roi_source = segment_view(image, cam, T, seg, ws, background)
         except StageError as exc:
             raise StageError(f"{inputs['recording']}: topic {msg.topic}, view {i} "
                              f"(t={msg.timestamp_ns} ns): {exc}") from None
@@ -267,6 +259,12 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
             log.warning("view %d (topic %s, t=%d ns): the silhouette touches the border of its "
                         "region of interest (%s): the object may reach beyond it and be cut "
                         "off", i, msg.topic, msg.timestamp_ns, roi_source)
+        if sil.qa["flags"]:
+            log.warning("view %d (topic %s, t=%d ns): absurd silhouette, QA flags %s (fill "
+                        "%.2f of its region, sides touched %s); flagged in the report and in "
+                        "silhouettes.npz (qa_flagged)", i, msg.topic, msg.timestamp_ns,
+                        ", ".join(sil.qa["flags"]), sil.qa["fill_fraction"],
+                        ", ".join(sil.qa["sides_touched"]) or "none")
         masks.append(sil.mask)
         per_view.append({"index": i, "timestamp_ns": msg.timestamp_ns,
                          "threshold": float(sil.threshold), "polarity": sil.polarity,
@@ -276,6 +274,8 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          "roi": [int(r) for r in sil.roi], "roi_source": roi_source,
                          "centroid_uv": [float(c) for c in sil.centroid_uv],
                          "background_subtracted": background is not None,
+                         "background_sample": sil.background_sample,
+                         "refined": sil.refined, "qa": sil.qa,
                          "mask_png": f"view_{i:03d}.png"})
         progress(i + 1)
     sizes = {m.shape for m in masks}
@@ -285,6 +285,8 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "views_touching_image_border": [v["index"] for v in per_view
                                               if v["touches_image_border"]],
               "n_background_subtracted": sum(v["background_subtracted"] for v in per_view),
+              "qa_flagged_views": [v["index"] for v in per_view if v["qa"]["flags"]],
+              "n_qa_flagged": sum(bool(v["qa"]["flags"]) for v in per_view),
               "workspace_box": None if ws is None else [ws[0].tolist(), ws[1].tolist()],
               "seconds": round(time.perf_counter() - t0, 3)}
     if len(sizes) == 1:
@@ -298,6 +300,7 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     save_npz(outputs["npz"], masks=np.packbits(mask_stack, axis=-1),
              mask_shape=np.array(mask_stack.shape), T_base_camera=poses,
              stamps_ns=np.array([m.timestamp_ns for m in views], dtype=np.int64),
+             qa_flagged=np.array([bool(v["qa"]["flags"]) for v in per_view], dtype=bool),
              **_camera_arrays(cameras), **_workspace_arrays(rec))
     if outputs.get("masks"):
         _write_mask_pngs(outputs["masks"], masks)
@@ -394,12 +397,20 @@ def _load_silhouettes(path: str) -> dict[str, Any]:
 
 def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
-    """Place the box and carve the visual hull (seed §3.1–3.5), then mesh it.
+    """Place the box, check the views agree, carve the visual hull (seed §3.1–3.5), mesh it.
 
-    The carving method (``carving.method``: Szeliski's octree or dense) and its policies
-    come from the config; ``hull.npz`` holds the occupancy with its origin, voxel size,
-    frame and how it was carved, ``hull.ply`` the smoothed watertight marching-cubes
-    mesh, the report the box, the resolution check (eq. 7–8) and the volume.
+    Before the carve, each silhouette is scored against the hull of the other views on
+    a coarse grid (:func:`robo3d.carving.flag_disagreeing_views`, ``carving.qa_*``);
+    the views it flags are left out of the carve (``carving.qa_leave_out``) and named
+    in the report (``views_left_out``), in ``hull.npz`` (``views_used``,
+    ``views_left_out``) and in the rerun log. Views the segmentation's own checks
+    flagged (``qa_flagged`` in ``silhouettes.npz``) do not define the other views'
+    reference; they are left out only when they disagree too. The carving method
+    (``carving.method``: Szeliski's octree or dense), its policies and ``k`` of n
+    (``carving.min_views_background``) come from the config; ``hull.npz`` holds the
+    occupancy with its origin, voxel size, frame and how it was carved, ``hull.ply``
+    the smoothed watertight marching-cubes mesh, the report the box, the agreement
+    scores, the resolution check (eq. 7–8) and the volume.
     """
     from .carving import (
         box_from_silhouettes,
@@ -433,48 +444,150 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     log.info("carving box (%s): min %s, max %s, size %s mm", box_report["source"],
              np.round(box_min, 4).tolist(), np.round(box_max, 4).tolist(),
              np.round(np.asarray(box_report["size_m"]) * 1e3, 1).tolist())
+    agreement = _view_agreement_check(inputs["silhouettes"], sil, masks, cameras, poses,
+                                      box_min, box_max, cc)
+    n_views = len(cameras)
+    left_out = agreement["views_left_out"] if cc["qa_leave_out"] else []
+    used = [i for i in range(n_views) if i not in set(left_out)]
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
-    grid, carve_report = carve_visual_hull(grid, masks, cameras, poses, method=cc["method"],
+    grid, carve_report = carve_visual_hull(grid, [masks[i] for i in used],
+                                           [cameras[i] for i in used], poses[used],
+                                           method=cc["method"],
                                            outside_image=cc["outside_image"],
                                            behind_camera=cc["behind_camera"],
                                            leaf_rule=cc["leaf_rule"], threads=cc["threads"],
                                            min_views_background=cc["min_views_background"])
+    for v in carve_report["views"]:  # the recording's view numbers, not the subset's
+        v["view"] = used[v["view"]]
     n_occ = grid.n_occupied
     if n_occ == 0:
         raise StageError(f"{inputs['silhouettes']}: carving removed every voxel: the "
                          "silhouettes do not agree with the cameras' poses (check the "
                          "calibration, the transform tree and the masks)")
     vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
-    res = resolution_report(grid, cameras, poses)
+    res = resolution_report(grid, [cameras[i] for i in used], poses[used])
     if res.get("warning"):
         log.warning("%s", res["warning"])
+    left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
+                     for i in left_out]
     report = {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
                       **box_report},
               "method": cc["method"], "grid_shape": list(grid.occupancy.shape),
               "voxel_size_m": grid.voxel_size, "occupied_voxels": n_occ,
-              "volume_m3": grid.volume_m3, "carving": carve_report, "resolution": res,
+              "volume_m3": grid.volume_m3, "n_views": n_views, "views_used": used,
+              "views_left_out": left_out_rows,
+              "views_flagged": agreement["flagged"],
+              "agreement": agreement, "carving": carve_report, "resolution": res,
               "mesh": {"vertices": len(vertices), "faces": len(faces),
                        "volume_m3": _mesh_volume(vertices, faces)},
               "seconds": round(time.perf_counter() - t0, 3)}
     grid.save_npz(outputs["npz"], carving={k: cc[k] for k in ("method", "leaf_rule",
                                                               "outside_image",
                                                               "behind_camera",
-                                                              "min_views_background")})
+                                                              "min_views_background")},
+                  views_used=np.array(used, dtype=np.int64),
+                  views_left_out=left_out_rows)
     write_mesh(outputs["ply"], vertices, faces)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        import rerun as rr
+
         log_box(rr_stream, "base/carving_box", box_min, box_max, label="carving box")
-        for i, (cam, T) in enumerate(zip(cameras, poses, strict=True)):
-            log_camera(rr_stream, f"base/cameras/view_{i:03d}", cam, T)
+        for i in used:
+            log_camera(rr_stream, f"base/cameras/view_{i:03d}", cameras[i], poses[i])
+        for row in left_out_rows:  # left out: their cameras, masks and why, apart
+            i = row["view"]
+            entity = f"base/cameras_left_out/view_{i:03d}"
+            log_camera(rr_stream, entity, cameras[i], poses[i], mask=masks[i])
+            rr_stream.log(f"{entity}/why", rr.TextDocument(
+                f"view {i} left out of the carve: " + "; ".join(row["reasons"])), static=True)
         shell = grid.surface()
         log_voxels(rr_stream, "base/hull/voxels", grid.index_to_points(np.argwhere(shell)),
                    grid.voxel_size)
         log_mesh(rr_stream, "base/hull/mesh", vertices, faces, albedo=[120, 160, 220, 160])
         log_report(rr_stream, "reports/carve", report)
     write_json(outputs["report"], report)
-    log.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces (%.1f s)",
-             cc["method"], n_occ, grid.voxel_size * 1e3, report["volume_m3"] * 1e6,
-             len(faces), report["seconds"])
+    log.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
+             "views (%.1f s)", cc["method"], n_occ, grid.voxel_size * 1e3,
+             report["volume_m3"] * 1e6, len(faces), len(used), n_views, report["seconds"])
     return report
+
+
+def _segmentation_flags(silhouettes_npz: str, sil: Mapping[str, Any], n_views: int
+                        ) -> dict[int, list[str]]:
+    """Views the segmentation's own checks flagged, with its reasons: ``qa_flagged`` in
+    ``silhouettes.npz`` and ``views[i]["qa"]["flags"]`` in ``reports/silhouettes.json``
+    beside it, read defensively (older files have neither)."""
+    import json
+
+    flags: dict[int, list[str]] = {}
+    q = sil.get("qa_flagged")
+    if q is not None and np.asarray(q).shape == (n_views,):
+        flags = {int(i): [] for i in np.flatnonzero(np.asarray(q, dtype=bool))}
+    path = Path(silhouettes_npz).parent / "reports" / "silhouettes.json"
+    try:
+        with open(path, encoding="utf-8") as f:
+            views = json.load(f).get("views", [])
+    except (OSError, ValueError, AttributeError):
+        views = []
+    for pos, v in enumerate(views if isinstance(views, list) else []):
+        qa = v.get("qa") if isinstance(v, dict) else None
+        idx = v.get("index", pos) if isinstance(v, dict) else pos
+        reasons = qa.get("flags") if isinstance(qa, dict) else qa
+        if isinstance(reasons, str):
+            reasons = [reasons]
+        if isinstance(idx, int) and 0 <= idx < n_views and isinstance(reasons, list) \
+                and reasons:
+            flags[idx] = [f"segmentation: {r}" for r in reasons]
+    return flags
+
+
+def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: list,
+                          cameras: list, poses: np.ndarray, box_min: np.ndarray,
+                          box_max: np.ndarray, cc: Mapping[str, Any]) -> dict[str, Any]:
+    """Score every view against the other views' hull and choose the views to leave out
+    (see :func:`stage_carve`); with fewer than 4 views, or ``carving.qa_resolution`` 0,
+    nothing is scored."""
+    from .carving import flag_disagreeing_views, make_grid
+
+    n = len(cameras)
+    seg_flags = _segmentation_flags(silhouettes_npz, sil, n)
+    out: dict[str, Any] = {"enabled": False, "segmentation_flagged": sorted(seg_flags),
+                           "flagged": [], "views_left_out": [], "reasons": {}, "views": []}
+    if cc["qa_resolution"] == 0 or n < 4:
+        out["why_not"] = ("carving.qa_resolution is 0" if cc["qa_resolution"] == 0 else
+                          f"{n} views: too few for the others to outvote one")
+        return out
+    exclude = sorted(seg_flags)
+    if len(exclude) > n // 2:
+        log.warning("the segmentation flagged %d of %d views: too many to leave the "
+                    "reference; all views score each other", len(exclude), n)
+        exclude = []
+    grid = make_grid(box_min, box_max, resolution=min(cc["qa_resolution"], cc["resolution"]))
+    qa = flag_disagreeing_views(grid, masks, cameras, poses, max_missing=cc["qa_max_missing"],
+                                max_spurious=cc["qa_max_spurious"], exclude=exclude,
+                                outside_image=cc["outside_image"],
+                                behind_camera=cc["behind_camera"],
+                                min_views_background=cc["min_views_background"],
+                                min_observers=cc["qa_min_observers"], method=cc["method"])
+    reasons = {int(v): list(qa["views"][v]["reasons"]) + seg_flags.get(v, [])
+               for v in qa["flagged"]}
+    scores = [{k: s[k] for k in ("view", "iou", "missing_fraction", "spurious_fraction",
+                                 "mask_px", "hull_px", "unknown_px", "flagged")}
+              | {"segmentation_flags": seg_flags.get(s["view"], [])} for s in qa["views"]]
+    ious = [s["iou"] for s in scores if s["iou"] is not None]
+    out.update({"enabled": True, "resolution": int(max(grid.shape)),
+                "voxel_size_m": grid.voxel_size, "flagged": qa["flagged"],
+                "views_left_out": qa["flagged"] if cc["qa_leave_out"] else [],
+                "reasons": reasons, "passes": qa["passes"], "capped": qa["capped"],
+                "thresholds": qa["thresholds"], "min_observers": cc["qa_min_observers"],
+                "iou_min": min(ious) if ious else None,
+                "iou_median": float(np.median(ious)) if ious else None,
+                "views": scores, "seconds": round(qa["time_s"], 3)})
+    log.info("view agreement (%d^3 grid, %.1f s): IoU with the other views' hull median "
+             "%.3f, worst %.3f; flagged %s", out["resolution"], qa["time_s"],
+             out["iou_median"] or float("nan"), out["iou_min"] or float("nan"),
+             qa["flagged"] or "none")
+    return out
 
 
 def _mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -74,7 +74,7 @@ N. Otsu, "A threshold selection method from gray-level histograms", IEEE Trans. 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -83,11 +83,12 @@ from .camera import CameraModel, project_points
 from .errors import StageError
 from .transforms import invert_transform
 
-__all__ = ["Silhouette", "segment_silhouette", "roi_from_box", "find_roi", "to_grey"]
+__all__ = ["Silhouette", "segment_silhouette", "roi_from_box", "find_roi", "to_grey", "to_lab",
+           "colour_difference", "refine_with_grabcut", "silhouette_qa", "QA_FLAGS"]
 
 _log = logging.getLogger(__name__)
 
-_POLARITIES = ("brighter", "darker")
+_POLARITIES = ("auto", "brighter", "darker")
 
 
 @dataclass
@@ -119,6 +120,13 @@ class Silhouette:
     roi : tuple of 4 int or None
         The region analysed, ``(u0, v0, u1, v1)`` half-open (the whole image if None was
         given).
+    background_sample : str
+        Where the background was sampled: ``"outside roi"`` or ``"image border"``.
+    refined : bool
+        The outline was refined with GrabCut.
+    qa : dict
+        :func:`silhouette_qa`'s verdict: ``flags`` (absurd-mask flags, empty when the
+        mask is plausible) and the measurements behind them.
     """
 
     mask: np.ndarray
@@ -131,6 +139,9 @@ class Silhouette:
     bbox: tuple[int, int, int, int]
     touches_image_border: bool = False
     roi: tuple[int, int, int, int] | None = None
+    background_sample: str = "outside roi"
+    refined: bool = False
+    qa: dict = field(default_factory=lambda: {"flags": []})
 
     def summary(self) -> dict:
         """JSON-ready numbers (everything but the mask)."""
@@ -144,6 +155,9 @@ class Silhouette:
             "bbox": [int(b) for b in self.bbox],
             "touches_image_border": bool(self.touches_image_border),
             "roi": None if self.roi is None else [int(r) for r in self.roi],
+            "background_sample": self.background_sample,
+            "refined": bool(self.refined),
+            "qa": self.qa,
         }
 
 
@@ -288,6 +302,19 @@ def _local_midpoint(inside: np.ndarray, level: tuple[float, float], mode: str,
     return np.maximum(s_bg, 0.5 * (b + near))
 
 
+def _label_medians(values: np.ndarray, labels: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Median of ``values`` over each label in ``idx`` (lower median), one sort."""
+    lut = np.full(int(labels.max()) + 1, -1, np.int64)
+    lut[idx] = np.arange(idx.size)
+    slot = lut[labels]
+    sel = slot >= 0
+    v, s = values[sel], slot[sel]
+    order = np.lexsort((v, s))
+    counts = np.bincount(s, minlength=idx.size)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return v[order][starts + (np.maximum(counts, 1) - 1) // 2]
+
+
 def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0,
                 grey: np.ndarray | None = None, s_bg: float | None = None,
                 mode: str = "brighter") -> np.ndarray:
@@ -296,8 +323,6 @@ def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0,
     background: median grey beyond the background's edge ``s_bg`` means object in shadow
     (a pocket), which is filled; at or below it, a see-through gap, which is kept. Without
     ``s_bg`` every large hole is kept."""
-    import scipy.ndimage as ndi
-
     bg = (~mask).view(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(bg, connectivity=4)
     if n <= 1:
@@ -306,7 +331,7 @@ def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0,
     if grey is not None and s_bg is not None and np.any(keep[1:]):
         idx = np.nonzero(keep)[0]
         idx = idx[idx > 0]
-        med = np.asarray(ndi.median(grey, labels, idx))
+        med = _label_medians(grey, labels, idx)
         shadowed = med > s_bg if mode == "brighter" else med < s_bg
         keep[idx[shadowed]] = False
     keep[labels[0, :]] = True
@@ -318,10 +343,365 @@ def _fill_holes(mask: np.ndarray, max_hole_fraction: float = 1.0,
     return ~outside
 
 
+# ---------------------------------------------------------------------- colour (auto polarity)
+_N_MODES = 6            # k-means modes of the background sample
+_SIGMA0_LAB = 2.0       # noise floor added to every mode's covariance, Lab units
+_FLAT_NEUTRAL = 1.7     # border fallback: a near-neutral mode is background if this flat
+_FLAT_COLOURED = 0.8    # ... a saturated one only if this flat (Lab units, 5x5 local std)
+_NEUTRAL_CHROMA = 12.0  # chroma below which a mode counts as near-neutral
+_MIN_THRESHOLD = 2.0    # the colour-difference threshold never goes below this (std devs)
+
+
+def to_lab(image: np.ndarray, *, name: str = "image") -> np.ndarray:
+    """CIE L*a*b* of a grey or RGB image (OpenCV's conversion, D65 white).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) or (H, W, 1) uint8, uint16 or float in [0, 1]
+        RGB if colour; a grey image is taken as R = G = B.
+    name : str
+        What to call the array in error messages.
+
+    Returns
+    -------
+    lab : (H, W, 3) float32
+        L in 0–100, a and b about -128..127.
+    """
+    grey = to_grey(image, name=name)  # checks dtype, shape and finiteness
+    a = np.asarray(image)
+    if a.ndim == 2 or a.shape[2] == 1:
+        rgb = np.repeat(grey[..., None], 3, axis=2)
+    elif a.dtype == np.uint8:
+        rgb = a.astype(np.float32)
+    elif a.dtype == np.uint16:
+        rgb = a.astype(np.float32) / np.float32(257.0)
+    else:
+        rgb = a.astype(np.float32) * np.float32(255.0)
+    rgb = np.clip(rgb, 0.0, 255.0) * np.float32(1.0 / 255.0)
+    return cv2.cvtColor(np.ascontiguousarray(rgb, dtype=np.float32), cv2.COLOR_RGB2LAB)
+
+
+def _sure_background(shape: tuple[int, int], roi: tuple[int, int, int, int]
+                     ) -> tuple[np.ndarray, str]:
+    """The sample that models the background: the pixels outside the ROI when they are at
+    least 2 % of the image (``"outside roi"``), else the image's outer ring, 2 % of its
+    size wide (``"image border"``). Outside the ROI only a frame around it is taken, as
+    wide as a quarter of the ROI's longer side (at least 16 px), when that frame alone
+    has 2 % of the image: the table and wall next to the object, not clutter far away
+    whose colour may happen to be the object's."""
+    height, width = shape
+    u0, v0, u1, v1 = roi
+    out = np.ones((height, width), dtype=bool)
+    out[v0:v1, u0:u1] = False
+    if np.count_nonzero(out) >= 0.02 * height * width:
+        g = max(16, int(np.ceil(0.25 * max(u1 - u0, v1 - v0))))
+        near = np.zeros_like(out)
+        near[max(v0 - g, 0):v1 + g, max(u0 - g, 0):u1 + g] = True
+        near &= out
+        if np.count_nonzero(near) >= 0.02 * height * width:
+            return near, "outside roi"
+        return out, "outside roi"
+    ring = max(2, int(round(0.02 * min(height, width))))
+    out[:] = False
+    out[:ring, :] = out[-ring:, :] = True
+    out[:, :ring] = out[:, -ring:] = True
+    return out, "image border"
+
+
+def _local_contrast(lab: np.ndarray) -> np.ndarray:
+    """Per-pixel standard deviation of the Lab colour over a 5 x 5 window (Lab units)."""
+    k = (5, 5)
+    mean = cv2.blur(lab, k, borderType=cv2.BORDER_REFLECT)
+    sq = cv2.blur(lab * lab, k, borderType=cv2.BORDER_REFLECT)
+    return np.sqrt(np.maximum(sq - mean * mean, 0.0).sum(axis=2))
+
+
+def _background_modes(lab_blurred: np.ndarray, sample: np.ndarray, kind: str,
+                      lab_raw: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The background's colour modes: ``(mean (3,), whitening (3, 3))`` per mode, so that
+    ``|(x - mean) @ whitening|`` is the Mahalanobis distance of colour ``x`` to it.
+
+    k-means (``_N_MODES`` modes, k-means++ seeding, fixed RNG seed) on up to 5000 sample
+    pixels; each mode's covariance gets a noise floor ``_SIGMA0_LAB**2 I`` (a saturated
+    white table has almost none of its own). A sample from the image border may hold an
+    object cut off by the frame: there only the flat modes are background (median 5 x 5
+    local contrast below ``_FLAT_NEUTRAL`` for a near-neutral mode, ``_FLAT_COLOURED``
+    for a saturated one), since tables, cloths and walls are flat and mostly neutral while
+    the object is textured; in a noisy image where no mode is that flat, those at most
+    1.5 times as rough as the flattest (relative to their limits) are kept.
+    """
+    X = lab_blurred[sample]
+    n = X.shape[0]
+    take = np.linspace(0, n - 1, min(n, 5000)).astype(np.int64)
+    X = np.ascontiguousarray(X[take], dtype=np.float32)
+    k = int(min(_N_MODES, max(1, X.shape[0] // 50)))
+    cv2.setRNGSeed(12345)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.2)
+    _, labels, centres = cv2.kmeans(X, k, None, crit, 1, cv2.KMEANS_PP_CENTERS)
+    labels = labels.ravel()
+    contrast = None
+    if kind == "image border" and lab_raw is not None:
+        contrast = _local_contrast(lab_raw)[sample][take]
+    modes, flatness = [], []
+    for j in range(k):
+        members = labels == j
+        if np.count_nonzero(members) < max(10, 0.01 * X.shape[0]):
+            continue
+        cov = np.cov(X[members].T.astype(np.float64)) + _SIGMA0_LAB ** 2 * np.eye(3)
+        whiten = np.linalg.cholesky(np.linalg.inv(cov))  # inv(cov) = W W^T
+        mode = (centres[j].astype(np.float64), whiten)
+        if contrast is not None:
+            flat = float(np.median(contrast[members]))
+            chroma = float(np.hypot(centres[j][1], centres[j][2]))
+            limit = _FLAT_NEUTRAL if chroma < _NEUTRAL_CHROMA else _FLAT_COLOURED
+            flatness.append((flat / limit, mode))
+            continue
+        modes.append(mode)
+    if flatness:  # noise makes every mode rough: then keep those nearly as flat as the flattest
+        cut = max(1.0, 1.5 * min(r for r, _ in flatness))
+        modes = [m for r, m in flatness if r <= cut]
+    return modes
+
+
+def _mode_distance(lab: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]
+                   ) -> np.ndarray:
+    best = None
+    for mean, whiten in modes:
+        wt = whiten.T  # z = W^T (x - mean): an affine map per pixel (cv2.transform, SIMD)
+        m = np.hstack([wt, -(wt @ mean)[:, None]]).astype(np.float32)
+        z = cv2.transform(lab, m)
+        q = cv2.multiply(z, z).sum(axis=2, dtype=np.float32)
+        best = q if best is None else np.minimum(best, q)
+    return np.sqrt(best)
+
+
+def colour_difference(
+    image: np.ndarray,
+    sample: np.ndarray,
+    *,
+    blur_sigma_px: float = 1.0,
+    border_sample: bool = False,
+) -> np.ndarray:
+    """How far each pixel's colour is from the background's (the automatic polarity).
+
+    The background is modelled from the pixels of ``sample`` in CIE L*a*b* as a few
+    colour modes (k-means), each with its own covariance; the feature is the Mahalanobis
+    distance of a pixel's (blurred) colour to the nearest mode, in the modes' standard
+    deviations. An object differs from the background in lightness, in hue, or both:
+    brighter, darker, coloured on white, grey on colour.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
+    sample : (H, W) bool
+        Pixels known (or taken) to be background.
+    blur_sigma_px : float
+        Gaussian blur of the Lab image before modelling and measuring.
+    border_sample : bool
+        The sample is the image's border and may hold part of the object: keep only its
+        flat modes (see :func:`_background_modes`).
+
+    Returns
+    -------
+    difference : (H, W) float32, >= 0
+
+    References
+    ----------
+    P. C. Mahalanobis, "On the generalized distance in statistics", 1936; S. Lloyd,
+    "Least squares quantization in PCM", IEEE Trans. IT 28(2), 1982 (k-means); D. Arthur,
+    S. Vassilvitskii, "k-means++", SODA 2007.
+    """
+    raw = to_lab(image)
+    sample = np.asarray(sample, dtype=bool)
+    if sample.shape != raw.shape[:2]:
+        raise ValueError(f"sample must be (H, W) bool of the image's size {raw.shape[:2]}, "
+                         f"got {sample.shape}")
+    if np.count_nonzero(sample) < 10:
+        raise StageError("silhouette: fewer than 10 background pixels to model the "
+                         "background's colour from")
+    lab = raw if blur_sigma_px <= 0 else cv2.GaussianBlur(
+        raw, (0, 0), sigmaX=float(blur_sigma_px), borderType=cv2.BORDER_REPLICATE)
+    modes = _background_modes(lab, sample, "image border" if border_sample else "outside roi",
+                              raw)
+    return _mode_distance(lab, modes)
+
+
+def _as_uint8_rgb(image: np.ndarray) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.dtype == np.uint8:
+        u8 = a
+    elif a.dtype == np.uint16:
+        u8 = (a.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+    else:
+        u8 = (np.clip(a.astype(np.float32), 0, 1) * 255.0 + 0.5).astype(np.uint8)
+    if u8.ndim == 2:
+        u8 = np.repeat(u8[..., None], 3, axis=2)
+    return np.ascontiguousarray(u8)
+
+
+def refine_with_grabcut(
+    image: np.ndarray,
+    mask: np.ndarray,
+    roi: tuple[int, int, int, int] | None = None,
+    *,
+    max_side_px: int = 400,
+    band_px: int = 12,
+    iterations: int = 3,
+) -> np.ndarray:
+    """Refine a silhouette's outline with GrabCut (Rother et al. 2004), seeded by the mask.
+
+    The image is reduced so that its longer side is at most ``max_side_px`` (GrabCut's
+    cost grows with the pixels and with the number of undecided ones). At that scale the
+    mask eroded by ``band_px / 2`` is sure object, the mask is probable object, a band of
+    ``band_px`` around it probable background, everything farther and everything outside
+    the ROI sure background; only the crop around the undecided band is cut. GrabCut then
+    fits colour mixtures (5 Gaussians each) to object and background and cuts along
+    colour edges: the outline follows the object's edge where the threshold was off by a
+    shadow, a reflection or a shaded part near the background's colour. The result is
+    resized back (bilinear on the 0/1 labels, cut at 1/2).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
+    mask : (H, W) bool
+        The first silhouette.
+    roi : (u0, v0, u1, v1) int, optional
+        Nothing outside it is object.
+    max_side_px, band_px, iterations : int
+        Working size, undecided band (pixels at the working size), GrabCut iterations.
+
+    Returns
+    -------
+    mask : (H, W) bool
+
+    References
+    ----------
+    C. Rother, V. Kolmogorov, A. Blake, "GrabCut: interactive foreground extraction using
+    iterated graph cuts", ACM Trans. Graphics 23(3), 2004 (SIGGRAPH).
+    """
+    m = np.asarray(mask, dtype=bool)
+    rgb = _as_uint8_rgb(image)
+    height, width = m.shape
+    if rgb.shape[:2] != m.shape:
+        raise ValueError(f"mask must have the image's size {rgb.shape[:2]}, got {m.shape}")
+    if not m.any():
+        return m.copy()
+    scale = min(1.0, float(max_side_px) / max(height, width))
+    if scale < 1.0:
+        sw, sh = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+        small = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA)
+        mk = cv2.resize(m.view(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
+    else:
+        sw, sh, small, mk = width, height, rgb, m.view(np.uint8).copy()
+
+    def disc(r: int) -> np.ndarray:
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+    core = cv2.erode(mk, disc(max(1, band_px // 2)))
+    near = cv2.dilate(mk, disc(band_px))
+    labels = np.full((sh, sw), cv2.GC_BGD, np.uint8)
+    labels[near > 0] = cv2.GC_PR_BGD
+    labels[mk > 0] = cv2.GC_PR_FGD
+    labels[core > 0] = cv2.GC_FGD
+    if roi is not None:
+        u0, v0, u1, v1 = _check_roi(roi, width, height)
+        keep = np.zeros((sh, sw), bool)
+        keep[int(np.floor(v0 * scale)):int(np.ceil(v1 * scale)),
+             int(np.floor(u0 * scale)):int(np.ceil(u1 * scale))] = True
+        labels[~keep] = cv2.GC_BGD
+    undecided = (labels == cv2.GC_PR_BGD) | (labels == cv2.GC_PR_FGD)
+    if not undecided.any() or not (labels == cv2.GC_FGD).any() \
+            or not np.isin(labels, (cv2.GC_BGD, cv2.GC_PR_BGD)).any():
+        return m.copy()
+    vs, us = np.nonzero(undecided)
+    pad = band_px + 2
+    r0, r1 = max(vs.min() - pad, 0), min(vs.max() + pad + 1, sh)
+    c0, c1 = max(us.min() - pad, 0), min(us.max() + pad + 1, sw)
+    crop = np.ascontiguousarray(labels[r0:r1, c0:c1])
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(np.ascontiguousarray(small[r0:r1, c0:c1, ::-1]), crop, None, bgd, fgd,
+                    int(iterations), cv2.GC_INIT_WITH_MASK)
+    except cv2.error as exc:  # e.g. one class has too few pixels for its mixture
+        _log.debug("grabcut skipped: %s", exc)
+        return m.copy()
+    labels[r0:r1, c0:c1] = crop
+    fg = ((labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)).astype(np.float32)
+    if scale < 1.0:
+        fg = cv2.resize(fg, (width, height), interpolation=cv2.INTER_LINEAR)
+    out = fg > 0.5
+    if roi is not None:
+        u0, v0, u1, v1 = _check_roi(roi, width, height)
+        clip = np.zeros_like(out)
+        clip[v0:v1, u0:u1] = True
+        out &= clip
+    return out
+
+
+# ---------------------------------------------------------------------- quality
+QA_FLAGS = ("fills_region", "touches_all_sides", "inverted")
+_FILL_LIMIT = 0.95
+
+
+def silhouette_qa(mask: np.ndarray, roi: tuple[int, int, int, int] | None,
+                  difference: np.ndarray | None = None) -> dict:
+    """Flags of an absurd silhouette (one no object in the workspace can cast).
+
+    - ``fills_region``: the mask covers more than 95 % of the region analysed;
+    - ``touches_all_sides``: it reaches all four sides of its region, and at least one of
+      them lies inside the image (the projected workspace box's own edge, margin
+      included: an object inside the box cannot reach it on every side). An object larger
+      than the frame touches the image's four sides legitimately, which is reported as
+      ``touches_image_border``, not here;
+    - ``inverted``: the pixels the mask calls object look more like the background than
+      those it calls background (median colour difference, :func:`colour_difference`,
+      inside the mask not above the median in the rest of the region).
+
+    Parameters
+    ----------
+    mask : (H, W) bool
+    roi : (u0, v0, u1, v1) int or None (the whole image)
+    difference : (H, W) float, optional
+        The colour difference to the background; without it ``inverted`` is not checked.
+
+    Returns
+    -------
+    qa : dict
+        ``flags`` (list of str, from :data:`QA_FLAGS`), ``fill_fraction`` (mask pixels /
+        region pixels), ``sides_touched`` (of ``left, top, right, bottom``),
+        ``difference_inside`` / ``difference_outside`` (medians, or None).
+    """
+    m = np.asarray(mask, dtype=bool)
+    height, width = m.shape
+    u0, v0, u1, v1 = (0, 0, width, height) if roi is None else _check_roi(roi, width, height)
+    region = m[v0:v1, u0:u1]
+    fill = float(np.count_nonzero(region)) / float(region.size)
+    sides = {"left": bool(region[:, 0].any()), "top": bool(region[0, :].any()),
+             "right": bool(region[:, -1].any()), "bottom": bool(region[-1, :].any())}
+    inner = {"left": u0 > 0, "top": v0 > 0, "right": u1 < width, "bottom": v1 < height}
+    flags = []
+    if fill > _FILL_LIMIT:
+        flags.append("fills_region")
+    if all(sides.values()) and any(inner.values()):
+        flags.append("touches_all_sides")
+    d_in = d_out = None
+    if difference is not None and region.any() and not region.all():
+        d = np.asarray(difference)[v0:v1, u0:u1]
+        d_in, d_out = float(np.median(d[region])), float(np.median(d[~region]))
+        if d_in <= d_out:
+            flags.append("inverted")
+    return {"flags": flags, "fill_fraction": round(fill, 4),
+            "sides_touched": [k for k, v in sides.items() if v],
+            "difference_inside": None if d_in is None else round(d_in, 3),
+            "difference_outside": None if d_out is None else round(d_out, 3)}
+
+
 def segment_silhouette(
     image: np.ndarray,
     *,
-    polarity: str = "brighter",
+    polarity: str = "auto",
     threshold: float | None = None,
     roi: tuple[int, int, int, int] | None = None,
     blur_sigma_px: float = 1.0,
@@ -330,18 +710,26 @@ def segment_silhouette(
     fill_holes: bool = True,
     max_hole_fraction: float = 1.0,
     background: np.ndarray | None = None,
+    grabcut: bool = False,
 ) -> Silhouette:
-    """Segment the object's silhouette in one view by thresholding (seed §3.2).
+    """Segment the object's silhouette in one view (seed §3.2).
 
     Parameters
     ----------
     image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
         The ambient-lit view (RGB if colour).
-    polarity : {"brighter", "darker"}
-        The object is where the grey value is above (``f > s``) or below (``f < s``) the
-        threshold. Ignored with ``background``.
+    polarity : {"auto", "brighter", "darker"}
+        ``"auto"``: the object is what differs in colour from the background, modelled
+        from the pixels outside the ROI (or the image border), see
+        :func:`colour_difference`. ``"brighter"`` / ``"darker"``: the seed's grey
+        threshold, object where the grey value is above (``f > s``) or below (``f < s``).
+        With ``background`` the feature is the difference to the empty scene (colour
+        with ``"auto"``, grey otherwise).
     threshold : float, optional
-        ``s`` on the 0–255 scale; by default Otsu's threshold inside the ROI.
+        ``s``: on the 0–255 grey scale for ``brighter``/``darker`` and grey background
+        subtraction; in the background's standard deviations (colour difference) for
+        ``auto``; in CIE Lab units (ΔE) for colour background subtraction. By default
+        chosen per view (Otsu; see the module docstring).
     roi : (u0, v0, u1, v1) int, optional
         Half-open pixel box (``image[v0:v1, u0:u1]``) outside which everything is
         background; clipped to the image. See :func:`roi_from_box`.
@@ -358,8 +746,10 @@ def segment_silhouette(
         Enclosed background regions larger than this fraction of the silhouette's area are
         see-through gaps and stay background (1.0 fills every hole, as the seed does).
     background : array like ``image``, optional
-        The empty scene under the same light and pose; the feature becomes
-        ``|grey(image) - grey(background)|`` and the object is where it exceeds ``s``.
+        The empty scene under the same light and pose.
+    grabcut : bool
+        Refine the outline with GrabCut seeded by the thresholded mask
+        (:func:`refine_with_grabcut`).
 
     Returns
     -------
@@ -374,7 +764,8 @@ def segment_silhouette(
 
     References
     ----------
-    N. Otsu, IEEE Trans. SMC 9(1), 1979 (threshold selection).
+    N. Otsu, IEEE Trans. SMC 9(1), 1979 (threshold selection); C. Rother, V. Kolmogorov,
+    A. Blake, ACM Trans. Graphics 23(3), 2004 (GrabCut).
     """
     if polarity not in _POLARITIES:
         raise ValueError(f"polarity must be one of {_POLARITIES}, got {polarity!r}")
@@ -392,36 +783,65 @@ def segment_silhouette(
 
     f = to_grey(image)
     height, width = f.shape
-    mode = polarity
-    if background is not None:
-        b = to_grey(background, name="background")
-        if b.shape != f.shape:
-            raise ValueError(f"background must have the image's size {width}x{height}, "
-                             f"got {b.shape[1]}x{b.shape[0]}")
-        f = np.abs(f - b)
-        mode = "difference"
-    if blur_sigma_px > 0:
-        f = cv2.GaussianBlur(f, (0, 0), sigmaX=float(blur_sigma_px),
-                             borderType=cv2.BORDER_REPLICATE)
-
     if roi is None:
         u0, v0, u1, v1 = 0, 0, width, height
     else:
         u0, v0, u1, v1 = _check_roi(roi, width, height)
+    box = (u0, v0, u1, v1)
+    mode = polarity
+    sample, sample_kind = _sure_background((height, width), box)
+    difference = None  # colour difference to the background model (auto, and for QA)
+    if background is not None:
+        if np.asarray(background).shape[:2] != f.shape:
+            b = np.asarray(background)
+            raise ValueError(f"background must have the image's size {width}x{height}, "
+                             f"got {b.shape[1] if b.ndim > 1 else '?'}x{b.shape[0]}")
+        if polarity == "auto":
+            lab, lab_bg = to_lab(image), to_lab(background, name="background")
+            f = np.sqrt(((lab - lab_bg) ** 2).sum(axis=2)).astype(np.float32)
+        else:
+            f = np.abs(f - to_grey(background, name="background"))
+        mode = "difference"
+    else:
+        inside_grey = f[v0:v1, u0:u1]
+        if threshold is None and float(inside_grey.max()) - float(inside_grey.min()) <= 1e-6:
+            raise StageError(f"silhouette: the image is uniform (grey "
+                             f"{float(inside_grey.min()):.1f}) inside the region analysed, "
+                             "so no threshold separates object and background")
+        if polarity == "auto":
+            difference = colour_difference(image, sample, blur_sigma_px=blur_sigma_px,
+                                           border_sample=sample_kind == "image border")
+            f = difference
+    if blur_sigma_px > 0 and mode != "auto":
+        f = cv2.GaussianBlur(f, (0, 0), sigmaX=float(blur_sigma_px),
+                             borderType=cv2.BORDER_REPLICATE)
     inside = f[v0:v1, u0:u1]
 
     local = None
-    level = None if mode == "difference" else _background_level(f, (u0, v0, u1, v1), mode)
-    if threshold is None:
+    level = None
+    if mode in ("brighter", "darker"):
+        level = _background_level(f, box, mode)
+    if threshold is not None:
+        s = float(threshold)
+    elif mode == "auto":
+        # the colour difference is heavy-tailed (the object's colours lie at many
+        # distances from the background's): Otsu on its logarithm
+        s = max(float(np.expm1(_otsu(np.log1p(inside.ravel())))), _MIN_THRESHOLD)
+    else:
         s = _otsu(inside.ravel())
         if level is not None:
             s_shade = _shade_aware_threshold(inside, s, level, mode)
             if s_shade != s:
                 local = _local_midpoint(inside, level, mode, blur_sigma_px)
-    else:
-        s = float(threshold)
-    if local is not None:
-        s = s_shade
+                s = s_shade
+    if mode == "auto":  # the background's level and edge (see-through gaps, the outline)
+        bg = f[sample & (f <= s)]
+        if bg.size >= 100:
+            med = float(np.median(bg))
+            spread = 6.0 * max(1.4826 * float(np.median(np.abs(bg - med))), 0.1)
+            level = (med, min(float(np.percentile(bg, 99.5)) + spread, s))
+            if threshold is None:
+                local = _local_midpoint(inside, level, "brighter", blur_sigma_px)
     fg_roi = inside < s if mode == "darker" else inside > s
     if local is not None:  # refine the outline only: a band along the background
         r = max(2, int(np.ceil(3 * blur_sigma_px)))
@@ -429,7 +849,7 @@ def segment_silhouette(
         band = fg_roi & cv2.dilate((~fg_roi).view(np.uint8), kernel).astype(bool)
         fg_roi[band] = (inside[band] < local[band]) if mode == "darker" else \
             (inside[band] > local[band])
-    where = f"(threshold s={s:.2f}, polarity {mode}, roi {(u0, v0, u1, v1)})"
+    where = f"(threshold s={s:.2f}, polarity {mode}, roi {box})"
     n_roi = fg_roi.size
     n_fg = int(np.count_nonzero(fg_roi))
     if n_fg == 0:
@@ -440,20 +860,31 @@ def segment_silhouette(
 
     mask = np.zeros((height, width), dtype=bool)
     mask[v0:v1, u0:u1] = fg_roi
-    if fill_holes:
-        mask = _fill_holes(mask, max_hole_fraction, f, None if level is None else level[1],
-                           mode)
+    hole_mode = "darker" if mode == "darker" else "brighter"
+    s_bg = None if level is None else level[1]
 
-    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8),
-                                                               connectivity=8)
-    areas = stats[1:, cv2.CC_STAT_AREA].astype(np.int64)
-    n_components = int(areas.size)
-    keep_min = max(int(min_component_px), int(np.ceil(min_component_fraction * areas.max())))
-    keep = np.concatenate([[False], areas >= keep_min])
-    if not np.any(keep):
-        raise StageError(f"silhouette is empty: all {n_components} foreground components are "
-                         f"smaller than {keep_min} px (largest {int(areas.max())} px) {where}")
-    mask = keep[labels]
+    def clean(m: np.ndarray) -> tuple[np.ndarray, int, int]:
+        if fill_holes:
+            m = _fill_holes(m, max_hole_fraction, f, s_bg, hole_mode)
+        n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(m.view(np.uint8),
+                                                                   connectivity=8)
+        areas = stats[1:, cv2.CC_STAT_AREA].astype(np.int64)
+        if areas.size == 0:
+            raise StageError(f"silhouette is empty after refinement {where}")
+        keep_min = max(int(min_component_px),
+                       int(np.ceil(min_component_fraction * areas.max())))
+        keep = np.concatenate([[False], areas >= keep_min])
+        if not np.any(keep):
+            raise StageError(f"silhouette is empty: all {areas.size} foreground components "
+                             f"are smaller than {keep_min} px (largest {int(areas.max())} px)"
+                             f" {where}")
+        return keep[labels], int(areas.size), int(areas.size) - int(np.count_nonzero(keep))
+
+    mask, n_components, n_removed = clean(mask)
+    if grabcut:
+        refined = refine_with_grabcut(image, mask, box)
+        if refined.any():
+            mask, _, _ = clean(refined)
     if np.all(mask[v0:v1, u0:u1]):
         raise StageError(f"silhouette covers every pixel of the region analysed {where}: "
                          "wrong polarity or threshold, or the object fills the view")
@@ -465,13 +896,20 @@ def segment_silhouette(
     touches = bool(bbox[0] <= u0 or bbox[1] <= v0 or bbox[2] >= u1 or bbox[3] >= v1)
     touches_image = bool(bbox[0] == 0 or bbox[1] == 0 or bbox[2] == width
                          or bbox[3] == height)
-    n_removed = n_components - int(np.count_nonzero(keep))
-    _log.debug("silhouette: s=%.2f (%s), %d px, %d components (%d specks removed)%s",
-               s, mode, area, n_components, n_removed, ", touches border" if touches else "")
+    if difference is None and background is None:
+        try:
+            difference = colour_difference(image, sample, blur_sigma_px=blur_sigma_px,
+                                           border_sample=sample_kind == "image border")
+        except StageError:
+            difference = None
+    qa = silhouette_qa(mask, box, difference)
+    _log.debug("silhouette: s=%.2f (%s), %d px, %d components (%d specks removed)%s%s",
+               s, mode, area, n_components, n_removed, ", touches border" if touches else "",
+               f", QA flags {qa['flags']}" if qa["flags"] else "")
     return Silhouette(mask=mask, threshold=s, polarity=mode, area_px=area,
                       n_components=n_components, touches_border=touches,
                       centroid_uv=centroid, bbox=bbox, touches_image_border=touches_image,
-                      roi=(u0, v0, u1, v1))
+                      roi=box, background_sample=sample_kind, refined=bool(grabcut), qa=qa)
 
 
 def find_roi(
@@ -633,3 +1071,105 @@ def roi_from_box(
         raise StageError(f"workspace box {lo}..{hi} projects outside the "
                          f"{camera.width}x{camera.height} image of camera {camera.frame_id!r}")
     return u0, v0, u1, v1
+
+
+# ---------------------------------------------------------------------- one view, a recording
+def segment_view(
+    image: np.ndarray,
+    camera: CameraModel,
+    T_base_camera: np.ndarray,
+    seg: dict,
+    workspace: tuple[np.ndarray, np.ndarray] | None = None,
+    background: np.ndarray | None = None,
+) -> tuple[Silhouette, str]:
+    """One view segmented as the pipeline does, from the config's ``segmentation`` section.
+
+    The ROI is the projected workspace box when there is one (and
+    ``roi_from_workspace``), else found automatically (``roi_auto``), else the image.
+
+    Returns
+    -------
+    silhouette : Silhouette
+    roi_source : str
+        ``"workspace box"``, ``"automatic"`` or ``"image"``.
+    """
+    kwargs = dict(polarity=seg["polarity"], threshold=seg["threshold"],
+                  blur_sigma_px=seg["blur_sigma_px"], min_component_px=seg["min_component_px"],
+                  min_component_fraction=seg["min_component_fraction"],
+                  fill_holes=seg["fill_holes"], max_hole_fraction=seg["max_hole_fraction"])
+    roi, roi_source = None, "image"
+    if workspace is not None and seg["roi_from_workspace"]:
+        roi = roi_from_box(workspace[0], workspace[1], camera, T_base_camera,
+                           margin_px=seg["roi_margin_px"])
+        roi_source = "workspace box"
+    elif seg["roi_auto"]:
+        roi = find_roi(image, margin_px=seg["roi_margin_px"], background=background, **kwargs)
+        roi_source = "automatic"
+    sil = segment_silhouette(image, roi=roi, background=background,
+                             grabcut=bool(seg.get("grabcut", False)), **kwargs)
+    return sil, roi_source
+
+
+def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
+                                step: int = 1) -> dict:
+    """Segment a recording's views with a config (default: the project's defaults) and
+    score the masks against its ``ground_truth/silhouettes/NNN.png`` attachments.
+
+    Parameters
+    ----------
+    path : str
+        The recording.
+    cfg : dict, optional
+        A validated config (:func:`robo3d.config.load_config`); default config if None.
+    step : int
+        Score every ``step``-th view (1: all).
+
+    Returns
+    -------
+    dict
+        ``iou`` (per scored view, index -> IoU), ``iou_mean``, ``iou_min``,
+        ``worst_view``, ``n_views``, ``n_scored``, ``seconds_per_view``, ``qa_flags``
+        (index -> flags, only flagged views).
+
+    Raises
+    ------
+    robo3d.errors.StageError
+        The recording has no ground-truth silhouettes.
+    """
+    import time
+
+    from .config import load_config
+    from .recording.reader import read_recording
+
+    cfg = load_config() if cfg is None else cfg
+    rec = read_recording(path, roles=("views",))
+    views = sorted(rec.views, key=lambda m: m.timestamp_ns)
+    poses = rec.camera_poses(views)
+    ious: dict[int, float] = {}
+    flags: dict[int, list[str]] = {}
+    seconds = 0.0
+    for i in range(0, len(views), max(1, int(step))):
+        key = f"ground_truth/silhouettes/{i:03d}.png"
+        if key not in rec.attachments:
+            continue
+        truth = cv2.imdecode(np.frombuffer(rec.attachments[key], np.uint8),
+                             cv2.IMREAD_GRAYSCALE)
+        image = rec.decode(views[i])
+        t0 = time.perf_counter()
+        sil, _ = segment_view(image, rec.camera_for(views[i]), poses[i], cfg["segmentation"],
+                              rec.workspace)
+        seconds += time.perf_counter() - t0
+        gt = truth > 127
+        if gt.shape != sil.mask.shape:
+            raise StageError(f"{path}: {key} is {gt.shape[1]}x{gt.shape[0]}, the view "
+                             f"{sil.mask.shape[1]}x{sil.mask.shape[0]}")
+        ious[i] = float(np.count_nonzero(gt & sil.mask) / max(np.count_nonzero(gt | sil.mask), 1))
+        if sil.qa["flags"]:
+            flags[i] = list(sil.qa["flags"])
+    if not ious:
+        raise StageError(f"{path}: no ground_truth/silhouettes/NNN.png attachments to score")
+    vals = np.array(list(ious.values()))
+    worst = min(ious, key=ious.get)
+    return {"iou": ious, "iou_mean": float(vals.mean()), "iou_min": float(vals.min()),
+            "worst_view": int(worst), "n_views": len(views), "n_scored": len(ious),
+            "seconds_per_view": seconds / len(ious), "qa_flags": flags}

@@ -110,8 +110,9 @@ def test_roi_excludes_a_distractor():
     sil = segment_silhouette(img, roi=roi)
     assert _iou(sil.mask, disc) >= 0.99
     assert sil.n_components == 1 and not sil.touches_border
-    # an ROI that cuts the object: nothing outside it, and the cut is reported
-    cut = segment_silhouette(img, roi=(0, 0, int(CX), H))
+    # an ROI that cuts the object: nothing outside it, and the cut is reported (grey
+    # threshold: the automatic polarity would take the object outside it as background)
+    cut = segment_silhouette(img, polarity="brighter", roi=(0, 0, int(CX), H))
     assert not cut.mask[:, int(CX):].any() and cut.touches_border
 
 
@@ -151,7 +152,9 @@ def test_background_subtraction():
 
 def test_touches_border():
     img, disc = _scene(cx=30.0, cy=80.0)  # cut by the left side; the holes stay inside
-    sil = segment_silhouette(img)
+    # grey threshold: the border ring holds the cut object, as flat and noisy as the
+    # background here, so the automatic polarity could not tell them apart
+    sil = segment_silhouette(img, polarity="brighter")
     assert sil.touches_border and sil.bbox[0] == 0
     assert sil.touches_image_border
     assert _iou(sil.mask, disc) >= 0.99
@@ -160,7 +163,7 @@ def test_touches_border():
     assert s["roi"] == [0, 0, W, H]
     # an ROI cutting the object: its border is touched, not the image's
     img, disc = _scene()
-    cut = segment_silhouette(img, roi=(0, 0, int(CX), H))
+    cut = segment_silhouette(img, polarity="brighter", roi=(0, 0, int(CX), H))
     assert cut.touches_border and not cut.touches_image_border
     assert cut.roi == (0, 0, int(CX), H)
     whole = segment_silhouette(img)
@@ -183,26 +186,26 @@ def test_find_roi_around_the_object_excludes_clutter():
     with pytest.raises(ValueError, match="do not pass roi"):
         find_roi(img, roi=(0, 0, 10, 10))
     with pytest.raises(StageError, match="empty"):
-        find_roi(np.full((H, W), 40, np.uint8), threshold=100)
+        find_roi(np.full((H, W), 40, np.uint8), polarity="brighter", threshold=100)
 
 
 # ---------------------------------------------------------------------- exceptions
 def test_empty_and_full_silhouettes_raise():
     dark = np.full((H, W), 40, np.uint8)
     with pytest.raises(StageError, match="silhouette is empty"):
-        segment_silhouette(dark, threshold=128)
+        segment_silhouette(dark, polarity="brighter", threshold=128)
     bright = np.full((H, W), 230, np.uint8)
     with pytest.raises(StageError, match="covers every pixel"):
-        segment_silhouette(bright, threshold=128)
+        segment_silhouette(bright, polarity="brighter", threshold=128)
     with pytest.raises(StageError, match="uniform"):
         segment_silhouette(dark)
     img, _ = _scene()
     with pytest.raises(StageError, match="covers every pixel"):
-        segment_silhouette(img, threshold=125, roi=(75, 65, 85, 75))  # ROI inside the disc
+        segment_silhouette(img, polarity="brighter", threshold=125, roi=(75, 65, 85, 75))  # ROI inside the disc
     specks = dark.copy()
     specks[10:13, 10:13] = 250
     with pytest.raises(StageError, match="smaller than 50 px"):
-        segment_silhouette(specks, threshold=128)
+        segment_silhouette(specks, polarity="brighter", threshold=128)
 
 
 def test_bad_inputs_raise():
@@ -285,12 +288,14 @@ def test_large_enclosed_gap_stays_background_small_marking_is_filled():
     image = np.full((h, w), 20, np.uint8)
     image[(r < 80) & (r > 40)] = 200          # a ring: its inside (r < 40) is background
     image[(np.abs(uu - 120) < 4) & (np.abs(vv - 40) < 4)] = 20   # a small dark marking on it
-    sil = segment_silhouette(image, threshold=100, blur_sigma_px=0, max_hole_fraction=0.05)
+    sil = segment_silhouette(image, polarity="brighter", threshold=100, blur_sigma_px=0,
+                             max_hole_fraction=0.05)
     assert not sil.mask[100, 120]              # the gap stays background
     assert sil.mask[40, 120]                   # the marking is filled
     truth = (r < 80) & (r > 40)
     assert (sil.mask ^ truth).sum() < 0.01 * truth.sum()
-    every = segment_silhouette(image, threshold=100, blur_sigma_px=0, max_hole_fraction=1.0)
+    every = segment_silhouette(image, polarity="brighter", threshold=100, blur_sigma_px=0,
+                               max_hole_fraction=1.0)
     assert every.mask[100, 120]                # the seed's rule fills every hole
 
 
@@ -378,7 +383,8 @@ def test_stage_silhouettes_background_topic_and_mask_pngs(tmp_path, caplog):
     out = {"npz": str(tmp_path / "silhouettes.npz"), "masks": str(tmp_path / "masks"),
            "report": str(tmp_path / "silhouettes.json"), "rrd": str(tmp_path / "s.rrd")}
     cfg = load_config(overrides={"segmentation": {"background_topic": "/camera/background",
-                                                  "min_component_px": 20}})
+                                                  "min_component_px": 20,
+                                                  "polarity": "brighter"}})
     report = stage_silhouettes({"recording": str(rec)}, out, cfg, "discs")
     views = report["views"]
     assert [v["background_subtracted"] for v in views] == [True, True, False]

@@ -358,3 +358,261 @@ def test_demo_generation_writes_only_the_missing(tmp_path, monkeypatch):
     assert written == []
     assert main(["simulate", "--demo", str(tmp_path)]) == 0  # without --missing: all
     assert sorted(w[0] for w in written) == ["dimple_block.mcap", "vase.mcap"]
+
+
+# --------------------------------------------------------------------------- issue 10: realism
+CELL_SMALL = dict(width=160, height=120, views=4, sweeps=2, sweep_frames=12, seed=5,
+                  robot_error="drift", clock_lag_ms=8.0)
+
+
+@pytest.fixture(scope="module")
+def cell_recording(tmp_path_factory):
+    from robo3d.simulate import SimulationParams
+
+    path = tmp_path_factory.mktemp("cell") / "cell.mcap"
+    params = SimulationParams.cell(laser="green", object_color="orange", small=True,
+                                   **CELL_SMALL)
+    result = simulate_recording(path, "sphere", params=params)
+    reader = pytest.importorskip("robo3d.recording.reader")
+    return reader.read_recording(path), result, params
+
+
+def test_cell_laser_frames_are_room_lit_rgb_jpeg(cell_recording):
+    rec, _, params = cell_recording
+    assert {m.encoding for m in rec.laser_frames} == {"jpeg"}
+    assert {m.encoding for m in rec.views} == {"jpeg"}
+    laser = np.stack([rec.decode(m) for m in rec.laser_frames])
+    views = np.stack([rec.decode(m) for m in rec.views])
+    assert laser.shape[1:] == (120, 160, 3)  # RGB, not mono
+    # room light: the demo cell's laser frames have a median of 1 DN, these are lit
+    assert np.median(laser) > 40 and np.median(views) > 60
+    # a cheap camera's noise: the JPEG's flat table regions are not flat
+    assert params.view_read_noise_dn >= 2 and params.vignetting > 0
+
+
+@pytest.mark.parametrize("laser,channel", [("red", 0), ("green", 1), ("blue", 2)])
+def test_laser_colour_dominates_the_stripe(sphere_scene, laser, channel):
+    from robo3d.sim.render import visible_stripe_points
+
+    app = Appearance.cell(laser=laser, object_color="white", texture="none")
+    scene = SimScene(sphere_scene.mesh, app)
+    room = SimScene(sphere_scene.mesh, Appearance.cell(laser=laser, object_color="white",
+                                                      texture="none", laser_peak_dn=0.0))
+    camera = default_camera(320, 240)
+    t_cl = default_laser_mount()
+    lo, hi = scene.mesh.bounds
+    t0, direction, length = sweep_poses(30.0, 45.0, CENTRE, 0.27, t_cl, lo, hi, 0.002)
+    t_bc = t0.copy()
+    t_bc[:3, 3] += direction * 0.45 * length
+    frame = render_laser_frame(scene, camera, t_bc, t_bc @ t_cl)
+    base = render_laser_frame(room, camera, t_bc, t_bc @ t_cl)
+    assert frame.shape == (240, 320, 3)
+    # room light: the view at the same pose, dimmed to laser_ambient_fraction
+    view = render_view(scene, camera, t_bc)
+    np.testing.assert_allclose(base, app.laser_ambient_fraction * view, atol=1e-9)
+    assert np.median(base) > 40
+    truth = visible_stripe_points(scene, camera, t_bc, t_bc @ t_cl)
+    uv = np.rint(truth.pixels_uv).astype(int)
+    added = (frame - base)[uv[:, 1], uv[:, 0]]
+    assert len(uv) > 200 and truth.on_object.sum() > 100
+    strong = added.max(axis=1) > 20
+    assert strong.mean() > 0.9
+    # the laser's channel carries the stripe, and the stripe stands out of the room light
+    assert np.mean(np.argmax(added[strong], axis=1) == channel) > 0.99
+    assert np.median(added[strong, channel]) > 3 * np.median(np.delete(added[strong], channel,
+                                                                       axis=1))
+
+
+def test_stripe_truth_lies_on_sheet_surface_and_image(sphere_scene):
+    from robo3d.sim.render import visible_stripe_points
+
+    camera = default_camera(320, 240)
+    t_cl = default_laser_mount()
+    lo, hi = sphere_scene.mesh.bounds
+    t0, direction, length = sweep_poses(30.0, 45.0, CENTRE, 0.27, t_cl, lo, hi, 0.002)
+    t_bc = t0.copy()
+    t_bc[:3, 3] += direction * 0.45 * length
+    t_bl = t_bc @ t_cl
+    st = visible_stripe_points(sphere_scene, camera, t_bc, t_bl)
+    assert np.abs((st.points_base - t_bl[:3, 3]) @ t_bl[:3, 1]).max() < 1e-7
+    r = np.linalg.norm(st.points_base[st.on_object] - CENTRE, axis=1)
+    assert np.abs(r - RADIUS).max() < 3e-5  # on the (faceted) sphere
+    assert np.abs(st.points_base[st.kind == 2, 2]).max() < 1e-7  # on the table
+    assert st.on_object.sum() > 300 and (st.kind == 2).sum() > 100
+    # the rendered stripe is brightest where the truth says it is
+    img = render_laser_frame(sphere_scene, camera, t_bc, t_bl)
+    import cv2
+
+    near = cv2.dilate(img.astype(np.float32), np.ones((3, 3), np.uint8))
+    sel = st.on_object & (st.signal_dn > 50)
+    uv = np.rint(st.pixels_uv[sel]).astype(int)
+    assert np.mean(near[uv[:, 1], uv[:, 0]] > 0.4 * st.signal_dn[sel]) > 0.95
+    assert np.median(img) < 2  # elsewhere the frame is dark (the demo cell)
+    # and points the camera cannot see (the sphere's far side) are not in it
+    behind = st.points_base[st.on_object] - CENTRE
+    assert np.all(behind @ (t_bc[:3, 3] - CENTRE) > -1e-3)
+
+
+def test_true_silhouettes_are_attached_and_are_the_object_hits(cell_recording):
+    import cv2
+
+    from robo3d.simulate import SILHOUETTES, image_poses
+
+    rec, _, _ = cell_recording
+    names = sorted(k for k in rec.attachments if k.startswith(SILHOUETTES))
+    assert names == [f"{SILHOUETTES}{i:03d}.png" for i in range(len(rec.views))]
+    poses = image_poses(rec)
+    camera = rec.camera_for(rec.views[0])
+    for i, name in enumerate(names):
+        sil = cv2.imdecode(np.frombuffer(rec.attachments[name], np.uint8),
+                           cv2.IMREAD_UNCHANGED)
+        assert sil.dtype == np.uint8 and sil.shape == (120, 160)
+        assert set(np.unique(sil)) <= {0, 255}
+        t_bc = poses["/camera/image"][i]["T_base_camera"]
+        dirs = pixel_grid_rays(camera) @ t_bc[:3, :3].T
+        t_hit, closest = _ray_sphere(t_bc[:3, 3], dirs)
+        truth = np.isfinite(t_hit).reshape(120, 160)
+        wrong = (sil > 127) != truth
+        assert truth.sum() > 300
+        assert np.all(np.abs(closest.reshape(120, 160)[wrong] - RADIUS) < 3e-5)
+
+
+def test_contract_ground_truth_tf_resolves_true_camera_poses(cell_recording):
+    from robo3d.recording.reader import read_ground_truth_tf
+    from robo3d.simulate import image_poses
+
+    rec, _, _ = cell_recording
+    doc = json.loads(rec.attachments["ground_truth/tf.json"])
+    e = doc["transforms"][0]
+    assert set(e) == {"timestamp", "parent_frame_id", "child_frame_id", "translation",
+                      "rotation"} and set(e["timestamp"]) == {"sec", "nsec"}
+    truth = read_ground_truth_tf(rec)
+    poses = image_poses(rec)
+    views = poses["/camera/image"]
+    stamps = np.array([v["stamp_ns"] for v in views])
+    np.testing.assert_allclose(truth.lookup("base", "camera", stamps),
+                               np.stack([v["T_base_camera"] for v in views]), atol=1e-8)
+
+
+def test_drift_error_varies_within_a_sweep(cell_recording):
+    from robo3d.recording.reader import read_ground_truth_tf
+
+    rec, result, _ = cell_recording
+    truth = read_ground_truth_tf(rec)
+    stamps = np.array([m.timestamp_ns for m in rec.laser_frames])
+    e = (invert_transform(truth.lookup("base", "flange", stamps))
+         @ rec.tf.lookup("base", "flange", stamps))
+    for k in range(2):
+        ek = e[12 * k: 12 * (k + 1)]
+        rel = invert_transform(ek[0]) @ ek
+        span_mm = np.linalg.norm(rel[:, :3, 3], axis=1).max() * 1e3
+        span_deg = max(rotation_angle_deg(r[:3, :3]) for r in rel)
+        assert span_mm > 0.003 or span_deg > 0.002, (span_mm, span_deg)
+        assert span_mm < 0.5 and span_deg < 0.1
+        # around the constant part E_k, which is what the sweep_errors report
+        dev = invert_transform(result.sweep_errors[k]) @ ek
+        assert np.linalg.norm(dev[:, :3, 3], axis=1).max() < 0.2e-3
+    span = json.loads(rec.metadata["robo3d.simulation"]["sweep_error_span"])
+    assert len(span) == 2 and all(s["translation_mm"] > 0 for s in span)
+
+
+def test_clock_lag_renders_later_than_the_stamp(cell_recording):
+    from robo3d.recording.reader import read_ground_truth_tf
+    from robo3d.simulate import image_poses
+
+    rec, _, params = cell_recording
+    poses = image_poses(rec)
+    lag = int(params.clock_lag_ms * 1e6)
+    assert poses["clock_lag_ns"] == lag == 8_000_000
+    frames = poses["/camera/laser_image"]
+    stamps = np.array([f["stamp_ns"] for f in frames])
+    assert np.array_equal(stamps, [m.timestamp_ns for m in rec.laser_frames])
+    assert all(f["exposure_ns"] - f["stamp_ns"] == lag for f in frames)
+    truth = read_ground_truth_tf(rec)
+    at_exposure = truth.lookup("base", "camera", stamps + lag)
+    at_stamp = truth.lookup("base", "camera", stamps)
+    rendered = np.stack([f["T_base_camera"] for f in frames])
+    np.testing.assert_allclose(rendered, at_exposure, atol=1e-8)
+    shift = np.linalg.norm(rendered[:, :3, 3] - at_stamp[:, :3, 3], axis=1)
+    np.testing.assert_allclose(shift, params.sweep_speed * 8e-3, atol=1e-9)  # 0.16 mm
+
+
+def test_cell_table_has_dark_printed_markers():
+    from robo3d.sim.render import MARKER_BOARD_HALF, table_marker_ink
+
+    app = Appearance.cell()
+    xy = np.random.default_rng(0).uniform(-MARKER_BOARD_HALF, MARKER_BOARD_HALF, (200_000, 2))
+    keep_out = (np.array([-0.05, -0.05]), np.array([0.05, 0.05]))
+    ink = table_marker_ink(xy, "aruco", app.marker_size, app.marker_pitch, keep_out)
+    assert 0.1 < ink.mean() < 0.4
+    assert not ink[np.all(np.abs(xy) < 0.05, axis=1)].any()  # none under the object
+    # in a rendered view the table is bright and its markers dark
+    scene = SimScene(object_mesh("sphere"), app)
+    camera = default_camera(320, 240)
+    t_bc = look_at(np.array([0.22, -0.12, 0.22]), CENTRE)
+    img, sil = render_view(scene, camera, t_bc, return_silhouette=True)
+    hits = scene.cast(t_bc[:3, 3], pixel_grid_rays(camera) @ t_bc[:3, :3].T)
+    table = (hits.kind == 2) & np.all(np.abs(hits.points[:, :2]) < 0.18, axis=1)
+    grey = img.reshape(-1, 3).mean(axis=1)
+    ink_px = table_marker_ink(hits.points[:, :2], "aruco", app.marker_size,
+                              app.marker_pitch, scene._keep_out)
+    assert np.median(grey[table & ~ink_px]) > 120
+    assert np.median(grey[table & ink_px]) < 0.2 * np.median(grey[table & ~ink_px])
+    assert (table & ink_px).sum() > 1000
+    assert np.array_equal(sil.ravel(), hits.kind == 1)
+
+
+def test_user_mesh_in_millimetres_lands_on_the_table(tmp_path):
+    from robo3d.errors import Robo3dError
+    from robo3d.meshio import write_mesh
+    from robo3d.simulate import load_object_mesh
+
+    # a 40 x 30 x 20 mm box, modelled around (100, 100, 50) mm
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    v = np.array([80.0, 85.0, 40.0]) + corners * [40.0, 30.0, 20.0]
+    f = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                  [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    stl = tmp_path / "part.stl"
+    write_mesh(stl, v, f)
+    out = tmp_path / "part.mcap"
+    assert main(["simulate", "--object-mesh", str(stl), "--mesh-unit", "mm", str(out),
+                 "--views", "2", "--no-laser", "--width", "64", "--height", "48"]) == 0
+    reader = pytest.importorskip("robo3d.recording.reader")
+    rec = reader.read_recording(out, roles=("views",))
+    assert rec.info["object"] == "part"
+    from robo3d.meshio import read_mesh
+
+    tv, tf = read_mesh(rec.attachments["ground_truth/mesh.ply"], suffix=".ply")
+    lo, hi = tv.min(axis=0), tv.max(axis=0)
+    np.testing.assert_allclose(hi - lo, [0.04, 0.03, 0.02], atol=1e-7)
+    np.testing.assert_allclose(lo, [-0.02, -0.015, 0.0], atol=1e-7)
+    assert len(tf) == 12
+    # the box is in the views: the silhouettes are not empty
+    import cv2
+
+    sil = cv2.imdecode(np.frombuffer(rec.attachments["ground_truth/silhouettes/000.png"],
+                                     np.uint8), cv2.IMREAD_UNCHANGED)
+    assert (sil > 127).sum() > 50
+    # bad meshes are clear errors naming the file
+    empty = tmp_path / "empty.ply"
+    write_mesh(empty, np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+    with pytest.raises(Robo3dError, match="empty.ply.*empty"):
+        load_object_mesh(empty)
+    bad = tmp_path / "nan.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    with pytest.raises(Robo3dError, match="nan.obj"):
+        load_object_mesh(bad)
+    with pytest.raises(Robo3dError, match="wrong --mesh-unit"):
+        load_object_mesh(stl, "m")  # 120 m: the unit is wrong
+    with pytest.raises(Robo3dError, match="missing.stl"):
+        load_object_mesh(tmp_path / "missing.stl", "mm")
+
+
+def test_demo_format_keeps_the_first_metadata_and_truth():
+    from robo3d.simulate import _NEW_FIELDS, SimulationParams
+
+    meta = SimulationParams().to_metadata(full=False)
+    assert not (set(meta) & _NEW_FIELDS)
+    assert not any(k.startswith("appearance.laser_rgb") for k in meta)
+    assert "appearance.laser_rgb" in SimulationParams().to_metadata()
+    assert "clock_lag_ms" in SimulationParams(clock_lag_ms=3.0).to_metadata(full=False)

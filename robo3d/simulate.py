@@ -44,6 +44,20 @@ Choices
   frames and stretches the spacing to cover the object.
 - Laser frames are quiet by design (object ``laser_ambient_dn`` = 1 DN, read noise
   0.12 DN, shot noise at 0.025 DN per electron), so their PNGs compress to a few kB.
+- Realism (issue 10), all options off in the demos: room-lit RGB laser frames of a
+  red, green or blue laser, coloured textured glossy objects, a bright table with
+  printed markers, a wall, JPEG at webcam quality, a cheap sensor's noise and
+  vignetting (``SimulationParams.cell``); a robot error that drifts within a sweep and
+  depends on the pose (``robot_error="drift"``); a late camera clock (``clock_lag_ms``);
+  a user's mesh file as the object (``object_mesh``, ``mesh_unit``).
+- Ground truth of non-demo recordings follows ``recording-format.md``:
+  ``ground_truth/tf.json`` as a ``foxglove.FrameTransforms`` JSON message (the true
+  ``base -> flange`` samples; the mounts are exact, ``/tf_static`` is their truth),
+  ``ground_truth/silhouettes/NNN.png`` (the object hits of the pixel-centre rays at the
+  view's true pose, 255 on the object), and ``ground_truth/image_poses.json`` (the
+  true camera and laser pose of every image at its exposure, for stripe truth:
+  :func:`stripe_truth`). The demos (``demo_format``, :func:`write_demos`) keep the
+  first ``tf.json`` form and no other attachments, so that their bytes do not change.
 - Ray casting runs on ``threads`` Open3D threads (1 by default; 0 for all cores) with
   BLAS limited to one thread (its idle spinning otherwise costs more than it gives on
   these small matrix products); the output does not depend on either.
@@ -169,7 +183,34 @@ class SimulationParams:
     start_time_ns : int
         Time of the first message (calibration, static transforms).
     appearance : Appearance
-        Materials, lights, laser and supersampling (:class:`robo3d.sim.render.Appearance`).
+        Materials, lights, laser and supersampling (:class:`robo3d.sim.render.Appearance`;
+        :meth:`Appearance.cell` is a real-looking cell: room light in the laser frames,
+        a red, green or blue laser on RGB frames, a coloured textured glossy object on a
+        bright marker table before a wall).
+
+    The fields below were added for issue 10; at their defaults the recording is the
+    demo cell's, unchanged (see :meth:`cell` and :meth:`small` for presets).
+
+    vignetting : float
+        Fraction of the light lost in the image corners (``1 - v (r / r_corner)^2``),
+        views and laser frames; 0: none.
+    robot_error : {"constant", "drift"}
+        ``constant``: one rigid error per sweep (per view). ``drift``: that error times a
+        smooth drift within the sweep and a flange-position-dependent term
+        (:mod:`robo3d.sim.rig`), which the per-sweep rigid alignment does not model.
+    drift_mm, drift_deg : (lo, hi)
+        ``drift``: magnitudes of the within-sweep translation and rotation drift.
+    pose_error_mm_per_m, pose_error_deg_per_m : float
+        ``drift``: gradients of the pose-dependent error (per metre from the object's
+        centre); it applies to the views too.
+    clock_lag_ms : float
+        The camera clock is late by this much: an image stamped ``t`` is rendered at the
+        robot's pose at ``t + lag`` (``|lag| <= 30`` ms).
+    object_mesh : str or None
+        A mesh file (STL, PLY, OBJ) to scan instead of a named object
+        (:func:`load_object_mesh`).
+    mesh_unit : str
+        Unit of ``object_mesh``'s coordinates (:data:`MESH_UNITS`).
     """
 
     seed: int = 0

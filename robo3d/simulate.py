@@ -690,6 +690,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     pose_err = (PoseDependentError(np.random.default_rng([p.seed, 5]), p.pose_error_mm_per_m,
                                    p.pose_error_deg_per_m, target) if drift else None)
     vig = (vignetting(p.height, p.width, p.vignetting) if p.vignetting > 0 else None)
+    # room-lit images: shot noise from its normal approximation (the demo cell: Poisson)
+    fast_noise = p.appearance.laser_ambient_fraction is not None
 
     # ---------------------------------------------------------------- views
     view_cams = (view_poses(p.views, target, p.view_distance, p.view_elevations_deg,
@@ -825,7 +827,7 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                 if vig is not None:
                     signal = signal * vig[..., None]
                 img = sensor_noise(signal, np.random.default_rng([p.seed, 10, i]),
-                                   p.gain_dn_per_electron, p.view_read_noise_dn)
+                                   p.gain_dn_per_electron, p.view_read_noise_dn, fast_noise)
                 w.write_image(_VIEW_TOPIC, stamp, camera.frame_id, img, p.view_encoding,
                               p.jpeg_quality)
                 if not legacy:  # the true silhouette, at the pose the image was taken
@@ -838,7 +840,7 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                 if vig is not None:
                     signal = signal * (vig if signal.ndim == 2 else vig[..., None])
                 img = sensor_noise(signal, np.random.default_rng([p.seed, 11, k, j]),
-                                   p.gain_dn_per_electron, p.laser_read_noise_dn)
+                                   p.gain_dn_per_electron, p.laser_read_noise_dn, fast_noise)
                 w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
                               p.jpeg_quality)
     return SimulationResult(path=path, object_name=object_name, n_views=p.views,

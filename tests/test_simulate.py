@@ -616,3 +616,24 @@ def test_demo_format_keeps_the_first_metadata_and_truth():
     assert not any(k.startswith("appearance.laser_rgb") for k in meta)
     assert "appearance.laser_rgb" in SimulationParams().to_metadata()
     assert "clock_lag_ms" in SimulationParams(clock_lag_ms=3.0).to_metadata(full=False)
+
+
+def test_truth_scene_and_image_poses_reproduce_the_recorded_frames(cell_recording):
+    from robo3d.recording.images import encode_image
+    from robo3d.sim.render import vignetting
+    from robo3d.simulate import image_poses, stripe_truth, truth_scene
+
+    rec, _, params = cell_recording
+    scene = truth_scene(rec)
+    assert scene.appearance == params.appearance
+    poses = image_poses(rec)
+    camera = rec.camera_for(rec.laser_frames[0])
+    e = poses["/camera/laser_image"][18]  # sweep 1, frame 6
+    assert (e["sweep"], e["frame"]) == (1, 6)
+    signal = render_laser_frame(scene, camera, e["T_base_camera"], e["T_base_laser"])
+    signal = signal * vignetting(120, 160, params.vignetting)[..., None]
+    img = sensor_noise(signal, np.random.default_rng([params.seed, 11, 1, 6]),
+                       params.gain_dn_per_electron, params.laser_read_noise_dn, True)
+    assert encode_image(img, "jpeg", params.jpeg_quality) == rec.laser_frames[18].data
+    st = stripe_truth(rec, 18, scene, poses)
+    assert len(st.points_base) > 50

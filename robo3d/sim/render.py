@@ -362,28 +362,34 @@ def table_marker_ink(xy: np.ndarray, kind: str, size: float, pitch: float,
         A box ``(lo, hi)`` in x, y left blank (the object's footprint and margin).
     """
     xy = np.asarray(xy, dtype=np.float64)
-    on_board = np.all(np.abs(xy) <= MARKER_BOARD_HALF, axis=1)
-    lo, hi = keep_out
+    out = np.zeros(len(xy), dtype=bool)
     if kind == "none":
-        return np.zeros(len(xy), dtype=bool)
+        return out
+    cand = np.flatnonzero((np.abs(xy[:, 0]) <= MARKER_BOARD_HALF)
+                          & (np.abs(xy[:, 1]) <= MARKER_BOARD_HALF))
+    p = xy[cand]
     if kind == "checker":
-        ij = np.floor(xy / size).astype(np.int64)
+        ij = np.floor(p / size).astype(np.int64)
         ink = (ij.sum(axis=1) % 2) == 0
-        c_lo, c_hi = ij * size, (ij + 1) * size
+        c_lo = ij * size
+        c_hi = c_lo + size
     else:
-        ij = np.floor(xy / pitch).astype(np.int64)
+        ij = np.floor(p / pitch).astype(np.int64)
         centre = (ij + 0.5) * pitch
-        d = xy - centre
+        d = p - centre
         if kind == "dots":
             ink = np.einsum("ij,ij->i", d, d) <= (0.5 * size) ** 2
         else:
-            inside = np.all(np.abs(d) < 0.5 * size, axis=1)
-            b = np.clip(np.floor((d + 0.5 * size) / (size / 6.0)).astype(np.int64), 0, 5)
+            ink = np.all(np.abs(d) < 0.5 * size, axis=1)
+            k = np.flatnonzero(ink)  # bits only inside the squares
+            b = np.clip(np.floor((d[k] + 0.5 * size) / (size / 6.0)).astype(np.int64), 0, 5)
             border = (b[:, 0] == 0) | (b[:, 0] == 5) | (b[:, 1] == 0) | (b[:, 1] == 5)
-            ink = inside & (border | _hash_bits(ij[:, 0], ij[:, 1], b[:, 0], b[:, 1]))
+            ink[k] = border | _hash_bits(ij[k, 0], ij[k, 1], b[:, 0], b[:, 1])
         c_lo, c_hi = centre - 0.5 * size, centre + 0.5 * size
+    lo, hi = keep_out
     clear = np.any(c_hi < lo, axis=1) | np.any(c_lo > hi, axis=1)
-    return ink & clear & on_board
+    out[cand] = ink & clear
+    return out
 
 
 class SimScene:
@@ -516,23 +522,22 @@ class SimScene:
         """RGB albedo ``(N, 3)`` at the hits (0 on a miss)."""
         a = self.appearance
         out = np.zeros((len(hits.kind), 3))
-        obj = hits.kind == OBJECT
+        obj = np.flatnonzero(hits.kind == OBJECT)
         out[obj] = a.object_albedo
-        if a.object_texture != "none" and np.any(obj):
+        if a.object_texture != "none" and len(obj):
             wt = object_texture_weight(hits.points[obj], a.object_texture,
                                        a.object_texture_scale)[:, None]
             out[obj] = (1 - wt) * np.asarray(a.object_albedo) + wt * np.asarray(a.object_albedo2)
-        table = hits.kind == TABLE
-        grain = a.table_albedo * (1 + a.table_texture * _table_pattern(hits.points[table]))
+        table = np.flatnonzero(hits.kind == TABLE)
+        table_pts = hits.points[table]
+        grain = a.table_albedo * (1 + a.table_texture * _table_pattern(table_pts))
         out[table] = grain[:, None] * np.array(a.table_tint)
-        if a.table_markers != "none" and np.any(table):
-            ink = table_marker_ink(hits.points[table, :2], a.table_markers, a.marker_size,
+        if a.table_markers != "none" and len(table):
+            ink = table_marker_ink(table_pts[:, :2], a.table_markers, a.marker_size,
                                    a.marker_pitch, self._keep_out)
-            sub = out[table]
-            sub[ink] = a.marker_albedo
-            out[table] = sub
+            out[table[ink]] = a.marker_albedo
         wall = hits.kind == WALL
-        if np.any(wall):
+        if self._wall_id is not None and np.any(wall):
             pw = hits.points[wall]
             st = np.stack([pw @ self._wall_tangent, pw[:, 2]], axis=1)
             plaster = a.wall_albedo * (1 + 0.08 * _table_pattern(0.3 * st))
@@ -869,7 +874,7 @@ def visible_stripe_points(scene: SimScene, camera: CameraModel, T_base_camera: n
 
 
 def sensor_noise(signal_dn: np.ndarray, rng: np.random.Generator, gain: float,
-                 read_noise: float) -> np.ndarray:
+                 read_noise: float, gaussian_shot: bool = False) -> np.ndarray:
     """Add shot and read noise to a signal and quantise it to 8 bits.
 
     Parameters
@@ -880,12 +885,21 @@ def sensor_noise(signal_dn: np.ndarray, rng: np.random.Generator, gain: float,
         Shot noise: the signal is ``gain * Poisson(signal / gain)`` (0: none).
     read_noise : float, DN
         Standard deviation of Gaussian read noise.
+    gaussian_shot : bool
+        Draw shot and read noise from one normal (variance ``gain * signal +
+        read_noise^2``), about three times faster; exact enough above a few tens of
+        electrons, which a
+        room-lit image has everywhere but in its darkest shadows.
 
     Returns
     -------
     uint8 array of the same shape
     """
     s = np.maximum(np.asarray(signal_dn, dtype=np.float64), 0.0)
+    if gaussian_shot:  # shot and read noise in one normal draw
+        sigma = np.sqrt(np.float32(gain) * s.astype(np.float32) + np.float32(read_noise) ** 2)
+        s = s + sigma * rng.standard_normal(s.shape, dtype=np.float32)
+        return np.clip(np.rint(s), 0, 255).astype(np.uint8)
     if gain > 0:
         s = rng.poisson(s / gain) * gain
     if read_noise > 0:

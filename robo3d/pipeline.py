@@ -449,6 +449,12 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     n_views = len(cameras)
     left_out = agreement["views_left_out"] if cc["qa_leave_out"] else []
     used = [i for i in range(n_views) if i not in set(left_out)]
+    if ws is None and left_out:  # a bad mask also misplaces the box: place it again
+        box_min, box_max, box_report = box_from_silhouettes(
+            None, [masks[i] for i in used], [cameras[i] for i in used], poses[used],
+            margin=cc["box_margin"])
+        box_report = {"source": "silhouette centroid rays (seed §3.4) of the views used",
+                      **box_report, "size_m": (box_max - box_min).tolist()}
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
     grid, carve_report = carve_visual_hull(grid, [masks[i] for i in used],
                                            [cameras[i] for i in used], poses[used],

@@ -566,3 +566,170 @@ def test_stage_carve_rejects_conservative_dense(tmp_path, sphere_views):
     with pytest.raises(ConfigError, match="carving.leaf_rule"):
         stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")},
                     {k: str(tmp_path / k) for k in ("npz", "ply", "report", "rrd")}, cfg, "s")
+
+
+# ---------------------------------------------------------------------- view agreement
+def _ring_views(n=12, size=(160, 120), f=150.0, aim=None):
+    """n views of the sphere from evenly spread directions; ``aim(d)`` (optional) moves
+    each camera's target (to cut the sphere off at the frame)."""
+    w, h = size
+    cam = CameraModel("camera", w, h, [[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
+    Ts = np.stack([look_at(CENTRE + DIST * d, CENTRE if aim is None else aim(d))
+                   for d in _fib_dirs(n)])
+    return cam, Ts, [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
+
+
+def _iou(a, b) -> float:
+    return float(np.count_nonzero(a & b) / np.count_nonzero(a | b))
+
+
+def _corrupt(kind: str, m: np.ndarray) -> np.ndarray:
+    v, u = np.nonzero(m)
+    if kind == "inverted":
+        return ~m
+    if kind == "shifted":  # by a third of the silhouette's width
+        return np.roll(m, (u.max() - u.min()) // 3, axis=1)
+    if kind == "blob":  # as large as the object, beside it
+        yy, xx = np.mgrid[0:m.shape[0], 0:m.shape[1]]
+        r = 0.5 * (u.max() - u.min())
+        return m | (np.hypot(yy - v.mean(), xx - (u.min() - r)) < r)
+    if kind == "part missing":  # the top 40 % of the silhouette lost
+        out = m.copy()
+        out[: int(v.min() + 0.4 * (v.max() - v.min())), :] = False
+        return out
+    raise ValueError(kind)
+
+
+@pytest.fixture(scope="module")
+def ring():
+    cam, Ts, masks = _ring_views()
+    grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=40)
+    exact, _ = carve_dense(grid, masks, cam, Ts)
+    return cam, Ts, masks, grid, exact
+
+
+def test_agreement_of_true_silhouettes(ring):
+    """Exact silhouettes agree with the others' hull up to the grid's resolution."""
+    from robo3d.carving import view_agreement
+
+    cam, Ts, masks, grid, _ = ring
+    scores = view_agreement(grid, masks, cam, Ts)
+    assert [s["view"] for s in scores] == list(range(len(Ts)))
+    for s in scores:
+        assert s["iou"] > 0.9 and s["missing_fraction"] < 0.08
+        assert s["spurious_fraction"] < 0.05  # the others' hull contains the sphere
+        assert s["unknown_px"] == 0 and s["mask_px"] == np.count_nonzero(masks[s["view"]])
+
+
+@pytest.mark.parametrize("kind", ["inverted", "shifted", "blob", "part missing"])
+def test_agreement_flags_the_bad_view_and_leaving_it_out_restores_the_hull(ring, kind):
+    from robo3d.carving import flag_disagreeing_views
+
+    cam, Ts, masks, grid, exact = ring
+    bad = 5
+    ms = list(masks)
+    ms[bad] = _corrupt(kind, masks[bad])
+    qa = flag_disagreeing_views(grid, ms, cam, Ts)
+    assert qa["flagged"] == [bad], qa["flagged"]
+    s = qa["views"][bad]
+    assert s["flagged"] and s["reasons"]
+    assert all(not v["flagged"] for v in qa["views"] if v["view"] != bad)
+    if kind == "blob":
+        assert s["spurious_fraction"] > 0.3 and s["missing_fraction"] < 0.1
+    else:
+        assert s["missing_fraction"] > 0.2
+    with_bad, _ = carve_dense(grid, ms, cam, Ts)
+    used = [i for i in range(len(Ts)) if i not in qa["flagged"]]
+    without, _ = carve_dense(grid, [ms[i] for i in used], cam, Ts[used])
+    assert _iou(without.occupancy, exact.occupancy) > 0.97
+    if kind != "blob":  # the others carve a blob away; the rest carve the sphere away
+        assert _iou(with_bad.occupancy, exact.occupancy) < 0.8
+
+
+def test_agreement_two_bad_views_and_the_cap():
+    """Two bad views are both found (the worse first, then the other against a clean
+    reference); when most views disagree, at most half are flagged."""
+    from robo3d.carving import flag_disagreeing_views
+
+    cam, Ts, masks = _ring_views()
+    grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=40)
+    ms = list(masks)
+    ms[2] = _corrupt("inverted", masks[2])
+    ms[9] = _corrupt("part missing", masks[9])
+    qa = flag_disagreeing_views(grid, ms, cam, Ts)
+    assert qa["flagged"] == [2, 9] and not qa["capped"] and qa["passes"] >= 2
+    ms = [_corrupt("shifted", m) if i % 4 else m for i, m in enumerate(masks)]  # 9 of 12
+    qa = flag_disagreeing_views(grid, ms, cam, Ts)
+    assert qa["capped"] and len(qa["flagged"]) == 6
+
+
+def test_agreement_object_cut_off_by_the_frame_is_not_a_disagreement():
+    """Half of the views aim beside the sphere, which the frame cuts off (outside_image
+    keep, as on DTU): their masks end at the border; none is flagged."""
+    from robo3d.carving import flag_disagreeing_views
+
+    def aim(d):
+        side = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
+        return CENTRE + 0.24 * side / np.linalg.norm(side)  # 90 px beside the centre
+
+    cam, Ts_c, masks_c = _ring_views(aim=aim)
+    _, Ts_f, masks_f = _ring_views()
+    Ts = np.concatenate([Ts_c[1::2], Ts_f[::2]])
+    masks = masks_c[1::2] + masks_f[::2]
+    cut = [i for i, m in enumerate(masks) if m[:, 0].any() or m[:, -1].any()
+           or m[0].any() or m[-1].any()]
+    assert cut == [0, 1, 2, 3, 4, 5]  # cut off by the frame: a third to two thirds seen
+    assert all(0.25 < masks[i].sum() / masks[-1].sum() < 0.75 for i in cut)
+    grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=40)
+    qa = flag_disagreeing_views(grid, masks, cam, Ts)
+    assert qa["flagged"] == []
+    for i in cut:
+        assert qa["views"][i]["missing_fraction"] < 0.05
+        assert qa["views"][i]["spurious_fraction"] < 0.05
+
+
+def test_k2_keeps_the_object_despite_a_view_that_carves_it_away(ring):
+    """k = 2: a voxel goes only when two views see background there, so one view that
+    lost part of the object carves nothing the others keep."""
+    cam, Ts, masks, grid, exact = ring
+    ms = list(masks)
+    ms[4] = _corrupt("part missing", masks[4])
+    k1, _ = carve_dense(grid, ms, cam, Ts)
+    k2, rep = carve_dense(grid, ms, cam, Ts, min_views_background=2)
+    assert _iou(k1.occupancy, exact.occupancy) < 0.8  # the seed's hull loses a part
+    assert np.all(k2.occupancy[exact.occupancy])  # every voxel of the true hull kept
+    assert _iou(k2.occupancy, exact.occupancy) > 0.85  # a little fatter
+    assert rep["min_views_background"] == 2
+    assert sum(v["carved"] for v in rep["views"]) == grid.n_occupied - k2.n_occupied
+
+
+def test_stage_carve_leaves_a_flagged_view_out_and_says_so(tmp_path, ring):
+    import json
+
+    from robo3d.config import load_config
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks, _grid, exact = ring
+    ms = list(masks)
+    ms[7] = _corrupt("inverted", masks[7])
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms)
+    out = {"npz": str(tmp_path / "hull.npz"), "ply": str(tmp_path / "hull.ply"),
+           "report": str(tmp_path / "carve.json"), "rrd": str(tmp_path / "carve.rrd")}
+    cfg = load_config(overrides={"carving": {"resolution": 40, "qa_resolution": 40}})
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+    assert [r["view"] for r in report["views_left_out"]] == [7]
+    assert "misses" in report["views_left_out"][0]["reasons"][0]
+    assert report["views_used"] == [i for i in range(12) if i != 7]
+    assert report["agreement"]["views"][7]["flagged"]
+    assert {v["view"] for v in report["carving"]["views"]} == set(report["views_used"])
+    grid, extra = VoxelGrid.load_npz(out["npz"], return_extra=True)
+    assert extra["views_left_out"][0]["view"] == 7
+    assert extra["views_used"].tolist() == report["views_used"]
+    assert report["volume_m3"] == pytest.approx(SPHERE_VOLUME, rel=0.1)
+    with open(out["report"], encoding="utf-8") as f:
+        assert json.load(f)["views_left_out"][0]["view"] == 7
+    # turned off: every view carves, and the inverted one removes the sphere's core
+    cfg = load_config(overrides={"carving": {"resolution": 40, "qa_leave_out": False}})
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+    assert report["views_left_out"] == [] and report["views_flagged"] == [7]
+    assert report["volume_m3"] < 0.5 * SPHERE_VOLUME

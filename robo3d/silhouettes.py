@@ -534,6 +534,15 @@ def colour_difference(
                          "background's colour from")
     lab = raw if blur_sigma_px <= 0 else cv2.GaussianBlur(
         raw, (0, 0), sigmaX=float(blur_sigma_px), borderType=cv2.BORDER_REPLICATE)
+    if not border_sample:
+        # model the background's colours, not the blends along its edges: a printed marker's
+        # blurred rim spans every grey between paper and ink, and would make any grey
+        # object look like the table
+        contrast = _local_contrast(lab)
+        c = contrast[sample]
+        flat = sample & (contrast <= max(3.0 * float(np.median(c)), 2.0))
+        if np.count_nonzero(flat) >= max(100, 0.3 * np.count_nonzero(sample)):
+            sample = flat
     modes = _background_modes(lab, sample, "image border" if border_sample else "outside roi",
                               raw)
     return _mode_distance(lab, modes)
@@ -896,8 +905,10 @@ def segment_silhouette(
     mask, n_components, n_removed = clean(mask)
     if grabcut:
         refined = refine_with_grabcut(image, mask, box)
-        if refined.any():
-            mask, _, _ = clean(refined)
+        try:
+            mask = clean(refined)[0]
+        except StageError:  # GrabCut lost the object: keep the thresholded mask
+            _log.debug("grabcut left no silhouette %s; the thresholded mask is kept", where)
     if np.all(mask[v0:v1, u0:u1]):
         raise StageError(f"silhouette covers every pixel of the region analysed {where}: "
                          "wrong polarity or threshold, or the object fills the view")

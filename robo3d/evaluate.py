@@ -17,6 +17,12 @@ Conventions
   number kept is reported.
 - Surfaces are sampled uniformly by area with an explicit seed, so the numbers are
   reproducible.
+- **Mask IoU** (:func:`silhouette_iou`): each view's silhouette against the recording's
+  true one (``ground_truth/silhouettes/NNN.png``, ``NNN`` the 0-based index of the image
+  on the views topic in time order, the order the silhouettes stage keeps). An
+  attachment that is missing, does not decode, is not 8-bit or has another size than
+  its view is skipped with the reason; the other views are still scored. Two empty
+  masks agree (IoU 1).
 - Distance and inside/outside queries use Open3D's ``RaycastingScene`` (Embree), which
   works in float32: coordinates are shifted to the truth mesh's centroid first, so the
   float32 resolution is that of the object's size (~0.01 µm for a 0.1 m object), not of
@@ -48,6 +54,8 @@ __all__ = [
     "mesh_accuracy",
     "completeness",
     "volume_iou",
+    "silhouette_iou",
+    "TRUE_SILHOUETTES",
     "pose_error",
     "batch_rows",
     "write_batch_table",
@@ -389,6 +397,100 @@ def volume_iou(occupancy: np.ndarray, origin: np.ndarray, voxel_size: float,
     return float(inter / union) if union else 0.0
 
 
+#: Prefix of the true silhouettes among a recording's attachments.
+TRUE_SILHOUETTES = "ground_truth/silhouettes/"
+
+
+def _decode_truth_mask(data: bytes, shape: tuple[int, int]) -> tuple[np.ndarray | None, str]:
+    """A true silhouette (object > 127) from PNG bytes, or None and why not."""
+    import cv2
+
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        return None, f"does not decode ({exc.msg.strip() if hasattr(exc, 'msg') else exc})"
+    if img is None:
+        return None, f"does not decode as an image ({len(data)} bytes)"
+    if img.dtype != np.uint8:
+        return None, f"is {img.dtype}, expected 8-bit"
+    if img.ndim == 3:  # accepted: a grey mask saved as colour
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else
+                           cv2.COLOR_BGR2GRAY)
+    if img.shape != shape:
+        return None, (f"is {img.shape[1]}x{img.shape[0]} px, the view is "
+                      f"{shape[1]}x{shape[0]}")
+    return img > 127, ""
+
+
+def silhouette_iou(masks: list[np.ndarray], attachments: dict[str, bytes], *,
+                   prefix: str = TRUE_SILHOUETTES) -> dict[str, Any]:
+    """Intersection over union of each view's silhouette with the true one.
+
+    Parameters
+    ----------
+    masks : list of N (H_i, W_i) bool
+        The silhouettes, in the order of the views (time order on the views topic).
+    attachments : dict of str -> bytes
+        The recording's attachments; ``<prefix>NNN.png`` is the true silhouette of view
+        ``NNN`` (0-based), 8-bit, object > 127, the view's size.
+    prefix : str
+
+    Returns
+    -------
+    dict
+        ``per_view``: one entry per view, ``{"view", "iou", "mask_px", "truth_px",
+        "missed_px", "spurious_px"}`` or ``{"view", "iou": None, "skipped": reason}``;
+        ``mean`` and ``min`` (over the scored views, None if none), ``worst_view``,
+        ``n_views``, ``n_scored``, ``n_truth`` (true silhouettes attached),
+        ``skipped`` (view -> reason, as strings), ``unmatched`` (attachment names that
+        name no view, with why).
+    """
+    import re
+
+    truth: dict[int, bytes] = {}
+    unmatched: dict[str, str] = {}
+    for name, data in attachments.items():
+        if not name.startswith(prefix):
+            continue
+        m = re.fullmatch(r"(\d+)\.png", name[len(prefix):], flags=re.IGNORECASE)
+        if m is None:
+            unmatched[name] = "not NNN.png"
+        elif int(m.group(1)) >= len(masks):
+            unmatched[name] = f"names view {int(m.group(1))}, the recording has {len(masks)}"
+        elif int(m.group(1)) in truth:
+            unmatched[name] = f"a second true silhouette of view {int(m.group(1))}"
+        else:
+            truth[int(m.group(1))] = data
+    per_view: list[dict[str, Any]] = []
+    skipped: dict[str, str] = {}
+    for i, mask in enumerate(masks):
+        mask = np.asarray(mask, dtype=bool)
+        if i not in truth:
+            reason = f"no {prefix}{i:03d}.png"
+            t = None
+        else:
+            t, reason = _decode_truth_mask(truth[i], mask.shape)
+        if t is None:
+            per_view.append({"view": i, "iou": None, "skipped": reason})
+            skipped[str(i)] = reason
+            continue
+        inter = int(np.count_nonzero(mask & t))
+        union = int(np.count_nonzero(mask | t))
+        per_view.append({"view": i, "iou": float(inter / union) if union else 1.0,
+                         "mask_px": int(np.count_nonzero(mask)),
+                         "truth_px": int(np.count_nonzero(t)),
+                         "missed_px": int(np.count_nonzero(t & ~mask)),
+                         "spurious_px": int(np.count_nonzero(mask & ~t))})
+    scored = [(v["iou"], v["view"]) for v in per_view if v["iou"] is not None]
+    worst = min(scored) if scored else None
+    return {"per_view": per_view,
+            "mean": float(np.mean([s[0] for s in scored])) if scored else None,
+            "min": worst[0] if worst else None,
+            "worst_view": worst[1] if worst else None,
+            "n_views": len(masks), "n_scored": len(scored), "n_truth": len(truth),
+            "skipped": skipped, "unmatched": unmatched}
+
+
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[Any, Any]:
     """Translation and rotation error between estimated and true poses.
 
@@ -439,7 +541,9 @@ def batch_rows(metrics: list[dict[str, Any]]) -> list[dict[str, Any]]:
     Returns
     -------
     list of dict
-        Keys: ``recording``, ``hull_iou``, ``pose_before_mm`` / ``pose_before_deg``
+        Keys: ``recording``, ``hull_iou``, ``mask_iou_mean`` and ``mask_iou_min``
+        (silhouettes against the true ones), ``views_left_out`` (how many views the
+        agreement check left out of the carve), ``pose_before_mm`` / ``pose_before_deg``
         (worst sweep, displacement at the object / rotation), ``pose_after_mm``,
         ``pose_after_flange_mm``, ``pose_after_deg``, ``mesh_median_mm``,
         ``mesh_p95_mm``, ``complete_<t>mm`` per threshold, ``laser_fraction``,
@@ -451,6 +555,10 @@ def batch_rows(metrics: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ev = m.get("evaluation") or {}
         row: dict[str, Any] = {"recording": m.get("name"),
                                "hull_iou": ev.get("hull_volume_iou"),
+                               "mask_iou_mean": _get(ev, "mask_iou", "mean"),
+                               "mask_iou_min": _get(ev, "mask_iou", "min"),
+                               "views_left_out": (None if m.get("views_left_out") is None
+                                                  else len(m["views_left_out"])),
                                "pose_before_mm": _get(ev, "poses", "worst_before_obj_mm"),
                                "pose_before_deg": _get(ev, "poses", "worst_before_deg"),
                                "pose_after_mm": _get(ev, "poses", "worst_after_obj_mm"),
@@ -512,7 +620,9 @@ def write_batch_table(metrics_paths: list[str], tsv_path: str, html_path: str) -
             "<style>body{font-family:sans-serif}table{border-collapse:collapse}"
             "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
             "th{background:#eee}</style></head><body><h1>robo3d batch: "
-            f"{len(rows)} recording(s)</h1><p>Pose errors: worst sweep, displacement of "
+            f"{len(rows)} recording(s)</h1><p>Mask IoU: the silhouettes against the "
+            "recording's true ones, mean and worst view; views left out: by the carve's "
+            "agreement check. Pose errors: worst sweep, displacement of "
             "its points (mm) and rotation (deg); mesh: distance of the final mesh to the "
             "true surface; complete: fraction of the true surface within the threshold; "
             "times in seconds, memory in MB (peak resident).</p>"

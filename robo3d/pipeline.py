@@ -1092,12 +1092,23 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     Accuracy of the fused and final meshes is scored on the surface inside the
     workspace box above ``evaluation.floor_margin_m`` over its floor (below it the mesh
     closes the face resting on the table, which no sensor sees); ``*_whole`` keeps it.
-    Completeness counts the true surface inside the workspace box.
+    Completeness counts the true surface inside the workspace box. With true
+    silhouettes attached (``ground_truth/silhouettes/NNN.png``), ``evaluation.mask_iou``
+    scores each view's mask (:func:`robo3d.evaluate.silhouette_iou`). A missing or
+    damaged attachment skips only what needs it (``skipped`` says why). The views the
+    carve's agreement check left out are listed in ``views_left_out``.
     """
     import json
 
     from .carving import VoxelGrid
-    from .evaluate import TruthSurface, cloud_accuracy, completeness, mesh_accuracy, volume_iou
+    from .evaluate import (
+        TRUE_SILHOUETTES,
+        TruthSurface,
+        cloud_accuracy,
+        completeness,
+        mesh_accuracy,
+        volume_iou,
+    )
     from .meshio import read_mesh
     from .triangulation import load_clouds_npz
     from .viz import log_mesh, log_report, rerun_log
@@ -1120,26 +1131,42 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     fuse = stages.get("fuse", {})
     metrics["surface_sources"] = {"laser_area_fraction": fuse.get("laser_area_fraction"),
                                   "hull_area_fraction": fuse.get("hull_area_fraction")}
+    carve = stages.get("carve", {})
+    if isinstance(carve, dict) and "views_left_out" in carve:
+        metrics["views_left_out"] = carve["views_left_out"]
     rec = _read(rec_path, cfg, roles=(), require=False)
     mesh_bytes = rec.attachments.get("ground_truth/mesh.ply")
+    has_true_masks = any(k.startswith(TRUE_SILHOUETTES) for k in rec.attachments)
     ev = cfg["evaluation"]
     V_final, F_final = read_mesh(inputs["mesh"])
     vertex_error_mm = None
-    if mesh_bytes is None:
+    truth = None
+    ev_out: dict[str, Any] = {}
+    if mesh_bytes is None and not has_true_masks:
         metrics["skipped"]["evaluation"] = "the recording carries no ground truth"
+    elif mesh_bytes is None:
+        metrics["skipped"]["surface_evaluation"] = ("the recording carries no "
+                                                    "ground_truth/mesh.ply")
     else:
-        Vt, Ft = read_mesh(mesh_bytes)
-        truth = TruthSurface(Vt, Ft)
+        try:
+            Vt, Ft = read_mesh(mesh_bytes)
+            truth = TruthSurface(Vt, Ft)
+        except (Robo3dError, ValueError, RuntimeError, OSError) as exc:
+            metrics["skipped"]["surface_evaluation"] = (f"ground_truth/mesh.ply is damaged: "
+                                                        f"{exc}")
+            log.warning("%s: ground_truth/mesh.ply is damaged (%s): no surface evaluation",
+                        rec_path, exc)
+    if truth is not None:
         region = rec.workspace
         scored = None
         if region is not None:
             scored = (np.asarray(region[0], dtype=np.float64).copy(),
                       np.asarray(region[1], dtype=np.float64))
             scored[0][2] += ev["floor_margin_m"]
-        ev_out: dict[str, Any] = {"region": None if region is None else
-                                  [region[0].tolist(), region[1].tolist()],
-                                  "accuracy_region": None if scored is None else
-                                  [scored[0].tolist(), scored[1].tolist()]}
+        ev_out.update({"region": None if region is None else
+                       [region[0].tolist(), region[1].tolist()],
+                       "accuracy_region": None if scored is None else
+                       [scored[0].tolist(), scored[1].tolist()]})
         if inputs.get("hull"):
             g = VoxelGrid.load_npz(inputs["hull"])
             ev_out["hull_volume_iou"] = volume_iou(g.occupancy, g.origin, g.voxel_size, truth,
@@ -1164,8 +1191,10 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
             }
         if inputs.get("aligned") and "ground_truth/tf.json" in rec.attachments:
             ev_out["poses"] = _pose_errors(rec, inputs)
-        metrics["evaluation"] = ev_out
         vertex_error_mm = truth.distance(V_final) * 1e3
+    _mask_evaluation(inputs, rec, has_true_masks, metrics, ev_out)
+    if ev_out:
+        metrics["evaluation"] = ev_out
     if outputs.get("picture"):
         from .render import error_figure
 
@@ -1184,12 +1213,57 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         if metrics["timings"].get("total_seconds") is not None:
             metrics["timings"]["total_seconds"] += metrics["evaluate_seconds"]
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        if mesh_bytes is not None:
-            log_mesh(rr_stream, "base/ground_truth", Vt, Ft, albedo=[120, 220, 120, 90])
+        if truth is not None:
+            log_mesh(rr_stream, "base/ground_truth", truth.vertices, truth.faces,
+                     albedo=[120, 220, 120, 90])
         log_report(rr_stream, "reports/metrics", metrics.get("evaluation", {}))
     write_json(outputs["metrics"], metrics)
     _log_summary(metrics)
     return metrics
+
+
+def _mask_evaluation(inputs: Mapping[str, str], rec, has_true_masks: bool,
+                     metrics: dict[str, Any], ev_out: dict[str, Any]) -> None:
+    """``ev_out["mask_iou"]``: the silhouettes stage's masks against the true ones, or
+    ``metrics["skipped"]["mask_iou"]`` saying why not."""
+    from .evaluate import silhouette_iou
+
+    sil_path = inputs.get("silhouettes") or (
+        str(Path(inputs["hull"]).with_name("silhouettes.npz")) if inputs.get("hull") else None)
+    if not has_true_masks:
+        if sil_path:
+            metrics["skipped"]["mask_iou"] = "the recording carries no ground_truth/silhouettes/"
+        return
+    if not sil_path or not Path(sil_path).is_file():
+        metrics["skipped"]["mask_iou"] = ("no silhouettes to score (the recording has no "
+                                          "silhouette views, or silhouettes.npz is missing)")
+        return
+    try:
+        sil = _load_silhouettes(sil_path)
+        cams = _cameras_from(sil)
+    except (OSError, ValueError, KeyError) as exc:
+        metrics["skipped"]["mask_iou"] = f"{sil_path} does not load: {exc}"
+        return
+    masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cams)]
+    result = silhouette_iou(masks, rec.attachments)
+    left_out = {r["view"] for r in metrics.get("views_left_out", [])
+                if isinstance(r, dict) and "view" in r}
+    for v in result["per_view"]:
+        v["left_out_of_carve"] = v["view"] in left_out
+    if result["n_truth"] != len(masks):
+        result["note"] = (f"{result['n_truth']} true silhouettes for {len(masks)} views: "
+                          "views are matched by their index in time order")
+    for i, why in result["skipped"].items():
+        log.warning("mask IoU: view %s skipped: %s", i, why)
+    for name, why in result["unmatched"].items():
+        log.warning("mask IoU: attachment %s ignored: %s", name, why)
+    if result["n_scored"]:
+        ev_out["mask_iou"] = result
+    else:
+        metrics["skipped"]["mask_iou"] = ("no true silhouette could be used: "
+                                          + "; ".join(f"view {k}: {v}" for k, v in
+                                                      list(result["skipped"].items())[:5]))
+        ev_out["mask_iou"] = result
 
 
 def _stage_timings(rec_name: str, stages: Mapping[str, Any]) -> dict[str, Any]:
@@ -1286,6 +1360,10 @@ def _log_summary(metrics: Mapping[str, Any]) -> None:
         log.info("%s: no ground truth; skipped: %s", metrics["name"], metrics["skipped"])
         return
     parts = []
+    mi = ev.get("mask_iou") or {}
+    if mi.get("mean") is not None:
+        parts.append(f"mask IoU mean {mi['mean']:.3f}, worst {mi['min']:.3f} (view "
+                     f"{mi['worst_view']}) over {mi['n_scored']} views")
     if "hull_volume_iou" in ev:
         parts.append(f"hull IoU {ev['hull_volume_iou']:.3f}")
     if "poses" in ev:
@@ -1293,12 +1371,15 @@ def _log_summary(metrics: Mapping[str, Any]) -> None:
         parts.append(f"worst sweep pose error {p['worst_before_obj_mm']:.3f} -> "
                      f"{p['worst_after_obj_mm']:.3f} mm at the object, "
                      f"{p['worst_before_deg']:.3f} -> {p['worst_after_deg']:.4f} deg")
-    m = ev["mesh"]
+    m = ev.get("mesh") or {}
     if m.get("median_mm") is not None:
         parts.append(f"mesh median {m['median_mm']:.3f} mm, p95 {m['p95_mm']:.3f} mm")
-    c = m["completeness"]["within_mm"]
-    parts.append("completeness " + ", ".join(f"{v:.3f} at {k} mm" for k, v in c.items()
-                                             if v is not None))
+    c = (m.get("completeness") or {}).get("within_mm") or {}
+    if c:
+        parts.append("completeness " + ", ".join(f"{v:.3f} at {k} mm" for k, v in c.items()
+                                                 if v is not None))
+    if metrics.get("skipped"):
+        parts.append(f"skipped: {metrics['skipped']}")
     log.info("%s: %s", metrics["name"], "; ".join(parts))
 
 

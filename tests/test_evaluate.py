@@ -233,3 +233,154 @@ def test_batch_table(tmp_path):
     assert lines[2].split("\t")[0] == "b"
     html = (tmp_path / "b.html").read_text()
     assert "<table>" in html and "2 recording(s)" in html
+
+
+# ---------------------------------------------------------------------- mask IoU
+def _png(mask: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", mask.astype(np.uint8) * 255)
+    assert ok
+    return buf.tobytes()
+
+
+def _disc(h, w, cx, cy, r):
+    yy, xx = np.mgrid[0:h, 0:w]
+    return np.hypot(xx - cx, yy - cy) <= r
+
+
+def test_silhouette_iou_scores_good_and_skips_bad_attachments():
+    """Exact IoUs where the truth is usable; a damaged, resized, 16-bit, missing or
+    unmatched attachment is skipped with its reason, never stopping the rest."""
+    import cv2
+
+    from robo3d.evaluate import TRUE_SILHOUETTES, silhouette_iou
+
+    h, w = 60, 80
+    truth = [_disc(h, w, 40, 30, 15) for _ in range(7)]
+    masks = [t.copy() for t in truth]
+    masks[1] = np.roll(truth[1], 4, axis=1)  # shifted by 4 px
+    masks[2][:] = False  # empty
+    att = {f"{TRUE_SILHOUETTES}{i:03d}.png": _png(t) for i, t in enumerate(truth)}
+    att[f"{TRUE_SILHOUETTES}003.png"] = b"\x89PNG not really"
+    att[f"{TRUE_SILHOUETTES}004.png"] = _png(np.zeros((h + 1, w), bool))
+    att[f"{TRUE_SILHOUETTES}005.png"] = cv2.imencode(".png", truth[5].astype(np.uint16) * 999
+                                                     )[1].tobytes()
+    del att[f"{TRUE_SILHOUETTES}006.png"]
+    att[f"{TRUE_SILHOUETTES}009.png"] = _png(truth[0])
+    att[f"{TRUE_SILHOUETTES}notes.txt"] = b"x"
+    att["ground_truth/mesh.ply"] = b"unrelated"
+    colour = cv2.cvtColor(truth[0].astype(np.uint8) * 200, cv2.COLOR_GRAY2BGR)
+    att[f"{TRUE_SILHOUETTES}000.png"] = cv2.imencode(".png", colour)[1].tobytes()
+    r = silhouette_iou(masks, att)
+    shifted = np.count_nonzero(masks[1] & truth[1]) / np.count_nonzero(masks[1] | truth[1])
+    assert r["per_view"][0]["iou"] == 1.0  # a grey mask saved as colour is accepted
+    assert r["per_view"][1]["iou"] == pytest.approx(shifted) and 0.7 < shifted < 0.9
+    assert r["per_view"][2]["iou"] == 0.0 and r["per_view"][2]["missed_px"] == truth[2].sum()
+    assert "does not decode" in r["skipped"]["3"]
+    assert r["skipped"]["4"] == "is 80x61 px, the view is 80x60"
+    assert "8-bit" in r["skipped"]["5"]
+    assert r["skipped"]["6"] == "no ground_truth/silhouettes/006.png"
+    assert [v["iou"] for v in r["per_view"][3:]] == [None] * 4
+    assert set(r["unmatched"]) == {f"{TRUE_SILHOUETTES}009.png", f"{TRUE_SILHOUETTES}notes.txt"}
+    assert r["n_scored"] == 3 and r["n_views"] == 7 and r["n_truth"] == 6
+    assert r["mean"] == pytest.approx((1.0 + shifted + 0.0) / 3)
+    assert r["min"] == 0.0 and r["worst_view"] == 2
+    none = silhouette_iou(masks, {})
+    assert none["mean"] is None and none["n_scored"] == 0 and len(none["skipped"]) == 7
+
+
+def _sphere_recording(path, tmp, *, damage_mesh=True):
+    """A views-only recording of a bright sphere on black, 8 views written out of time
+    order, with the true silhouettes attached in time order (view 2's damaged) and a
+    damaged ground_truth/mesh.ply."""
+    from robo3d.camera import CameraModel, pixel_rays
+    from robo3d.recording.writer import RecordingWriter
+    from robo3d.sim.rig import look_at
+
+    centre, radius = np.array([0.0, 0.0, 0.05]), 0.04
+    cam = CameraModel("camera", 120, 90, [[110, 0, 59.5], [0, 110, 44.5], [0, 0, 1]])
+    t0 = 1_700_000_000_000_000_000
+    views = []
+    for i in range(8):
+        a = 2 * np.pi * i / 8
+        # each view aimed a little lower: the sphere 3 px higher in the image per view,
+        # so that a view matched to another's true silhouette scores IoU < 0.8
+        T = look_at(centre + 0.35 * np.array([np.cos(a), np.sin(a), 0.6 * (-1) ** i]),
+                    centre - [0.0, 0.0, 0.012 * (i - 3.5)])
+        v, u = np.mgrid[0:cam.height, 0:cam.width]
+        o, d = pixel_rays(np.stack([u.ravel(), v.ravel()], 1).astype(float), cam, T)
+        oc = o - centre
+        b = d @ oc
+        disc = b * b - (oc @ oc - radius**2)
+        hit = (disc >= 0) & (-b - np.sqrt(np.maximum(disc, 0.0)) > 0)
+        views.append((T, hit.reshape(cam.height, cam.width)))
+    with RecordingWriter(path) as w:
+        w.add_metadata("robo3d.recording", {"kind": "scan", "object": "sphere", "units": "m"})
+        w.write_calibration("/camera/calibration", t0, cam)
+        w.write_transforms("/tf_static", t0, [("flange", "camera", np.eye(4))])
+        for i in (3, 0, 7, 1, 5, 2, 6, 4):  # out of time order on the topic
+            T, sil = views[i]
+            t = t0 + (i + 1) * 1_000_000_000
+            for dt in (-20_000_000, 20_000_000):
+                w.write_transforms("/tf", t + dt, [("base", "flange", T)])
+            img = np.where(sil, 220, 12).astype(np.uint8)
+            w.write_image("/camera/image", t, "camera", np.dstack([img] * 3), "png")
+        for i, (_T, sil) in enumerate(views):
+            w.add_attachment(f"ground_truth/silhouettes/{i:03d}.png",
+                             b"\x89PNG\r\n damaged" if i == 2 else _png(sil), "image/png")
+        if damage_mesh:
+            w.add_attachment("ground_truth/mesh.ply", b"ply\nformat nonsense\n")
+    return cam, views
+
+
+def test_stage_evaluate_reports_mask_iou_and_skips_damaged_attachments(tmp_path):
+    """End to end on a recording with true silhouettes: the views are matched to
+    ``NNN.png`` by time order (the file holds them out of order), the damaged mask and
+    the damaged mesh are skipped with their reasons, every other view is scored."""
+    import json
+
+    from robo3d.config import load_config
+    from robo3d.pipeline import stage_carve, stage_evaluate, stage_silhouettes
+
+    rec = tmp_path / "sphere.mcap"
+    _sphere_recording(rec, tmp_path)
+    res = tmp_path / "results"
+    (res / "reports").mkdir(parents=True)
+    cfg = load_config(overrides={"carving": {"resolution": 32, "qa_resolution": 24}})
+    stage_silhouettes({"recording": str(rec)},
+                      {"npz": str(res / "silhouettes.npz"), "rrd": str(res / "s.rrd"),
+                       "report": str(res / "reports/silhouettes.json")}, cfg, "sphere")
+    stage_carve({"silhouettes": str(res / "silhouettes.npz")},
+                {"npz": str(res / "hull.npz"), "ply": str(res / "hull.ply"),
+                 "report": str(res / "reports/carve.json"), "rrd": str(res / "c.rrd")},
+                cfg, "sphere")
+    metrics = stage_evaluate({"recording": str(rec), "hull": str(res / "hull.npz"),
+                              "mesh": str(res / "hull.ply"), "fused": str(res / "hull.ply")},
+                             {"metrics": str(res / "metrics.json"),
+                              "rrd": str(res / "e.rrd")}, cfg, "sphere")
+    with open(res / "metrics.json", encoding="utf-8") as f:
+        assert json.load(f)["evaluation"]["mask_iou"]["n_scored"] == 7
+    mi = metrics["evaluation"]["mask_iou"]
+    assert mi["n_views"] == 8 and mi["n_truth"] == 8 and mi["n_scored"] == 7
+    assert "does not decode" in mi["skipped"]["2"]
+    scored = [v for v in mi["per_view"] if v["iou"] is not None]
+    assert all(v["iou"] > 0.9 for v in scored)  # matched in time order
+    from robo3d.evaluate import silhouette_iou
+    from robo3d.pipeline import _load_silhouettes
+    from robo3d.recording.reader import read_recording
+
+    masks = list(_load_silhouettes(str(res / "silhouettes.npz"))["masks"])
+    off_by_one = silhouette_iou(masks[1:] + masks[:1], read_recording(rec, roles=()).attachments)
+    assert off_by_one["mean"] < 0.8  # the test can tell a wrong order
+    assert mi["min"] == min(v["iou"] for v in scored) and mi["mean"] >= mi["min"]
+    assert metrics["skipped"]["surface_evaluation"].startswith("ground_truth/mesh.ply is "
+                                                               "damaged")
+    assert "evaluation" not in metrics["skipped"] and "mask_iou" not in metrics["skipped"]
+    assert metrics["views_left_out"] == []
+    assert all(v["left_out_of_carve"] is False for v in scored)
+    from robo3d.evaluate import batch_rows
+
+    row = batch_rows([metrics])[0]
+    assert row["mask_iou_mean"] == mi["mean"] and row["mask_iou_min"] == mi["min"]
+    assert row["views_left_out"] == 0

@@ -637,3 +637,29 @@ def test_truth_scene_and_image_poses_reproduce_the_recorded_frames(cell_recordin
     assert encode_image(img, "jpeg", params.jpeg_quality) == rec.laser_frames[18].data
     st = stripe_truth(rec, 18, scene, poses)
     assert len(st.points_base) > 50
+
+
+def test_cli_cell_scene_options(tmp_path):
+    out = tmp_path / "c.mcap"
+    assert main(["simulate", "sphere", str(out), "--scene", "cell", "--preset", "small",
+                 "--laser", "blue", "--object-color", "0.2", "0.6", "0.3",
+                 "--object-texture", "checker", "--table-markers", "dots", "--no-wall",
+                 "--views", "1", "--sweeps", "1", "--sweep-frames", "3", "--width", "64",
+                 "--height", "48", "--robot-error", "drift", "--clock-lag-ms", "4"]) == 0
+    reader = pytest.importorskip("robo3d.recording.reader")
+    rec = reader.read_recording(out)
+    meta = {k: json.loads(v) for k, v in rec.metadata["robo3d.simulation"].items()
+            if k.startswith("appearance.") or k in ("robot_error", "clock_lag_ms", "width")}
+    assert meta["appearance.laser_rgb"] == [0.10, 0.38, 1.0]
+    assert meta["appearance.object_albedo"] == [0.2, 0.6, 0.3]
+    assert meta["appearance.object_texture"] == "checker"
+    assert meta["appearance.table_markers"] == "dots"
+    assert meta["appearance.wall_distance"] is None
+    assert meta["robot_error"] == "drift" and meta["clock_lag_ms"] == 4.0 and meta["width"] == 64
+    assert rec.laser_frames[0].encoding == "jpeg" and rec.decode(rec.laser_frames[0]).ndim == 3
+    # cell-only options without --scene cell, and unknown objects, are clear errors
+    assert main(["simulate", "sphere", str(tmp_path / "x.mcap"), "--laser", "green"]) == 1
+    assert main(["simulate", "teapot", str(tmp_path / "x.mcap")]) == 1
+    assert main(["simulate", "sphere", str(tmp_path / "x.mcap"), "--scene", "cell",
+                 "--object-color", "mauve"]) == 1
+    assert not (tmp_path / "x.mcap").exists()

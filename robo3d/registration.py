@@ -505,6 +505,15 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
     origins = [np.asarray(o, dtype=np.float64) for o in origins]
     active = [s for s in range(n_s) if not result.per_sweep[s]["flagged"]]
     pairs = [(p["i"], p["j"]) for p in result.pairs if p["accepted"]]
+    if not active:  # every sweep flagged by the pose graph: nothing to refine
+        result.rotations = np.tile(np.eye(3), (n_s, 1, 1))
+        result.translations = np.zeros((n_s, 3))
+        result.refinement = {"converged": False, "iterations": 0, "gauge": "none",
+                             "skipped": "every sweep was flagged before the refinement "
+                                        "(no accepted pair): all kept at the robot's poses"}
+        result.pairs = [_jsonable(p) for p in result.pairs]
+        result.per_sweep = [_jsonable(p) for p in result.per_sweep]
+        return
     while True:
         gauge_fix = [result.reference] if result.reference in active else active[:1]
         kw = dict(profiles=profiles, initial=result.corrections, active=active,

@@ -174,6 +174,21 @@ def test_distant_sweep_is_not_connected():
     assert not any(q["flagged"] for q in res.per_sweep[:4])
 
 
+def test_no_overlapping_pair_at_all_keeps_every_sweep_at_its_robot_pose():
+    """Sweeps that see disjoint parts (a sparse 3-sweep scan): the pose graph accepts no
+    pair, every sweep is flagged; the refinement must say so, not crash (issue 11)."""
+    rng = np.random.default_rng(6)
+    pts, nrm = [], []
+    for k in range(3):
+        p, n = _patch(0.2 * k, 0.0, 2000, rng)
+        pts.append(p)
+        nrm.append(n)
+    res = align_sweeps(pts, nrm, refine=True)
+    assert all(q["flagged"] for q in res.per_sweep)
+    np.testing.assert_array_equal(res.corrections, np.tile(np.eye(4), (3, 1, 1)))
+    assert "skipped" in res.refinement
+
+
 def test_single_and_empty_inputs():
     rng = np.random.default_rng(0)
     p, n = _patch(0.0, 0.0, 500, rng)

@@ -25,6 +25,25 @@ Sensor (``sensor_noise``)
 
 Normals used for shading are interpolated vertex normals (smooth shading of the truth
 mesh); hit points are on the mesh's exact triangles.
+
+A real-looking cell (issue 10, :meth:`Appearance.cell`; every option off by default)
+    - the scene gains a vertical wall (a quad, ``wall_distance`` from the origin) and
+      the table a printed pattern (ArUco-like squares with random bits from an integer
+      hash, a checkerboard or dots, on ``|x|, |y| <= 0.2 m``, clear of the object);
+    - the object gets a procedural solid texture (a function of the 3-D hit point, so
+      it needs no UV map and is the same in every view) and a Blinn-Phong highlight
+      (Blinn 1977) of the directional light;
+    - laser frames are room-lit: the view's rendering at the frame's pose times
+      ``laser_ambient_fraction``, at pixel centres, plus the laser supersampled as
+      above; a coloured laser is one wavelength, so its reflection is the albedo in
+      the laser's main channel times the sensor's response ``laser_rgb`` (the other
+      channels see a little of it, as the Bayer filters overlap), and it glints where
+      the object mirrors it toward the camera (``laser_specular``);
+    - :func:`visible_stripe_points` gives each frame's true stripe (the points the sheet
+      lights and the camera sees, with their pixels) for scoring detectors.
+
+Reference: Blinn, J. F. (1977). Models of light reflection for computer synthesized
+pictures. SIGGRAPH '77.
 """
 
 from __future__ import annotations
@@ -215,11 +234,6 @@ class Appearance:
             if not ok:
                 raise ValueError(f"appearance parameter {name} out of range: "
                                  f"{getattr(self, name)!r}")
-
-    @property
-    def realistic(self) -> bool:
-        """Whether any realism option (issue 10) is on (else: the demo cell exactly)."""
-        return self != Appearance(**{k: getattr(self, k) for k in _LEGACY_FIELDS})
 
     @classmethod
     def cell(cls, laser: str | tuple[float, float, float] = "red",

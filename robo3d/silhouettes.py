@@ -608,6 +608,11 @@ def refine_with_grabcut(
     height, width = m.shape
     if rgb.shape[:2] != m.shape:
         raise ValueError(f"mask must have the image's size {rgb.shape[:2]}, got {m.shape}")
+    if roi is not None:  # nothing outside the ROI, whatever GrabCut does
+        u0, v0, u1, v1 = _check_roi(roi, width, height)
+        clipped = np.zeros_like(m)
+        clipped[v0:v1, u0:u1] = m[v0:v1, u0:u1]
+        m = clipped
     if not m.any():
         return m.copy()
     scale = min(1.0, float(max_side_px) / max(height, width))
@@ -628,7 +633,6 @@ def refine_with_grabcut(
     labels[mk > 0] = cv2.GC_PR_FGD
     labels[core > 0] = cv2.GC_FGD
     if roi is not None:
-        u0, v0, u1, v1 = _check_roi(roi, width, height)
         keep = np.zeros((sh, sw), bool)
         keep[int(np.floor(v0 * scale)):int(np.ceil(v1 * scale)),
              int(np.floor(u0 * scale)):int(np.ceil(u1 * scale))] = True
@@ -655,10 +659,9 @@ def refine_with_grabcut(
         fg = cv2.resize(fg, (width, height), interpolation=cv2.INTER_LINEAR)
     out = fg > 0.5
     if roi is not None:
-        u0, v0, u1, v1 = _check_roi(roi, width, height)
-        clip = np.zeros_like(out)
-        clip[v0:v1, u0:u1] = True
-        out &= clip
+        inside = np.zeros_like(out)
+        inside[v0:v1, u0:u1] = True
+        out &= inside
     return out
 
 
@@ -845,9 +848,10 @@ def segment_silhouette(
         level = _background_level(f, box, mode)
     if threshold is not None:
         s = float(threshold)
-    elif mode == "auto":
-        # the colour difference is heavy-tailed (the object's colours lie at many
-        # distances from the background's): Otsu on its logarithm
+    elif polarity == "auto":
+        # the colour difference (to the background's modes, or to the empty scene) is
+        # heavy-tailed: the object's colours lie at many distances from the background's.
+        # Otsu on its logarithm, the outline then cut at its own midpoint
         s = max(float(np.expm1(_otsu(np.log1p(inside.ravel())))), _MIN_THRESHOLD)
     else:
         s = _otsu(inside.ravel())
@@ -856,7 +860,7 @@ def segment_silhouette(
             if s_shade != s:
                 local = _local_midpoint(inside, level, mode, blur_sigma_px)
                 s = s_shade
-    if mode == "auto":  # the background's level and edge (see-through gaps, the outline)
+    if polarity == "auto":  # the background's level and edge (see-through gaps, outline)
         bg = f[sample & (f <= s)]
         if bg.size >= 100:
             med = float(np.median(bg))

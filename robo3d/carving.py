@@ -817,8 +817,10 @@ def _splat_voxels(u: np.ndarray, v: np.ndarray, half_px: np.ndarray, width: int,
     wts = np.concatenate([np.ones(len(u0)), -np.ones(len(u0)), -np.ones(len(u0)),
                           np.ones(len(u0))])
     diff = np.bincount(idx, weights=wts, minlength=(height + 1) * w1)
-    diff = diff.astype(np.int32).reshape(height + 1, w1)
-    return np.cumsum(np.cumsum(diff, axis=0), axis=1)[:height, :width] > 0
+    diff = diff.astype(np.float32).reshape(height + 1, w1)
+    # cv2.integral is the 2-D cumulative sum (with a leading zero row and column); the
+    # counts are small integers, exact in float32
+    return cv2.integral(diff, sdepth=cv2.CV_32F)[1:height + 1, 1:width + 1] > 0.5
 
 
 def view_agreement(
@@ -924,6 +926,8 @@ def view_agreement(
     ref_seen = seen[ref].sum(axis=0)
     n_ref = int(ref.sum())
     vol = np.zeros(grid.shape, dtype=bool)
+    flat_vol = vol.reshape(-1)
+    flat_ijk = np.ravel_multi_index(tuple(ijk.T), grid.shape)
     out = []
     for i in range(n):
         cam = cams[i]
@@ -934,11 +938,11 @@ def view_agreement(
         hull = kept & (others_seen >= need)
         # only the shells project to the outlines: hull pixels are those of the hull's
         # shell, unknown ones those of the shell of all kept voxels not covered by hull
-        vol[...] = False
-        vol[tuple(ijk[hull].T)] = True
-        hull_shell = hull & _shell(vol)[tuple(ijk.T)]
-        vol[tuple(ijk[kept].T)] = True
-        unknown = kept & ~hull & _shell(vol)[tuple(ijk.T)]
+        flat_vol[:] = False
+        flat_vol[flat_ijk[hull]] = True
+        hull_shell = hull & _shell(vol).reshape(-1)[flat_ijk]
+        flat_vol[flat_ijk[kept]] = True
+        unknown = kept & ~hull & _shell(vol).reshape(-1)[flat_ijk]
         hull = hull_shell
         sel = np.flatnonzero(hull | unknown)
         u, vv, z, valid = _voxel_uv(ijk[sel], cand, cam, T_cb[i], limits[i])
@@ -956,9 +960,8 @@ def view_agreement(
         # disagreement beyond one voxel footprint of the other's edge: the grid cannot
         # place an outline closer, and a thin band would dominate small silhouettes
         tol = int(np.ceil(2.0 * np.median(half[h]))) if h.any() else 1
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * tol + 1, 2 * tol + 1))
-        near_mask = cv2.dilate(m.view(np.uint8), disk).view(bool)
-        near_hull = cv2.dilate(hull_px.view(np.uint8), disk).view(bool)
+        near_mask = cv2.distanceTransform((~m).view(np.uint8), cv2.DIST_L2, 3) <= tol
+        near_hull = cv2.distanceTransform((~hull_px).view(np.uint8), cv2.DIST_L2, 3) <= tol
         n_missing = int(np.count_nonzero(hull_px & ~near_mask))
         n_spurious = int(np.count_nonzero(m & ~near_hull))
         out.append({

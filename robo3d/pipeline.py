@@ -410,7 +410,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     (``carving.min_views_background``) come from the config; ``hull.npz`` holds the
     occupancy with its origin, voxel size, frame and how it was carved, ``hull.ply``
     the smoothed watertight marching-cubes mesh, the report the box, the agreement
-    scores, the resolution check (eq. 7–8) and the volume.
+    scores, the resolution check (eq. 7–8), the volume and the hull's bounding box
+    (``bbox_min``, ``bbox_max``: the outer faces of the occupied voxels, metres).
     """
     from .carving import (
         box_from_silhouettes,
@@ -476,11 +477,16 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log.warning("%s", res["warning"])
     left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
                      for i in left_out]
+    occ_ijk = np.argwhere(grid.occupancy)
+    half = 0.5 * grid.voxel_size  # outer faces of the occupied voxels
+    bbox = (grid.index_to_points(occ_ijk.min(axis=0)) - half,
+            grid.index_to_points(occ_ijk.max(axis=0)) + half)
     report = {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
                       **box_report},
               "method": cc["method"], "grid_shape": list(grid.occupancy.shape),
               "voxel_size_m": grid.voxel_size, "occupied_voxels": n_occ,
-              "volume_m3": grid.volume_m3, "n_views": n_views, "views_used": used,
+              "volume_m3": grid.volume_m3, "bbox_min": bbox[0].tolist(),
+              "bbox_max": bbox[1].tolist(), "n_views": n_views, "views_used": used,
               "views_left_out": left_out_rows,
               "views_flagged": agreement["flagged"],
               "agreement": agreement, "carving": carve_report, "resolution": res,

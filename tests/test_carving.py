@@ -726,6 +726,9 @@ def test_stage_carve_leaves_a_flagged_view_out_and_says_so(tmp_path, ring):
     assert extra["views_left_out"][0]["view"] == 7
     assert extra["views_used"].tolist() == report["views_used"]
     assert report["volume_m3"] == pytest.approx(SPHERE_VOLUME, rel=0.1)
+    lo, hi = np.asarray(report["bbox_min"]), np.asarray(report["bbox_max"])
+    assert np.all(np.abs(lo - (CENTRE - RADIUS)) < 2 * grid.voxel_size)
+    assert np.all(np.abs(hi - (CENTRE + RADIUS)) < 2 * grid.voxel_size)
     with open(out["report"], encoding="utf-8") as f:
         assert json.load(f)["views_left_out"][0]["view"] == 7
     # turned off: every view carves, and the inverted one removes the sphere's core

@@ -265,7 +265,7 @@ class SimulationParams:
     drift_mm: tuple[float, float] = (0.02, 0.05)
     drift_deg: tuple[float, float] = (0.005, 0.015)
     pose_error_mm_per_m: float = 0.3
-    pose_error_deg_per_m: float = 0.1
+    pose_error_deg_per_m: float = 0.05
     clock_lag_ms: float = 0.0
     object_mesh: str | None = None
     mesh_unit: str = "m"

@@ -476,12 +476,17 @@ def _sure_background(shape: tuple[int, int], roi: tuple[int, int, int, int]
     return out, "image border"
 
 
+_ONES_1x3 = np.ones((1, 3), np.float32)
+
+
 def _local_contrast(lab: np.ndarray) -> np.ndarray:
     """Per-pixel standard deviation of the Lab colour over a 5 x 5 window (Lab units)."""
     k = (5, 5)
+    lab = np.ascontiguousarray(lab, dtype=np.float32)
     mean = cv2.blur(lab, k, borderType=cv2.BORDER_REFLECT)
-    sq = cv2.blur(lab * lab, k, borderType=cv2.BORDER_REFLECT)
-    return np.sqrt(np.maximum(sq - mean * mean, 0.0).sum(axis=2))
+    sq = cv2.blur(cv2.multiply(lab, lab), k, borderType=cv2.BORDER_REFLECT)
+    var = cv2.transform(cv2.subtract(sq, cv2.multiply(mean, mean)), _ONES_1x3)
+    return cv2.sqrt(cv2.max(var, 0.0))
 
 
 def _background_modes(lab_blurred: np.ndarray, sample: np.ndarray, kind: str,
@@ -536,9 +541,6 @@ def _background_modes(lab_blurred: np.ndarray, sample: np.ndarray, kind: str,
         cut = max(1.0, 1.5 * min(r for r, _ in flatness))
         modes = [m for r, m in flatness if r <= cut]
     return modes
-
-
-_ONES_1x3 = np.ones((1, 3), np.float32)
 
 
 def _mode_distance(lab: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]

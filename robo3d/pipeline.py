@@ -579,7 +579,10 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
                                 max_spurious=cc["qa_max_spurious"], exclude=exclude,
                                 outside_image=cc["outside_image"],
                                 behind_camera=cc["behind_camera"],
-                                min_views_background=cc["min_views_background"],
+                                # the masks are scored against the others' exact hull
+                                # whatever k the carve uses: a k > 1 hull is fatter than
+                                # any correct mask, which would then look "missing"
+                                min_views_background=1,
                                 min_observers=cc["qa_min_observers"], method=cc["method"])
     reasons = {int(v): list(qa["views"][v]["reasons"]) + seg_flags.get(v, [])
                for v in qa["flagged"]}

@@ -663,3 +663,24 @@ def test_cli_cell_scene_options(tmp_path):
     assert main(["simulate", "sphere", str(tmp_path / "x.mcap"), "--scene", "cell",
                  "--object-color", "mauve"]) == 1
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_contract_ground_truth_tf_errors_are_named(cell_recording):
+    import copy
+
+    from robo3d.errors import RecordingError
+    from robo3d.recording.reader import read_ground_truth_tf
+
+    rec = copy.copy(cell_recording[0])
+    doc = json.loads(rec.attachments["ground_truth/tf.json"])
+    e = doc["transforms"][0]
+    for broken, match in ((dict(e, rotation={"x": 0, "y": 0, "z": 0, "w": 2}), "non-unit"),
+                          (dict(e, translation={"x": float("nan"), "y": 0, "z": 0}),
+                           "non-finite"),
+                          ({k: v for k, v in e.items() if k != "timestamp"}, "needs timestamp")):
+        rec.attachments = dict(rec.attachments)
+        rec.attachments["ground_truth/tf.json"] = json.dumps(
+            {"transforms": [broken] + doc["transforms"][1:]}).encode()
+        pattern = rf"ground_truth/tf.json.*transforms\[0\].*{match}"
+        with pytest.raises(RecordingError, match=pattern):
+            read_ground_truth_tf(rec)

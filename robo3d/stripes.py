@@ -135,10 +135,14 @@ import numpy as np
 from numba import njit
 
 __all__ = [
+    "CONFIG_KEYS",
+    "CONTRASTS",
     "StripePoints",
+    "config_options",
     "REJECTION_REASONS",
     "brightness_coefficient",
     "lightness",
+    "estimate_laser_colour",
     "extract_stripe_centres",
     "extract_stripes_batch",
 ]
@@ -153,6 +157,8 @@ REJECTION_REASONS: tuple[str, ...] = (
     "too_weak",
     "too_wide",
     "at_border",
+    "isolated",
+    "second_line",
 )
 
 _Axis = Literal["columns", "rows", "auto"]
@@ -186,7 +192,16 @@ class StripePoints:
     n_lines : int
         Number of lines examined.
     rejected : dict of str to int
-        Lines that gave no centre, by reason (keys :data:`REJECTION_REASONS`).
+        Lines that gave no centre, by reason (keys :data:`REJECTION_REASONS`); for the
+        ridge detector ``isolated`` and ``second_line`` also count the candidates dropped
+        in lines that kept a centre (see :func:`extract_stripe_centres`).
+    angle_deg : float, degrees
+        Direction of the stripe in the image, from the ``u`` axis towards ``v``, in
+        (-90, 90] (90: a vertical stripe); the principal axis of the centres (NaN with
+        fewer than two).
+    colour : str
+        The contrast the stripe was found in (:data:`CONTRASTS`: a laser colour or
+        ``"lightness"``), or ``""`` when not known.
     """
 
     u: np.ndarray
@@ -199,6 +214,8 @@ class StripePoints:
     s: float = float("nan")
     n_lines: int = 0
     rejected: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REJECTION_REASONS, 0))
+    angle_deg: float = float("nan")
+    colour: str = ""
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=np.float64).reshape(-1)
@@ -245,11 +262,11 @@ class StripePoints:
 
     @classmethod
     def empty(cls, *, axis: str = "columns", s: float = float("nan"), n_lines: int = 0,
-              rejected: dict[str, int] | None = None) -> StripePoints:
+              rejected: dict[str, int] | None = None, colour: str = "") -> StripePoints:
         """A frame without any centre."""
         z = np.zeros(0)
         return cls(z, z, axis=axis, s=s, n_lines=n_lines,
-                   rejected=dict(rejected or {}))
+                   rejected=dict(rejected or {}), colour=colour)
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -399,7 +416,7 @@ def brightness_coefficient(
 
 # ---------------------------------------------------------------------------- kernels
 # Line status codes of the kernels: 0 = a centre, else 1 + index in REJECTION_REASONS.
-_OK, _NO_BAND, _TWO_BLOBS, _TOO_WEAK, _TOO_WIDE, _AT_BORDER = 0, 1, 2, 3, 4, 5
+_OK, _NO_BAND, _TWO_BLOBS, _TOO_WEAK, _TOO_WIDE, _AT_BORDER, _ISOLATED, _SECOND = range(8)
 _JIT = {"nogil": True, "cache": True}
 #: Half-height of the first window read around a peak (rows); wider stripes are read again
 #: within the full window (from ``max_width_px``).
@@ -595,10 +612,12 @@ def _local_reference(cmax, good, half):  # noqa: ANN001, ANN202
 
 @njit(inline="always")
 def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
-                gaussian):  # noqa: ANN001, ANN202
+                gaussian, linear=False):  # noqa: ANN001, ANN202
     """The stripe's profile in column c within +-hw rows of its brightest pixel p:
     (status, sub-pixel offset from p, peak height, FWHM, whether the window was too
-    small to hold the run or the half-maximum crossings)."""
+    small to hold the run or the half-maximum crossings). With ``linear`` the local
+    background is the line through the minima of the 3-pixel running mean on either
+    side of p (a baseline that follows a gradient), else the window's minimum."""
     nrow = img.shape[0]
     m = 2 * hw + 1
     for k in range(m):
@@ -607,16 +626,37 @@ def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
         y[k] = _lum(img, r, c, nch) if valid[k] else 0.0
     # local background: the minimum of the 3-pixel running mean in the window
     bg = np.inf
+    bl = np.inf
+    br = np.inf
+    kl = 0
+    kr = 0
     for k in range(m - 2):
         if valid[k] and valid[k + 2]:
             v3 = (y[k] + y[k + 1] + y[k + 2]) / 3.0
             bg = v3 if v3 < bg else bg
+            if k + 2 < hw and v3 < bl:
+                bl = v3
+                kl = k + 1
+            if k > hw and v3 < br:
+                br = v3
+                kr = k + 1
     if bg == np.inf:  # fewer than three pixels in the image
         for k in range(m):
             if valid[k] and y[k] < bg:
                 bg = y[k]
-    for k in range(m):
-        y[k] -= bg
+    if linear and bl != np.inf and br != np.inf:
+        slope = (br - bl) / (kr - kl)
+        for k in range(m):
+            y[k] -= bl + slope * (k - kl)
+    elif linear and bl != np.inf:
+        for k in range(m):
+            y[k] -= bl
+    elif linear and br != np.inf:
+        for k in range(m):
+            y[k] -= br
+    else:
+        for k in range(m):
+            y[k] -= bg
     amp = y[hw]
     t = max(tail_fraction * amp, noise_t)
     if not (amp >= min_peak and amp - t > 0):
@@ -767,6 +807,477 @@ def _centres(img, nch, good, carg, lo, hi, n_above, n_band, barg, h, h_small, ta
     return status, centre, amp_out, width_out
 
 
+# ---------------------------------------------------------------------------- ridge kernels
+#: Contrast images of the ridge detector, by index: a channel's excess over the other two
+#: (a red, green or blue laser) and the seed's lightness (eq. 19; mono images, white lasers).
+CONTRASTS: tuple[str, ...] = ("red", "green", "blue", "lightness")
+_LIGHTNESS = 3
+#: Offsets (pixels) of the two-sided ridge test, and the lines linked across a gap.
+_RIDGE_A1, _RIDGE_A2, _LINK_GAP = 3, 6, 3
+#: The lightness is chosen over the best laser colour when its ridge is this much more
+#: consistent.
+_LIGHTNESS_PREFERRED = 8.0
+
+
+@njit(inline="always")
+def _contrast_px(img, r, c, k, nch):  # noqa: ANN001, ANN202
+    """Contrast ``k`` (index in CONTRASTS) of pixel (r, c) and the pixel's largest other
+    channel (0 for the lightness), float32, in the image's units."""
+    if nch == 1:
+        return np.float32(img[r, c, 0]), np.float32(0.0)
+    a = np.float32(img[r, c, 0])
+    b = np.float32(img[r, c, 1])
+    d = np.float32(img[r, c, 2])
+    if k == 0:
+        m = max(b, d)
+        return a - m, m
+    if k == 1:
+        m = max(a, d)
+        return b - m, m
+    if k == 2:
+        m = max(a, b)
+        return d - m, m
+    return np.float32(0.5) * (max(max(a, b), d) + min(min(a, b), d)), np.float32(0.0)
+
+
+@njit(**_JIT)
+def _probe_lines(lines, k, a1, a2, sat, thr, sep):  # noqa: ANN001, ANN202
+    """The two strongest ridges of contrast k above ``thr`` along each of the (n, L, C)
+    lines, at least ``sep`` apart: heights and positions as :func:`_ridge_scan_cols`."""
+    n, m, nch = lines.shape
+    flat = lines.reshape(n, m * nch)
+    buf = np.zeros((3, m), np.float32)
+    laser = nch == 3 and k != _LIGHTNESS
+    m1 = np.full(n, thr, np.float32)
+    m2 = np.full(n, thr, np.float32)
+    p1 = np.full(n, -(10 ** 6), np.int32)
+    p2 = np.full(n, -(10 ** 6), np.int32)
+    nn = max(m - 2 * a2, 0)
+    x = np.zeros(nn, np.float32)
+    xo1 = np.zeros(nn, np.float32)
+    xo2 = np.zeros(nn, np.float32)
+    s0, su1, sd1, su2, sd2 = a2, a2 - a1, a2 + a1, 0, 2 * a2
+    b0, b1, b2 = buf[0], buf[1], buf[2]
+    for i in range(n):
+        _channels_row(flat, i, k, nch, False, b0, b1, b2)
+        _heights(x, b0[s0:s0 + nn], b0[su1:su1 + nn], b0[sd1:sd1 + nn], b0[su2:su2 + nn],
+                 b0[sd2:sd2 + nn], nn)
+        if laser:
+            _heights(xo1, b1[s0:s0 + nn], b1[su1:su1 + nn], b1[sd1:sd1 + nn],
+                     b1[su2:su2 + nn], b1[sd2:sd2 + nn], nn)
+            _heights(xo2, b2[s0:s0 + nn], b2[su1:su1 + nn], b2[sd1:sd1 + nn],
+                     b2[su2:su2 + nn], b2[sd2:sd2 + nn], nn)
+            _laser_heights(x, xo1, xo2, b0[s0:s0 + nn], sat, nn)
+        v1, c1, v2, c2 = _top2_line(x, nn, a2, thr, sep)
+        m1[i], p1[i], m2[i], p2[i] = v1, c1, v2, c2
+    return m1, p1, m2, p2
+
+
+def _saturation(dtype: np.dtype) -> float:
+    """The level from which a channel counts as saturated (98 % of the full scale; 250
+    for uint8)."""
+    return 250.0 if dtype == np.uint8 else 0.98 * _full_scale(dtype)
+
+
+def _probe(img: np.ndarray, k: int, step: int, thr: float) -> tuple[float, float]:
+    """How strongly contrast k shows one stripe crossing the rows, and the columns: on
+    every ``step``-th row (column), the two strongest ridges, linked into curves as
+    :func:`_link` does for the lines (a step of at most ``step`` + 2 px between sampled
+    lines: the stripe within 45 degrees of the lines' normal); the score is the summed
+    height of the strongest curve over 3 sampled lines or more (0 for none), so that
+    clutter, short and scattered, scores little and a long stripe much."""
+    rows = np.ascontiguousarray(img[step // 2::step])
+    cols = np.ascontiguousarray(img[:, step // 2::step].transpose(1, 0, 2))
+    sat = np.float32(_saturation(img.dtype))
+    sep = _RIDGE_A2 + 1
+    out = []
+    for lines in (rows, cols):
+        m1, p1, m2, p2 = _probe_lines(lines, k, _RIDGE_A1, _RIDGE_A2, sat, np.float32(thr),
+                                      sep)
+        *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3)
+        out.append(float(strong.max()) if strong.size else 0.0)
+    return out[0], out[1]
+
+
+@njit(inline="always")
+def _channels_row(flat, r, k, nch, two, c0, c1, c2):  # noqa: ANN001, ANN202
+    """Row r of the (H, W * nch) view of an image, split for contrast k in one
+    vectorisable loop: the laser's channel into c0 and the other two into c1, c2; for
+    the lightness (or a mono image) the lightness into c0 (twice it when ``two``:
+    uint8 RGB into int16, exact)."""
+    w = c0.size
+    if nch == 1:
+        for c in range(w):
+            c0[c] = flat[r, c]
+        return
+    f = flat[r]
+    if k == _LIGHTNESS:
+        for c in range(w):
+            a = c0.dtype.type(f[3 * c])
+            b = c0.dtype.type(f[3 * c + 1])
+            d = c0.dtype.type(f[3 * c + 2])
+            s = max(max(a, b), d) + min(min(a, b), d)
+            c0[c] = s if two else s / 2
+        return
+    i1 = 1 if k == 0 else 0
+    i2 = 1 if k == 2 else 2
+    for c in range(w):
+        c0[c] = f[3 * c + k]
+        c1[c] = f[3 * c + i1]
+        c2[c] = f[3 * c + i2]
+
+
+@njit(inline="always")
+def _heights(x, y0, yu1, yd1, yu2, yd2, n):  # noqa: ANN001, ANN202
+    """x = y0 - min(max(yu1, yd1), max(yu2, yd2)): the two-sided ridge height."""
+    for c in range(n):
+        x[c] = y0[c] - min(max(yu1[c], yd1[c]), max(yu2[c], yd2[c]))
+
+
+@njit(inline="always")
+def _laser_heights(x, xo1, xo2, y0, sat, n):  # noqa: ANN001, ANN202
+    """x = min(x, x - max(xo1, xo2)): the laser's channel must rise, and more than the
+    other two (a laser adds light of its colour). Where the laser's channel is
+    saturated (y0 >= sat) its rise is clipped while the others still rise: there it
+    must rise more than half the others' rise."""
+    for c in range(n):
+        m = max(xo1[c], xo2[c])
+        m = m if y0[c] < sat else m // 2
+        x[c] = min(x[c], x[c] - m)
+
+
+@njit(inline="always")
+def _top2_update(x, r, m1, p1, m2, p2, sep):  # noqa: ANN001, ANN202
+    """Per column, the two strongest heights at least sep rows apart (see _ridge_scan_cols)."""
+    for c in range(x.size):
+        xc = x[c]
+        if xc > m2[c]:
+            if abs(r - p1[c]) <= sep:
+                if xc > m1[c]:
+                    m1[c] = xc
+                    p1[c] = r
+            elif xc > m1[c]:
+                m2[c] = m1[c]
+                p2[c] = p1[c]
+                m1[c] = xc
+                p1[c] = r
+            else:
+                m2[c] = xc
+                p2[c] = r
+
+
+@njit(inline="always")
+def _top2_line(x, n, off, thr, sep):  # noqa: ANN001, ANN202
+    """The two strongest heights of x[:n] above thr, at least sep apart: (height,
+    position + off) of each (position -10**6: none)."""
+    v1 = thr
+    v2 = thr
+    c1 = -(10 ** 6)
+    c2 = -(10 ** 6)
+    for i in range(n):
+        xc = x[i]
+        c = i + off
+        if xc > v2:
+            if abs(c - c1) <= sep:
+                if xc > v1:
+                    v1 = xc
+                    c1 = c
+            elif xc > v1:
+                v2 = v1
+                c2 = c1
+                v1 = xc
+                c1 = c
+            else:
+                v2 = xc
+                c2 = c
+    return v1, c1, v2, c2
+
+
+@njit(**_JIT)
+def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001, ANN202
+    """Per column (profiles along the rows) the two strongest ridges of contrast k
+    above ``thr``, at least ``sep`` rows apart: heights and rows (-10**6: none).
+
+    The ridge height of a channel, ``x = y(r) - min(max(y(r -+ a1)), max(y(r -+ a2)))``,
+    is a peak against the local baseline on both sides at one of two distances (zero on
+    a step edge or a gradient). For a laser colour the height is ``min(x_k, x_k -
+    max(x_o1, x_o2))``: a laser adds light, mostly of its colour, so its channel rises
+    and rises more than the other two (a thin white or grey thing rises in all three, a
+    green cable on a white wall falls in all three, a grey joint between red tiles rises
+    more in blue than in green). For the lightness it is ``x`` of the lightness.
+    One pass over the image: each row is split once into a ring of ``2 a2 + 1`` rows
+    per channel (``ring``: (3, 2 a2 + 1, W)), the heights of a row in vectorised loops,
+    and a column's candidates are updated only where a height beats its second (rare
+    once the threshold holds them)."""
+    h, w = img.shape[0], img.shape[1]
+    nch = img.shape[2]
+    flat = img.reshape(h, w * nch)
+    laser = nch == 3 and k != _LIGHTNESS
+    nr = 2 * a2 + 1
+    m1 = np.full(w, thr, ring.dtype)
+    m2 = np.full(w, thr, ring.dtype)
+    p1 = np.full(w, -(10 ** 6), np.int32)
+    p2 = np.full(w, -(10 ** 6), np.int32)
+    x = np.zeros(w, ring.dtype)
+    xo1 = np.zeros(w, ring.dtype)
+    xo2 = np.zeros(w, ring.dtype)
+    for r in range(h):
+        j = r % nr
+        _channels_row(flat, r, k, nch, two, ring[0, j], ring[1, j], ring[2, j])
+        rc = r - a2
+        if rc < a2:
+            continue
+        i0, iu1, id1 = rc % nr, (rc - a1) % nr, (rc + a1) % nr
+        iu2, id2 = (rc - a2) % nr, (rc + a2) % nr
+        y = ring[0]
+        _heights(x, y[i0], y[iu1], y[id1], y[iu2], y[id2], w)
+        if laser:
+            y = ring[1]
+            _heights(xo1, y[i0], y[iu1], y[id1], y[iu2], y[id2], w)
+            y = ring[2]
+            _heights(xo2, y[i0], y[iu1], y[id1], y[iu2], y[id2], w)
+            _laser_heights(x, xo1, xo2, ring[0, i0], sat, w)
+        _top2_update(x, rc, m1, p1, m2, p2, sep)
+    return m1, p1, m2, p2
+
+
+@njit(**_JIT)
+def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN001, ANN202
+    """As :func:`_ridge_scan_cols`, per row (profiles along the columns): each row is
+    split into ``rowbuf`` ((3, W)), its heights computed in vectorised loops, then its
+    two strongest ridges found."""
+    h, w = img.shape[0], img.shape[1]
+    nch = img.shape[2]
+    flat = img.reshape(h, w * nch)
+    laser = nch == 3 and k != _LIGHTNESS
+    m1 = np.full(h, thr, rowbuf.dtype)
+    m2 = np.full(h, thr, rowbuf.dtype)
+    p1 = np.full(h, -(10 ** 6), np.int32)
+    p2 = np.full(h, -(10 ** 6), np.int32)
+    n = max(w - 2 * a2, 0)
+    x = np.zeros(n, rowbuf.dtype)
+    xo1 = np.zeros(n, rowbuf.dtype)
+    xo2 = np.zeros(n, rowbuf.dtype)
+    # shifted views of the row buffers: loops over distinct arrays vectorise, indexing
+    # one array at run-time offsets does not
+    s0, su1, sd1, su2, sd2 = a2, a2 - a1, a2 + a1, 0, 2 * a2
+    b0, b1, b2 = rowbuf[0], rowbuf[1], rowbuf[2]
+    for r in range(h):
+        _channels_row(flat, r, k, nch, two, b0, b1, b2)
+        _heights(x, b0[s0:s0 + n], b0[su1:su1 + n], b0[sd1:sd1 + n], b0[su2:su2 + n],
+                 b0[sd2:sd2 + n], n)
+        if laser:
+            _heights(xo1, b1[s0:s0 + n], b1[su1:su1 + n], b1[sd1:sd1 + n],
+                     b1[su2:su2 + n], b1[sd2:sd2 + n], n)
+            _heights(xo2, b2[s0:s0 + n], b2[su1:su1 + n], b2[sd1:sd1 + n],
+                     b2[su2:su2 + n], b2[sd2:sd2 + n], n)
+            _laser_heights(x, xo1, xo2, b0[s0:s0 + n], sat, n)
+        v1, c1, v2, c2 = _top2_line(x, n, a2, thr, sep)
+        m1[r] = v1
+        m2[r] = v2
+        p1[r] = c1
+        p2[r] = c2
+    return m1, p1, m2, p2
+
+
+@njit(inline="always")
+def _contrast_at(img, r, c, k, nch, two):  # noqa: ANN001, ANN202
+    """Contrast k of pixel (r, c) as float64, scaled like :func:`_contrast_row`."""
+    e, _ = _contrast_px(img, r, c, k, nch)
+    return 2.0 * e if two else float(e)
+
+
+@njit(**_JIT)
+def _noise_contrast(img, k, two):  # noqa: ANN001, ANN202
+    """:func:`_noise_sigma` of contrast k (scaled like :func:`_contrast_row`)."""
+    h, w, nch = img.shape
+    if h < 2 or w == 0:
+        return 0.0
+    n_r = min(h - 1, 64)
+    n_c = min(w, 64)
+    d = np.zeros(n_r * n_c, np.float64)
+    i_ = 0
+    for i in range(n_r):
+        r = int((h - 1) * (i + 0.5) / n_r)
+        for j in range(n_c):
+            c = int(w * (j + 0.5) / n_c)
+            d[i_] = abs(_contrast_at(img, r + 1, c, k, nch, two)
+                        - _contrast_at(img, r, c, k, nch, two))
+            i_ += 1
+    return 1.4826 * float(np.median(d)) / np.sqrt(2.0)
+
+
+@njit(**_JIT)
+def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise_t,
+                   min_peak, max_width, gaussian):  # noqa: ANN001, ANN202
+    """Sub-pixel centres of the lines' winning ridges: the profile of contrast k across
+    each line around its ridge's brightest pixel (within 2 pixels), with the linear
+    local baseline (:func:`_profile_at`); statuses as :func:`_centres`."""
+    nrow, ncol, nch = img.shape
+    n = win.size
+    length = ncol if rows_axis else nrow  # pixels along a profile
+    status = np.full(n, _TOO_WEAK, np.int8)
+    centre = np.zeros(n, np.float64)
+    amp_out = np.zeros(n, np.float64)
+    width_out = np.zeros(n, np.float64)
+    y = np.zeros(2 * h + 1, np.float64)
+    valid = np.zeros(2 * h + 1, np.bool_)
+    prof = np.zeros((2 * h + 1, 1, 1), np.float64)
+    hs = min(h, h_small)
+    for i in range(n):
+        p0 = win[i]
+        if p0 < 0:
+            continue
+        lo = max(0, p0 - 2 - h)
+        hi = min(length, p0 + 3 + h)
+        for j in range(lo, hi):
+            if rows_axis:
+                prof[j - lo, 0, 0] = _contrast_at(img, i, j, k, nch, two)
+            else:
+                prof[j - lo, 0, 0] = _contrast_at(img, j, i, k, nch, two)
+        view = prof[:hi - lo]
+        p = p0 - lo
+        pv = view[p, 0, 0]
+        for j in range(max(0, p - 2), min(hi - lo, p + 3)):
+            if view[j, 0, 0] > pv:
+                pv = view[j, 0, 0]
+                p = j
+        st, offset, amp, width, short = _profile_at(view, 1, 0, p, hs, y, valid,
+                                                    tail_fraction, noise_t, min_peak,
+                                                    gaussian, True)
+        if short and hs < h:
+            st, offset, amp, width, short = _profile_at(view, 1, 0, p, h, y, valid,
+                                                        tail_fraction, noise_t, min_peak,
+                                                        gaussian, True)
+        if st == _OK and width > max_width:
+            st = _TOO_WIDE
+        status[i] = st
+        if st == _OK:
+            centre[i] = p + lo + offset
+            amp_out[i] = amp
+            width_out[i] = width
+    return status, centre, amp_out, width_out
+
+
+@njit(inline="always")
+def _find(parent, i):  # noqa: ANN001, ANN202
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(**_JIT)
+def _link(m1, p1, m2, p2, sep, link_px, gap, min_run):  # noqa: ANN001, ANN202
+    """Connect the lines' ridge candidates into curves and keep one per line.
+
+    Candidate j of line i links to the nearest candidate of the closest earlier line
+    (at most ``gap`` lines back) within ``link_px`` per line of distance. Per line, the
+    candidate on the longest curve (then the strongest) wins when that curve spans at
+    least ``min_run`` lines; a curve that loses in more of its lines than it wins is a
+    second line (a reflection) in all of them. Returns the winner's row (-1: none), the
+    line's status (_OK, _TOO_WEAK: no candidate, _ISOLATED: only candidates on short
+    curves, _SECOND), the winner's curve length, the number of dropped candidates by
+    reason (second line: on another long curve; isolated: on a short one), and the
+    summed height of the winner's curve."""
+    n = m1.size
+    pos = np.zeros(2 * n, np.float64)
+    val = np.zeros(2 * n, np.float64)
+    ok = np.zeros(2 * n, np.bool_)
+    for i in range(n):
+        pos[2 * i] = p1[i]
+        val[2 * i] = m1[i]
+        ok[2 * i] = p1[i] >= 0
+        pos[2 * i + 1] = p2[i]
+        val[2 * i + 1] = m2[i]
+        ok[2 * i + 1] = (p2[i] >= 0) & (abs(p2[i] - p1[i]) > sep) & ok[2 * i]
+    parent = np.arange(2 * n)
+    for i in range(n):
+        for s in range(2):
+            node = 2 * i + s
+            if not ok[node]:
+                continue
+            best = -1
+            bestd = np.inf
+            for g in range(1, gap + 1):
+                j = i - g
+                if j < 0:
+                    break
+                for t in range(2):
+                    nd = 2 * j + t
+                    if ok[nd]:
+                        d = abs(pos[node] - pos[nd])
+                        if d <= link_px * g and d < bestd:
+                            best = nd
+                            bestd = d
+                if best >= 0:
+                    break
+            if best >= 0:
+                ra = _find(parent, node)
+                rb = _find(parent, best)
+                if ra != rb:
+                    parent[ra] = rb
+    size = np.zeros(2 * n, np.int64)
+    strength = np.zeros(2 * n, np.float64)
+    root = np.zeros(2 * n, np.int64)
+    for node in range(2 * n):
+        if ok[node]:
+            root[node] = _find(parent, node)
+            size[root[node]] += 1
+            strength[root[node]] += val[node]
+    win = np.full(n, -1, np.int64)
+    status = np.full(n, _TOO_WEAK, np.int8)
+    run = np.zeros(n, np.int64)
+    best = np.full(n, -1, np.int64)  # winning slot per line
+    won = np.zeros(2 * n, np.int64)
+    lost = np.zeros(2 * n, np.int64)
+    for i in range(n):
+        bs = -1
+        for s in range(2):
+            node = 2 * i + s
+            if ok[node]:
+                status[i] = _ISOLATED
+                rt = root[node]
+                if size[rt] >= min_run:
+                    if bs < 0:
+                        bs = s
+                    else:
+                        rb = root[2 * i + bs]
+                        if (size[rt] > size[rb]) or (size[rt] == size[rb]
+                                                     and strength[rt] > strength[rb]):
+                            bs = s
+        best[i] = bs
+        if bs >= 0:
+            won[root[2 * i + bs]] += 1
+            other = 2 * i + 1 - bs
+            if ok[other] and size[root[other]] >= min_run:
+                lost[root[other]] += 1
+    # a curve that loses to another one in more of its lines than it wins is a second
+    # line (a reflection beside the stripe), also where the stripe itself is missing
+    n_second = 0
+    n_isolated = 0
+    strong = np.zeros(n, np.float64)
+    for i in range(n):
+        bs = best[i]
+        if bs < 0:
+            continue
+        rt = root[2 * i + bs]
+        other = 2 * i + 1 - bs
+        if ok[other]:
+            if size[root[other]] >= min_run:
+                n_second += 1
+            else:
+                n_isolated += 1
+        if lost[rt] > won[rt]:
+            status[i] = _SECOND
+            continue
+        status[i] = _OK
+        win[i] = int(pos[2 * i + bs])
+        run[i] = size[rt]
+        strong[i] = strength[rt]
+    return win, status, run, n_second, n_isolated, strong
+
+
 # ---------------------------------------------------------------------------- extraction
 def _as_kernel_image(image: np.ndarray) -> np.ndarray:
     """(H, W, 1|3) C-contiguous uint8, uint16 or float32 view/copy of an image."""
@@ -805,7 +1316,7 @@ def extract_stripe_centres(
     *,
     band: float = 0.15,
     s: float | None = None,
-    axis: _Axis = "columns",
+    axis: _Axis = "auto",
     min_peak: float | None = None,
     max_width_px: float = 15.0,
     method: Literal["cog", "gaussian"] = "cog",
@@ -814,6 +1325,10 @@ def extract_stripe_centres(
     background: np.ndarray | None = None,
     tail_fraction: float = 0.05,
     noise_k: float = 3.0,
+    detector: Literal["ridge", "band"] = "ridge",
+    colour: str = "auto",
+    min_run: int = 5,
+    link_px: float = 3.0,
 ) -> StripePoints:
     """Sub-pixel laser stripe centres, at most one per image column (or row).
 
@@ -855,6 +1370,19 @@ def extract_stripe_centres(
         Soft threshold of the centre of gravity, relative to the peak height.
     noise_k : float
         The soft threshold is at least ``noise_k`` times the frame's noise sigma.
+    detector : {"ridge", "band"}
+        ``ridge`` (default): the stripe as a connected ridge of the laser's colour
+        contrast (see the module docstring); ``band``: the seed's eq. 20 band on the
+        lightness (``band``, ``s``, ``reference`` apply to it only).
+    colour : {"auto", "red", "green", "blue", "lightness"}
+        The ridge detector's contrast image: a channel's excess over the other two, or
+        the lightness; ``auto`` chooses per frame the one in which the stripe is the
+        most consistent ridge. Mono images always use their own values.
+    min_run : int
+        Ridge detector: the shortest connected piece of stripe kept, in lines.
+    link_px : float, pixels
+        Ridge detector: largest step of the stripe between neighbouring lines (per line
+        of a gap) for the two to belong to one curve.
 
     Returns
     -------
@@ -890,6 +1418,14 @@ def extract_stripe_centres(
         raise ValueError(f"reference_lines must be an integer >= 0, got {reference_lines}")
     if s is not None and not (np.isfinite(s) and s >= 0):
         raise ValueError(f"s must be a finite brightness >= 0, got {s}")
+    if detector not in ("ridge", "band"):
+        raise ValueError(f"detector must be 'ridge' or 'band', got {detector!r}")
+    if colour != "auto" and colour not in CONTRASTS:
+        raise ValueError(f"colour must be 'auto' or one of {CONTRASTS}, got {colour!r}")
+    if int(min_run) != min_run or min_run < 1:
+        raise ValueError(f"min_run must be an integer >= 1, got {min_run}")
+    if not (link_px > 0):
+        raise ValueError(f"link_px must be positive, got {link_px}")
     full_scale = _full_scale(image.dtype)
     min_peak_abs = 0.04 * full_scale if min_peak is None else float(min_peak)
     work = _subtract_background(image, background)
@@ -902,21 +1438,21 @@ def extract_stripe_centres(
         return StripePoints.empty(axis=ax, s=float("nan") if s is None else float(s),
                                   n_lines=w_img if ax == "columns" else h_img,
                                   rejected={"too_weak": w_img if ax == "columns" else h_img})
+    if detector == "ridge":
+        return _extract_ridge(img, axis=axis, colour=colour, min_peak=min_peak_abs,
+                              max_width_px=float(max_width_px), method=method,
+                              tail_fraction=float(tail_fraction), noise_k=float(noise_k),
+                              min_run=int(min_run), link_px=float(link_px))
 
     # pass 1: the lines' brightest pixels (and the rows' for "auto")
     # the rows' extrema: to choose the axis, and to skip the rows of pass 2 that cannot
     # reach any line's band (cheap for mono images, whose reductions vectorise)
-    want_rows = axis == "auto" or nch == 1
+    want_rows = nch == 1
+    if axis == "auto":
+        _, axis, _ = _choose_contrast(img, (_LIGHTNESS,), "auto", min_peak_abs)
     if axis == "rows":
         img = _transpose(img)
     cmax, carg, cmin, rmax, rmin = _scan_peaks(img, want_rows)
-    if axis == "auto":
-        n_cols = int(np.count_nonzero(cmax - cmin >= min_peak_abs))
-        n_rows = int(np.count_nonzero(rmax - rmin >= min_peak_abs))
-        axis = "rows" if n_rows > n_cols else "columns"
-        if axis == "rows":
-            img = _transpose(img)
-            cmax, carg, cmin, rmax, rmin = _scan_peaks(img, nch == 1)
     sigma_n = float(_noise_sigma(img, nch))
     n_lines = img.shape[1]
     good = (cmax - cmin) >= np.float32(min_peak_abs)
@@ -966,7 +1502,189 @@ def extract_stripe_centres(
         u, v = centre[ok], line_idx.astype(np.float64)
     return StripePoints(u=u, v=v, confidence=conf, peak=amp_g, width_px=width_g,
                         line=line_idx, axis=axis, s=s_frame, n_lines=n_lines,
-                        rejected=rejected)
+                        rejected=rejected, colour="lightness",
+                        angle_deg=_angle_deg(u, v, line_idx, axis == "rows"))
+
+
+def _angle_deg(u: np.ndarray, v: np.ndarray, line: np.ndarray | None = None,
+               rows: bool = False) -> float:
+    """Direction of the stripe, degrees from u towards v, in (-90, 90]: the median slope
+    between centres of neighbouring lines (robust to a second piece of stripe elsewhere
+    in the frame), else the principal axis of the points."""
+    if u.size < 2:
+        return float("nan")
+    if line is not None:
+        along, across = (v, u) if rows else (u, v)
+        nb = np.flatnonzero(np.diff(line) == 1)
+        if nb.size >= 3:
+            slope = float(np.median(across[nb + 1] - across[nb]))
+            du, dv = (slope, 1.0) if rows else (1.0, slope)
+            ang = float(np.degrees(np.arctan2(dv, du)))
+            ang = ang - 180.0 if ang > 90.0 else (ang + 180.0 if ang <= -90.0 else ang)
+            return ang
+    du, dv = u - u.mean(), v - v.mean()
+    suu, svv, suv = float(du @ du), float(dv @ dv), float(du @ dv)
+    ang = 0.5 * np.degrees(np.arctan2(2.0 * suv, suu - svv))
+    return float(90.0 if ang <= -90.0 else ang)
+
+
+def _choose_contrast(img: np.ndarray, ks: Sequence[int], axis: str,
+                     thr: float) -> tuple[int, str, dict[str, float]]:
+    """The contrast and the axis in which the stripe is the most consistent ridge, from
+    every ``step``-th row and column (``step``: about 1/32 of the image's smaller side)."""
+    h, w, nch = img.shape
+    step = max(4, int(round(min(h, w) / 32)))
+    scores, axes = {}, {}
+    for k in ks:
+        s_rows, s_cols = _probe(img, k, step, thr)
+        s_rows = s_rows if axis in ("auto", "rows") else -1.0
+        s_cols = s_cols if axis in ("auto", "columns") else -1.0
+        scores[k] = max(s_rows, s_cols)
+        axes[k] = axis if axis != "auto" else ("rows" if s_rows > s_cols else "columns")
+    # a laser colour before the lightness, unless the lightness ridge is far more
+    # consistent (a white or infrared laser, a grey image): the lightness also sees
+    # every thin bright thing of the scene (a white edge, a lamp, a glint)
+    colours = [k for k in ks if k != _LIGHTNESS]
+    k_best = max(colours, key=lambda k: scores[k]) if colours else _LIGHTNESS
+    if _LIGHTNESS in scores and scores[_LIGHTNESS] > _LIGHTNESS_PREFERRED * scores[k_best]:
+        k_best = _LIGHTNESS
+    if scores[k_best] <= 0 and axis == "auto":
+        axes[k_best] = "columns"
+    return k_best, axes[k_best], {CONTRASTS[k]: v for k, v in scores.items()}
+
+
+def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
+                   max_width_px: float, method: str, tail_fraction: float, noise_k: float,
+                   min_run: int, link_px: float) -> StripePoints:
+    """The ridge detector on an (H, W, 1|3) kernel image (see the module docstring)."""
+    h_img, w_img, nch = img.shape
+    if nch == 1:
+        ks: tuple[int, ...] = (_LIGHTNESS,)
+    elif colour == "auto":
+        ks = (0, 1, 2, _LIGHTNESS)
+    else:
+        ks = (CONTRASTS.index(colour),)
+    k = ks[0]
+    if len(ks) > 1 or axis == "auto":
+        k, axis, _ = _choose_contrast(img, ks, axis, min_peak)
+    name = CONTRASTS[k]
+    # the contrast image, in lines = columns
+    # one pass over the image: the contrast, its ridges, two candidates per line
+    two = nch == 3 and img.dtype == np.uint8 and k == _LIGHTNESS
+    scale = 2.0 if two else 1.0
+    wdt = np.int16 if img.dtype == np.uint8 else np.float32
+    sigma_n = float(_noise_contrast(img, k, two))
+    thr = max(scale * min_peak, 2.0 * noise_k * sigma_n)
+    thr_w = wdt(np.ceil(thr)) if wdt is np.int16 else np.float32(thr)
+    sep = _RIDGE_A2 + 1
+    sat = wdt(_saturation(img.dtype))
+    if axis == "rows":
+        m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros((3, w_img), wdt),
+                                          _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat)
+    else:
+        ring = np.zeros((3, 2 * _RIDGE_A2 + 1, w_img), wdt)
+        m1, p1, m2, p2 = _ridge_scan_cols(img, k, two, ring, _RIDGE_A1, _RIDGE_A2, sep,
+                                          thr_w, sat)
+    n_lines = m1.size
+    win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep, float(link_px),
+                                                      _LINK_GAP, int(min_run))
+    h = int(np.ceil(1.1 * max_width_px)) + 2
+    st2, centre, amp, width = _ridge_centres(img, k, two, axis == "rows", win, h, _H_SMALL,
+                                             float(tail_fraction), float(noise_k * sigma_n),
+                                             float(scale * min_peak), float(max_width_px),
+                                             method == "gaussian")
+    status = np.where(status == _OK, st2, status)
+    counts = np.bincount(status, minlength=len(REJECTION_REASONS) + 1)
+    rejected = {nm: int(counts[i + 1]) for i, nm in enumerate(REJECTION_REASONS)}
+    rejected["isolated"] += int(n_isolated)
+    rejected["second_line"] += int(n_second)
+    ok = np.flatnonzero(status == _OK)
+    amp_c, width_g = amp[ok], width[ok]
+    c_snr = 1.0 - np.exp(-amp_c / (10.0 * max(sigma_n, 1e-12)))
+    c_width = np.clip(2.0 - 2.0 * width_g / max_width_px, 0.0, 1.0)
+    c_peak = np.clip(amp_c / max(float(np.median(amp_c)) if ok.size else 1.0, 1e-12), 0, 1)
+    c_run = np.clip(run[ok] / (2.0 * min_run), 0.0, 1.0)
+    conf = np.clip(c_snr * c_width * c_peak * c_run, 0.0, 1.0)
+    line_idx = ok.astype(np.int64)
+    if axis == "columns":
+        u, v = line_idx.astype(np.float64), centre[ok]
+    else:
+        u, v = centre[ok], line_idx.astype(np.float64)
+    s_frame = float("nan")
+    if ok.size:  # eq. 18 on the centres' pixels of the (background-subtracted) frame
+        rr = np.clip(np.rint(v).astype(np.int64), 0, h_img - 1)
+        cc = np.clip(np.rint(u).astype(np.int64), 0, w_img - 1)
+        s_frame = _eq18(img, rr, cc)
+    return StripePoints(u=u, v=v, confidence=conf, peak=amp_c / scale, width_px=width_g,
+                        line=line_idx, axis=axis, s=s_frame, n_lines=n_lines,
+                        rejected=rejected, colour=name,
+                        angle_deg=_angle_deg(u, v, line_idx, axis == "rows"))
+
+
+#: The keyword arguments of :func:`extract_stripe_centres` that the config's ``stripes``
+#: section holds under the same names.
+CONFIG_KEYS: tuple[str, ...] = ("detector", "colour", "min_run", "link_px", "band", "method",
+                                "axis", "min_peak", "max_width_px", "reference",
+                                "reference_lines", "s")
+
+
+def config_options(section: dict) -> dict:
+    """The keyword arguments of :func:`extract_stripe_centres` from a config's ``stripes``
+    section (the same names; the section's other keys are the stage's)."""
+    return {k: section[k] for k in CONFIG_KEYS}
+
+
+def estimate_laser_colour(images: Sequence[np.ndarray], *,
+                          backgrounds: Sequence[np.ndarray | None] | None = None,
+                          min_peak: float | None = None) -> tuple[str, dict[str, float]]:
+    """The laser's colour in a set of laser frames: the contrast of :data:`CONTRASTS`
+    in which the stripe is, summed over the frames, the most consistent ridge.
+
+    Per frame, every 1/32-th row and column is searched for its strongest ridge of each
+    contrast (see :func:`extract_stripe_centres`); a contrast scores the heights of the
+    ridges that continue from one sampled line to the next (the stripe, not clutter).
+    The lightness is chosen only when it scores 8 times the best colour (a white or
+    infrared laser, grey images): it also sees every thin bright thing of a scene.
+
+    Parameters
+    ----------
+    images : sequence of (H, W) or (H, W, 3) arrays
+        A few laser frames of one recording.
+    backgrounds : sequence of arrays or None, optional
+        The laser-off frame of each image (subtracted, clipped at 0), or None.
+    min_peak : float, optional
+        Smallest ridge height counted, in the images' units (default 4 % of full scale).
+
+    Returns
+    -------
+    colour : str
+        One of :data:`CONTRASTS` (``"lightness"`` for mono images or without frames).
+    scores : dict of str to float
+        The summed score of each contrast.
+    """
+    totals: dict[str, float] = {}
+    if backgrounds is None:
+        backgrounds = [None] * len(images)
+    if len(backgrounds) != len(images):
+        raise ValueError(f"need one background per image, got {len(backgrounds)} for "
+                         f"{len(images)} images")
+    for image, bg in zip(images, backgrounds, strict=True):
+        image = _check_image(np.asarray(image))
+        img = _as_kernel_image(_subtract_background(image, bg))
+        if img.size == 0:
+            continue
+        thr = 0.04 * _full_scale(image.dtype) if min_peak is None else float(min_peak)
+        ks = (0, 1, 2, _LIGHTNESS) if img.shape[2] == 3 else (_LIGHTNESS,)
+        _, _, scores = _choose_contrast(img, ks, "auto", thr)
+        for name, v in scores.items():
+            totals[name] = totals.get(name, 0.0) + max(v, 0.0)
+    colours = [c for c in CONTRASTS[:3] if c in totals]
+    if not colours:
+        return "lightness", totals
+    best = max(colours, key=lambda c: totals[c])
+    if totals.get("lightness", 0.0) > _LIGHTNESS_PREFERRED * totals[best]:
+        best = "lightness"
+    return best, totals
 
 
 def extract_stripes_batch(

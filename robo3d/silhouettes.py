@@ -418,6 +418,7 @@ _FLAT_NEUTRAL = 1.7     # border fallback: a near-neutral mode is background if 
 _FLAT_COLOURED = 0.8    # ... a saturated one only if this flat (Lab units, 5x5 local std)
 _NEUTRAL_CHROMA = 12.0  # chroma below which a mode counts as near-neutral
 _MIN_THRESHOLD = 2.0    # the colour-difference threshold never goes below this (std devs)
+_BLEND_LAB = 4.0        # a colour this close (Lab) to a blend of two background modes is one
 
 
 def to_lab(image: np.ndarray, *, name: str = "image") -> np.ndarray:
@@ -561,6 +562,7 @@ def colour_difference(
     *,
     blur_sigma_px: float = 1.0,
     border_sample: bool = False,
+    _keep_model: dict | None = None,
 ) -> np.ndarray:
     """How far each pixel's colour is from the background's (the automatic polarity).
 
@@ -612,7 +614,38 @@ def colour_difference(
             sample = flat
     modes = _background_modes(lab, sample, "image border" if border_sample else "outside roi",
                               raw)
-    return _mode_distance(lab, modes)
+    d = _mode_distance(lab, modes)
+    if _keep_model is not None:
+        _keep_model.update(lab=lab, modes=modes)
+    return d
+
+
+def _blend_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Distance (Lab units) of colours ``x`` (N, 3) to the nearest segment between two
+    background modes (the colours of a blurred edge between two background colours, or
+    of a background colour darkened towards another by a shadow); all pairs at once."""
+    xq = np.rint(np.asarray(x, dtype=np.float32)).astype(np.int64)  # 1 Lab unit bins:
+    keys = (xq[:, 0] * 512 + xq[:, 1] + 256) * 512 + xq[:, 2] + 256   # each colour once
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    x = np.stack([uniq // (512 * 512), (uniq // 512) % 512 - 256, uniq % 512 - 256], axis=1)
+    return _segment_distance(x.astype(np.float32), modes)[inverse.ravel()]
+
+
+def _segment_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]
+                      ) -> np.ndarray:
+    means = np.array([m for m, _ in modes], dtype=np.float32)
+    i, j = np.triu_indices(len(means), k=1)
+    a, ab = means[i], means[j] - means[i]                      # (P, 3)
+    x = np.asarray(x, dtype=np.float32)
+    g = x @ means.T                                            # (N, k)
+    xa = g[:, i]                                               # x . a
+    p = g[:, j] - xa - (a * ab).sum(axis=1)                    # (x - a) . ab
+    length2 = np.maximum((ab * ab).sum(axis=1), np.float32(1e-6))  # |ab|^2
+    q = (x * x).sum(axis=1)[:, None] - 2.0 * xa + (a * a).sum(axis=1)  # |x - a|^2
+    t = p / length2
+    np.clip(t, 0.0, 1.0, out=t)
+    q -= t * (2.0 * p - t * length2)                           # |x - a - t ab|^2
+    return np.sqrt(np.maximum(q.min(axis=1), 0.0))
 
 
 def _as_uint8_rgb(image: np.ndarray) -> np.ndarray:
@@ -901,8 +934,10 @@ def segment_silhouette(
                              f"{float(inside_grey.min()):.1f}) inside the region analysed, "
                              "so no threshold separates object and background")
         if polarity == "auto":
+            model: dict = {}
             difference = colour_difference(image, sample, blur_sigma_px=blur_sigma_px,
-                                           border_sample=sample_kind == "image border")
+                                           border_sample=sample_kind == "image border",
+                                           _keep_model=model)
             f = difference
     if blur_sigma_px > 0 and mode != "auto":
         f = cv2.GaussianBlur(f, (0, 0), sigmaX=float(blur_sigma_px),
@@ -942,6 +977,20 @@ def segment_silhouette(
         band = fg_roi & cv2.dilate((~fg_roi).view(np.uint8), kernel).astype(bool)
         fg_roi[band] = (inside[band] < local[band]) if mode == "darker" else \
             (inside[band] > local[band])
+    if mode == "auto" and sample_kind == "outside roi" and len(model.get("modes", ())) > 1:
+        # colours between two background colours differ from both but are background: the
+        # blurred rim of a printed marker (every grey between paper and ink), which would
+        # close into rings and then blobs, and a shadow on the table (the table's colour
+        # darkened towards the markers' ink). Such foreground is dropped, unless it is most
+        # of the foreground (then the object itself is of those colours, a grey object on
+        # a black-and-white table): then only the rims, a 2 px band along the background
+        blend = np.zeros_like(fg_roi)
+        blend[fg_roi] = _blend_distance(model["lab"][v0:v1, u0:u1][fg_roi],
+                                        model["modes"]) <= _BLEND_LAB
+        if np.count_nonzero(blend) > 0.5 * np.count_nonzero(fg_roi):
+            blend &= cv2.dilate((~fg_roi).view(np.uint8), np.ones((5, 5), np.uint8)
+                                ).astype(bool)
+        fg_roi &= ~blend
     where = f"(threshold s={s:.2f}, polarity {mode}, roi {box})"
     n_roi = fg_roi.size
     n_fg = int(np.count_nonzero(fg_roi))

@@ -643,3 +643,33 @@ def test_turntable_wrong_polarity_is_flagged_auto_is_not():
     assert "inverted" in wrong.qa["flags"]  # the mask holds a colour of the background
     right = _segment_as_configured(img, roi=roi)
     assert right.qa["flags"] == [] and _iou(right.mask, obj) >= 0.99
+
+
+def test_blend_distance_to_segments_between_background_modes():
+    """Analytic: distance of colours to the segments paper-ink and paper-wall."""
+    from robo3d.silhouettes import _blend_distance
+
+    modes = [(np.array([95.0, 0.0, 2.0]), None), (np.array([5.0, 0.0, 0.0]), None),
+             (np.array([40.0, 0.0, -10.0]), None)]
+    x = np.array([[50.0, 0.0, 1.0],      # midway paper-ink: 0
+                  [50.0, 6.0, 1.0],      # 6 off that segment, in a
+                  [120.0, 0.0, 2.0],     # beyond paper: 25 from its end
+                  [40.0, 0.0, -10.0],    # the wall mode itself
+                  [60.0, 40.0, 50.0]])   # orange: far from every segment
+    d = _blend_distance(x, modes)
+    assert d[:4] == pytest.approx([0.0, 6.0, 25.0, 0.0], abs=0.9)  # colours binned to 1 unit
+    assert d[4] > 40
+
+
+def test_shadow_and_marker_rims_are_background():
+    """A long dark shadow cast across the markers of a bright table, and markers right at
+    the object's foot: the silhouette is the object's alone."""
+    img, truth, roi = _cell_scene(ORANGE, BRIGHT_TABLE)
+    v, u = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    shadow = (v > 150) & (np.abs(u - 205 - 0.5 * (v - 150)) < 30) & ~truth
+    img = img.copy()
+    img[shadow] = (img[shadow] * 0.5).astype(np.uint8)
+    sil = _segment_as_configured(img, roi=roi)
+    assert _iou(sil.mask, truth) >= 0.99
+    near = cv2.dilate(truth.view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert not (sil.mask & shadow & ~near).any()   # none of it beyond the outline's blur

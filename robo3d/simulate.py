@@ -450,7 +450,9 @@ def load_object_mesh(path: str | os.PathLike[str], unit: str = "m") -> TriangleM
 
     The mesh is scaled from ``unit`` to metres and placed standing on the table: its
     lowest vertex at ``z = 0``, its bounding box centred on the base's z axis (the
-    workspace's centre). Vertices are rounded to float32 (the truth is what is rendered).
+    workspace's centre). Vertices are rounded to float32 (the truth is what is rendered);
+    unused vertices are dropped, and a mesh whose faces are wound inward (negative
+    volume) is turned outward, as shading and the laser's incidence need.
 
     Parameters
     ----------
@@ -491,7 +493,11 @@ def load_object_mesh(path: str | os.PathLike[str], unit: str = "m") -> TriangleM
                           f"(unit {unit!r}; wrong --mesh-unit?); the simulated table is "
                           "1.2 m wide")
     v = v - np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
-    return TriangleMesh(v.astype(np.float32).astype(np.float64), f.astype(np.int64))
+    mesh = TriangleMesh(v.astype(np.float32).astype(np.float64), f.astype(np.int64))
+    if mesh.volume() < 0:  # faces wound inward (some exporters): shading needs outward
+        _log.info("object mesh %s: faces wound inward, flipped", path)
+        mesh = TriangleMesh(mesh.vertices, np.ascontiguousarray(mesh.faces[:, ::-1]))
+    return mesh
 
 
 def truth_scene(recording: Any, threads: int = 1) -> SimScene:

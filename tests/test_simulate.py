@@ -593,6 +593,11 @@ def test_user_mesh_in_millimetres_lands_on_the_table(tmp_path):
     sil = cv2.imdecode(np.frombuffer(rec.attachments["ground_truth/silhouettes/000.png"],
                                      np.uint8), cv2.IMREAD_UNCHANGED)
     assert (sil > 127).sum() > 50
+    # faces wound inward are turned outward (shading and the laser need outward normals)
+    inward = tmp_path / "inward.obj"
+    write_mesh(inward, v, f[:, ::-1])
+    m = load_object_mesh(inward, "mm")
+    assert m.volume() == pytest.approx(0.04 * 0.03 * 0.02, rel=1e-5)
     # bad meshes are clear errors naming the file
     empty = tmp_path / "empty.ply"
     write_mesh(empty, np.zeros((0, 3)), np.zeros((0, 3), dtype=int))

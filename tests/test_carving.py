@@ -740,6 +740,33 @@ def test_stage_carve_leaves_a_flagged_view_out_and_says_so(tmp_path, ring):
     assert report["volume_m3"] < 0.5 * SPHERE_VOLUME
 
 
+def test_stage_carve_reads_the_segmentation_flags(tmp_path, ring):
+    """Views the segmentation flagged leave the reference; one that still agrees with
+    the others carves, one that disagrees is left out with both reasons."""
+    import json
+
+    from robo3d.config import load_config
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks, _grid, _exact = ring
+    ms = list(masks)
+    ms[4] = _corrupt("part missing", masks[4])
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms)
+    (tmp_path / "reports").mkdir()
+    views = [{"index": i, "qa": {"flags": ["touches_all_sides"] if i in (2, 4) else []}}
+             for i in range(len(Ts))]
+    (tmp_path / "reports" / "silhouettes.json").write_text(json.dumps({"views": views}))
+    out = {k: str(tmp_path / f"hull.{k}") for k in ("npz", "ply", "rrd")}
+    out["report"] = str(tmp_path / "carve.json")
+    cfg = load_config(overrides={"carving": {"resolution": 40, "qa_resolution": 40}})
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+    assert report["agreement"]["segmentation_flagged"] == [2, 4]
+    assert [r["view"] for r in report["views_left_out"]] == [4]
+    reasons = report["views_left_out"][0]["reasons"]
+    assert any("misses" in r for r in reasons) and "segmentation: touches_all_sides" in reasons
+    assert 2 in report["views_used"]
+
+
 # ---------------------------------------------------------------------- real data
 DTU = Path(__file__).resolve().parents[2] / "shared" / "real" / "dtu_scan24.mcap"
 

@@ -1082,7 +1082,12 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN00
 
 @njit(inline="always")
 def _contrast_at(img, r, c, k, nch, two):  # noqa: ANN001, ANN202
-    """Contrast k of pixel (r, c) as float64, scaled like :func:`_contrast_row`."""
+    """The profile value of pixel (r, c) for contrast k, float64: the laser's own
+    channel (its rise is the stripe; where the laser saturates the channel, a flat top
+    centred on the stripe, where a chroma difference would dip), or the lightness
+    (twice it when ``two``, like :func:`_channels_row`)."""
+    if nch == 3 and k != _LIGHTNESS:
+        return float(img[r, c, k])
     e, _ = _contrast_px(img, r, c, k, nch)
     return 2.0 * e if two else float(e)
 
@@ -1327,7 +1332,7 @@ def extract_stripe_centres(
     noise_k: float = 3.0,
     detector: Literal["ridge", "band"] = "ridge",
     colour: str = "auto",
-    min_run: int = 5,
+    min_run: int = 8,
     link_px: float = 3.0,
 ) -> StripePoints:
     """Sub-pixel laser stripe centres, at most one per image column (or row).
@@ -1531,9 +1536,9 @@ def _angle_deg(u: np.ndarray, v: np.ndarray, line: np.ndarray | None = None,
 def _choose_contrast(img: np.ndarray, ks: Sequence[int], axis: str,
                      thr: float) -> tuple[int, str, dict[str, float]]:
     """The contrast and the axis in which the stripe is the most consistent ridge, from
-    every ``step``-th row and column (``step``: about 1/32 of the image's smaller side)."""
+    every ``step``-th row and column (``step``: about 1/48 of the image's smaller side)."""
     h, w, nch = img.shape
-    step = max(4, int(round(min(h, w) / 32)))
+    step = max(4, int(round(min(h, w) / 48)))
     scores, axes = {}, {}
     for k in ks:
         s_rows, s_cols = _probe(img, k, step, thr)
@@ -1640,7 +1645,7 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
     """The laser's colour in a set of laser frames: the contrast of :data:`CONTRASTS`
     in which the stripe is, summed over the frames, the most consistent ridge.
 
-    Per frame, every 1/32-th row and column is searched for its strongest ridge of each
+    Per frame, every 1/48-th row and column is searched for its strongest ridge of each
     contrast (see :func:`extract_stripe_centres`); a contrast scores the heights of the
     ridges that continue from one sampled line to the next (the stripe, not clutter).
     The lightness is chosen only when it scores 8 times the best colour (a white or

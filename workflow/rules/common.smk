@@ -46,6 +46,7 @@ def get_evaluate_inputs(wildcards):
            "fused": f"results/{wildcards.rec}/fused.ply"}
     if "hull" in stages:
         out["hull"] = f"results/{wildcards.rec}/hull.npz"
+        out["silhouettes"] = f"results/{wildcards.rec}/silhouettes.npz"  # mask IoU
     if "laser" in stages:
         out["clouds"] = f"results/{wildcards.rec}/clouds.npz"
         out["aligned"] = f"results/{wildcards.rec}/aligned.npz"

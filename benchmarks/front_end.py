@@ -44,8 +44,9 @@ Every recording runs through the Snakemake workflow with the DEFAULT configurati
     a camera clock 4 ms late. The pose error is scored per laser FRAME, at the pose the
     pipeline used for it: ``C_f T_reported(stamp)`` against the true camera pose at the
     frame's exposure (``ground_truth/image_poses.json``), ``C_f`` the alignment's
-    correction at that frame (its motion model, from ``aligned.npz``): the rotation angle
-    and the displacement of the frame's own points. A sweep's error is its worst frame;
+    correction at that frame (its motion model): the rotation angle and the largest
+    displacement of the frame's own points (the workflow's own evaluation,
+    ``metrics.json`` -> ``evaluation.poses.worst_*_frame_*``). A sweep's error is its worst frame;
     ``pose_err_after_*`` is the worst sweep. The final mesh is scored by the workflow's
     own evaluation (``metrics.json``): completeness counts the true surface in the
     workspace box ("what the sensors could observe": the box starts just above the table).
@@ -305,14 +306,16 @@ def part_drift(base: Path, reuse: bool) -> dict[str, Any]:
     e2e = json.loads((work / "done.json").read_text())["end_to_end_s"]
     m = json.loads((res / "metrics.json").read_text())
     ev = m["evaluation"]
-    poses = frame_pose_errors(rec_path, res)
-    out = {"end_to_end_s": e2e, **poses,
+    p = ev["poses"]
+    out = {"end_to_end_s": e2e,
+           **{f"pose_err_{k}_{u}": p[f"worst_{k}_frame_{u}"]
+              for k in ("before", "after") for u in ("mm", "deg")},
+           "per_sweep": p["per_sweep_frames"], "limits": view_pose_limits(rec_path, res),
            "mesh_median_mm": ev["mesh"]["median_mm"], "mesh_p95_mm": ev["mesh"]["p95_mm"],
            "completeness_0_5mm": ev["mesh"]["completeness"]["within_mm"]["0.5"],
            "aligned_median_mm": ev["aligned"]["median_mm"],
            "raw_median_mm": ev["clouds"]["median_mm"],
-           "workflow_pose_errors_mid_frame": {k: v for k, v in ev.get("poses", {}).items()
-                                              if k.startswith("worst")}}
+           "workflow_pose_errors": {k: v for k, v in p.items() if k.startswith("worst")}}
     print(f"   {name}: worst sweep (worst frame) {out['pose_err_before_mm']:.3f} mm "
           f"{out['pose_err_before_deg']:.4f} deg -> {out['pose_err_after_mm']:.4f} mm "
           f"{out['pose_err_after_deg']:.4f} deg; mesh median {out['mesh_median_mm']:.4f} "
@@ -321,72 +324,32 @@ def part_drift(base: Path, reuse: bool) -> dict[str, Any]:
     return out
 
 
-def frame_pose_errors(rec_path: Path, res: Path) -> dict[str, Any]:
-    """Per laser frame: the pose the pipeline used (alignment included) against the true
-    camera pose at the frame's exposure; per sweep the worst frame."""
+def view_pose_limits(rec_path: Path, res: Path) -> dict[str, Any]:
+    """What limits the absolute position: the silhouette views (the refinement's absolute
+    reference) carry pose errors of their own; their mean at the object is a bias that no
+    alignment against them can remove."""
     from robo3d.recording.reader import read_recording
-    from robo3d.registration import correction_at
     from robo3d.simulate import image_poses
     from robo3d.transforms import invert_transform, rotation_angle_deg
     from robo3d.triangulation import load_clouds_npz
 
     rec = read_recording(rec_path)
-    true = {int(e["stamp_ns"]): e["T_base_camera"]
-            for e in image_poses(rec)["/camera/laser_image"]}
-    with np.load(res / "stripes.npz") as z:
-        stamps = z["stamps_ns"]
-        T_rep = z["T_base_camera"]
-    raw = load_clouds_npz(res / "clouds.npz")
-    ali = load_clouds_npz(res / "aligned.npz")
-    sweeps = []
-    for c, a in zip(raw, ali, strict=True):
-        model = (a.report or {}).get("correction_model")
-        R = np.asarray(model["rotation"]) if model else np.eye(3)
-        t = np.asarray(model["translation"]) if model else np.zeros(3)
-        rows = []
-        for f in np.unique(c.frame_index):
-            sel = c.frame_index == f
-            p = c.points_base[sel]
-            o = c.sensor_origin_base[sel][0]
-            T_t = true[int(stamps[f])]
-            for label, C in (("before", np.eye(4)), ("after", correction_at(o, R, t))):
-                D = C @ T_rep[f] @ invert_transform(T_t)
-                disp = np.linalg.norm(p @ D[:3, :3].T + D[:3, 3] - p, axis=1)
-                rows.append((label, float(disp.max() * 1e3),
-                             float(rotation_angle_deg(D[:3, :3]))))
-        per = {}
-        for label in ("before", "after"):
-            r = [x for x in rows if x[0] == label]
-            per[f"{label}_mm"] = max(x[1] for x in r)
-            per[f"{label}_deg"] = max(x[2] for x in r)
-            per[f"{label}_median_mm"] = float(np.median([x[1] for x in r]))
-        sweeps.append({"sweep": int(c.sweep), "frames": int(len(np.unique(c.frame_index))),
-                       **per})
-    # what limits the absolute position: the silhouette views (the refinement's absolute
-    # reference) carry pose errors of their own; their mean at the object is a bias that
-    # no alignment against them can remove
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
-    centre = np.concatenate([c.points_base for c in raw]).mean(axis=0)
-    view_disp, view_deg = [], []
-    if views:
-        truth_views = [e["T_base_camera"] for e in image_poses(rec)["/camera/image"]]
-        for A, B in zip(rec.camera_poses(views), truth_views, strict=True):
-            D = A @ invert_transform(B)
-            view_disp.append((D[:3, :3] @ centre + D[:3, 3] - centre) * 1e3)
-            view_deg.append(float(rotation_angle_deg(D[:3, :3])))
-    view_disp = np.asarray(view_disp).reshape(-1, 3)
-    limits = {"views_mean_displacement_mm": view_disp.mean(axis=0).round(4).tolist()
-              if len(view_disp) else None,
-              "views_mean_displacement_norm_mm": float(np.linalg.norm(view_disp.mean(axis=0)))
-              if len(view_disp) else None,
-              "views_rms_displacement_mm": float(np.sqrt((view_disp**2).sum(1).mean()))
-              if len(view_disp) else None,
-              "views_max_deg": max(view_deg) if view_deg else None}
-    return {"limits": limits, "pose_err_before_mm": max(s["before_mm"] for s in sweeps),
-            "pose_err_before_deg": max(s["before_deg"] for s in sweeps),
-            "pose_err_after_mm": max(s["after_mm"] for s in sweeps),
-            "pose_err_after_deg": max(s["after_deg"] for s in sweeps),
-            "per_sweep": sweeps}
+    if not views:
+        return {}
+    centre = np.concatenate([c.points_base for c in load_clouds_npz(res / "clouds.npz")]
+                            ).mean(axis=0)
+    truth = [e["T_base_camera"] for e in image_poses(rec)["/camera/image"]]
+    disp, deg = [], []
+    for A, B in zip(rec.camera_poses(views), truth, strict=True):
+        D = A @ invert_transform(B)
+        disp.append((D[:3, :3] @ centre + D[:3, 3] - centre) * 1e3)
+        deg.append(float(rotation_angle_deg(D[:3, :3])))
+    disp = np.asarray(disp)
+    return {"views_mean_displacement_mm": disp.mean(axis=0).round(4).tolist(),
+            "views_mean_displacement_norm_mm": float(np.linalg.norm(disp.mean(axis=0))),
+            "views_rms_displacement_mm": float(np.sqrt((disp**2).sum(axis=1).mean())),
+            "views_max_deg": max(deg)}
 
 
 # --------------------------------------------------------------------------- srv, speed

@@ -55,6 +55,7 @@ __all__ = [
     "completeness",
     "volume_iou",
     "silhouette_iou",
+    "frame_displacement",
     "TRUE_SILHOUETTES",
     "pose_error",
     "batch_rows",
@@ -516,6 +517,53 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[Any, Any]:
     if a.ndim == 2:
         return float(t), float(r)
     return t, r
+
+
+def frame_displacement(points_base: np.ndarray, frame_index: np.ndarray,
+                       T_used: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What each frame's pose error does to that frame's own points.
+
+    A laser frame's points are triangulated in the camera and placed in ``base`` with the
+    pose the pipeline used for it (``T_used``: the robot's reported pose at the image's
+    stamp, times the alignment's correction at that frame); placed with the true pose at
+    the frame's exposure (``T_true``) they would be ``T_true T_used^-1`` times where they
+    are. The error is the largest displacement of a frame's points and the angle of that
+    transform.
+
+    Parameters
+    ----------
+    points_base : (N, 3) float64, metres
+        The points as placed (with ``T_used``).
+    frame_index : (N,) int
+        Each point's frame, an index into ``T_used`` and ``T_true``.
+    T_used, T_true : (F, 4, 4) float64
+        ``base -> camera`` of each frame: as used, and the truth at its exposure.
+
+    Returns
+    -------
+    displacement_mm : (F,) float64
+        Largest displacement of a frame's points (NaN for a frame without points).
+    rotation_deg : (F,) float64
+        Rotation angle of the frame's pose error.
+    """
+    p = _check_points(points_base, "points_base")
+    f = np.asarray(frame_index, dtype=np.int64).reshape(-1)
+    a = np.asarray(T_used, dtype=np.float64)
+    b = np.asarray(T_true, dtype=np.float64)
+    if a.ndim != 3 or a.shape[1:] != (4, 4) or a.shape != b.shape:
+        raise ValueError(f"T_used and T_true must both be (F, 4, 4), got {a.shape} and {b.shape}")
+    if f.size != len(p) or (f.size and (f.min() < 0 or f.max() >= len(a))):
+        raise ValueError(f"frame_index must give one frame in 0..{len(a) - 1} per point")
+    # D_f = T_true_f T_used_f^-1 maps the placed points to the true ones
+    R_used_T = np.swapaxes(a[:, :3, :3], 1, 2)
+    R = b[:, :3, :3] @ R_used_T
+    t = b[:, :3, 3] - np.einsum("fij,fj->fi", R, a[:, :3, 3])
+    moved = np.einsum("nij,nj->ni", R[f], p) + t[f]
+    d = np.linalg.norm(moved - p, axis=1) * 1e3
+    disp = np.full(len(a), -np.inf)
+    np.maximum.at(disp, f, d)
+    disp[~np.isfinite(disp)] = np.nan
+    return disp, rotation_angle_deg(R)
 
 
 _STAGES = ("silhouettes", "carve", "stripes", "triangulate", "align", "fuse", "simplify",

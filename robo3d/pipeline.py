@@ -643,7 +643,12 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from .stripes import REJECTION_REASONS, extract_stripe_centres
+    from .stripes import (
+        REJECTION_REASONS,
+        config_options,
+        estimate_laser_colour,
+        extract_stripe_centres,
+    )
     from .viz import log_camera, log_report, rerun_log, spaced_indices
 
     t0 = time.perf_counter()
@@ -654,16 +659,44 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     poses = rec.camera_poses(frames)
     T_camera_laser = _laser_poses(rec, frames)  # the reader names the role "laser"
     sc = cfg["stripes"]
-    kw = {"band": sc["band"], "axis": sc["axis"], "min_peak": sc["min_peak"],
-          "max_width_px": sc["max_width_px"], "method": sc["method"],
-          "reference": sc["reference"], "reference_lines": sc["reference_lines"],
-          "s": sc["s"]}
+    kw = config_options(sc)
+    # laser-off frames: read as the "laser" role of their own topic, the nearest in time
+    # subtracted from each laser frame
+    rec_off, off_frames, pair = None, [], np.zeros(0, np.int64)
+    if sc.get("laser_off_topic") and frames:
+        topic = str(sc["laser_off_topic"])
+        cfg_off = {**cfg, "topics": {**dict(cfg.get("topics") or {}), "laser": topic}}
+        rec_off = _read(inputs["recording"], cfg_off, roles=("laser",), require=False)
+        off_frames = sorted(rec_off.laser_frames, key=lambda m: m.timestamp_ns)
+        if not off_frames:
+            raise StageError(f"{inputs['recording']}: stripes.laser_off_topic {topic}: no "
+                             "image on that topic (set it to null for a recording without "
+                             "laser-off frames)")
+        t_off = np.array([m.timestamp_ns for m in off_frames], dtype=np.int64)
+        t_on = np.array([m.timestamp_ns for m in frames], dtype=np.int64)
+        j = np.clip(np.searchsorted(t_off, t_on), 1, len(t_off)) - 1
+        j1 = np.minimum(j + 1, len(t_off) - 1)
+        pair = np.where(np.abs(t_off[j1] - t_on) < np.abs(t_on - t_off[j]), j1, j)
+
+    def background(i: int):
+        return rec_off.decode(off_frames[pair[i]]) if rec_off is not None else None
+
+    # the laser's colour, once for the recording, from a few evenly spaced frames
+    colour_scores = None
+    if kw["detector"] == "ridge" and kw["colour"] == "auto" and frames:
+        sample = spaced_indices(len(frames), 12)
+        kw["colour"], colour_scores = estimate_laser_colour(
+            [rec.decode(frames[i]) for i in sample],
+            backgrounds=[background(i) for i in sample], min_peak=kw["min_peak"])
+        log.info("stripes: laser colour %s (scores %s)", kw["colour"],
+                 {k: round(v) for k, v in colour_scores.items()})
 
     def work(i: int):
         ta = time.perf_counter()
         image = rec.decode(frames[i])
+        bg = background(i)
         tb = time.perf_counter()
-        sp = extract_stripe_centres(image, **kw)
+        sp = extract_stripe_centres(image, background=bg, **kw)
         return sp, tb - ta, time.perf_counter() - tb
 
     progress = _Progress("finding stripes", len(frames))
@@ -694,6 +727,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                     int(empty.sum()), len(frames), int(all_weak.sum()))
     s_frame = np.array([sp.s for sp in found], dtype=np.float64)
     axes = np.array([sp.axis for sp in found], dtype="<U7")
+    angles = np.array([sp.angle_deg for sp in found], dtype=np.float64)
+    colours = np.array([sp.colour for sp in found], dtype="<U9")
     with_stripe = ~empty
     report = {
         "n_frames": len(frames), "n_points": n_points,
@@ -708,6 +743,13 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          "max": float(s_frame[with_stripe].max())} if with_stripe.any()
         else None,
         "axis": {a: int((axes == a).sum()) for a in ("columns", "rows")},
+        "angle_deg": {"median": float(np.median(angles[with_stripe])),
+                      "min": float(np.min(angles[with_stripe])),
+                      "max": float(np.max(angles[with_stripe]))}
+        if np.isfinite(angles[with_stripe]).any() else None,
+        "detector": sc["detector"], "laser_colour": kw["colour"],
+        "laser_colour_scores": colour_scores,
+        "laser_off_frames": len(off_frames),
         "method": sc["method"], "reference": sc["reference"] if sc["s"] is None else "frame",
         "threads": n_threads,
         "decode_seconds_cpu": round(decode_s, 3), "detect_seconds_cpu": round(detect_s, 3),
@@ -722,7 +764,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
              confidence=cat("confidence", np.float64), peak=cat("peak", np.float32),
              width_px=cat("width_px", np.float32), line=cat("line", np.int32),
              offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-             axis=axes, s=s_frame, n_lines=n_lines, rejected=rejected,
+             axis=axes, angle_deg=angles, colour=colours, s=s_frame, n_lines=n_lines,
+             rejected=rejected,
              rejection_reasons=np.array(REJECTION_REASONS),
              stamps_ns=np.array([m.timestamp_ns for m in frames], dtype=np.int64),
              T_base_camera=poses, T_camera_laser=T_camera_laser,
@@ -768,6 +811,10 @@ def _stripes_of_frame(s: Mapping[str, np.ndarray], i: int):
         opt["s"] = float(s["s"][i])
     if "n_lines" in s:
         opt["n_lines"] = int(s["n_lines"][i])
+    if "angle_deg" in s:
+        opt["angle_deg"] = float(s["angle_deg"][i])
+    if "colour" in s:
+        opt["colour"] = str(s["colour"][i])
     return StripePoints(u=s["u"][a:b], v=s["v"][a:b], confidence=s["confidence"][a:b], **opt)
 
 
@@ -1348,11 +1395,64 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
     def worst(key: str) -> float:
         return max(o[key] for o in out)
 
-    return {"per_sweep": out,
+    frames = _frame_pose_errors(rec, clouds, aligned, stamps, stripes_path)
+    return {"per_sweep": out, **frames,
             "worst_before_mm": worst("before_mm"), "worst_before_deg": worst("before_deg"),
             "worst_before_obj_mm": worst("before_obj_mm"),
             "worst_after_mm": worst("after_mm"), "worst_after_deg": worst("after_deg"),
             "worst_after_obj_mm": worst("after_obj_mm")}
+
+
+def _frame_pose_errors(rec, clouds, aligned, stamps: np.ndarray, stripes_path: Path
+                       ) -> dict[str, Any]:
+    """Per laser frame, when the recording carries the true pose of every image at its
+    exposure (``ground_truth/image_poses.json``, written by ``robo3d simulate``): the pose
+    the pipeline used for the frame (reported pose at the stamp, times the alignment's
+    correction at that frame) against the truth at the moment the image was taken, so a
+    late camera clock and an error that drifts within a sweep are scored as what they do
+    to the points (:func:`robo3d.evaluate.frame_displacement`). A sweep's figure is its
+    worst frame; ``worst_*_frame_*`` the worst sweep. Empty without that attachment."""
+    from .evaluate import frame_displacement
+    from .registration import correction_at
+
+    if "ground_truth/image_poses.json" not in rec.attachments:
+        return {}
+    try:
+        from .simulate import image_poses
+
+        entries = image_poses(rec)["/camera/laser_image"]
+        T_true = np.stack([e["T_base_camera"] for e in entries])
+    except (Robo3dError, KeyError, ValueError, TypeError) as exc:
+        return {"frames_skipped": f"ground_truth/image_poses.json unusable: {exc}"}
+    if len(T_true) != len(stamps):
+        return {"frames_skipped": f"ground_truth/image_poses.json has {len(T_true)} laser "
+                                  f"images, the stripes {len(stamps)} frames"}
+    with np.load(stripes_path) as z:
+        T_rep = z["T_base_camera"]
+    per = []
+    for c, a in zip(clouds, aligned, strict=True):
+        if not len(c.points_base):
+            continue
+        model = (a.report or {}).get("correction_model") or {}
+        R = np.asarray(model.get("rotation", np.eye(3)), dtype=np.float64)
+        t = np.asarray(model.get("translation", np.zeros(3)), dtype=np.float64)
+        f = np.asarray(c.frame_index, dtype=np.int64)
+        first = np.unique(f, return_index=True)[1]
+        C = np.tile(np.eye(4), (len(T_rep), 1, 1))
+        C[f[first]] = [correction_at(o, R, t) for o in c.sensor_origin_base[first]]
+        d0, r0 = frame_displacement(c.points_base, f, T_rep, T_true)
+        d1, r1 = frame_displacement(a.points_base, f, C @ T_rep, T_true)
+        sel = np.unique(f)
+        per.append({"sweep": int(c.sweep), "frames": int(len(sel)),
+                    "before_mm": float(np.nanmax(d0[sel])), "before_deg": float(r0[sel].max()),
+                    "after_mm": float(np.nanmax(d1[sel])), "after_deg": float(r1[sel].max()),
+                    "after_median_mm": float(np.nanmedian(d1[sel]))})
+    if not per:
+        return {}
+    return {"per_sweep_frames": per,
+            "truth_frames": "true camera pose at each laser image's exposure",
+            **{f"worst_{k}_frame_{u}": max(p[f"{k}_{u}"] for p in per)
+               for k in ("before", "after") for u in ("mm", "deg")}}
 
 
 def _displacement_mm(T_est: np.ndarray, T_true: np.ndarray, point: np.ndarray) -> float:

@@ -384,3 +384,29 @@ def test_stage_evaluate_reports_mask_iou_and_skips_damaged_attachments(tmp_path)
     row = batch_rows([metrics])[0]
     assert row["mask_iou_mean"] == mi["mean"] and row["mask_iou_min"] == mi["min"]
     assert row["views_left_out"] == 0
+
+
+def test_frame_displacement_is_what_each_frames_error_does_to_its_points():
+    """Frame 0 used a pose 0.1 mm off along x, frame 1 one turned by 0.02 degrees about z
+    (its points 0.3 m from the axis move by 0.3 m * 0.02 deg), frame 2 the true pose."""
+    from robo3d.evaluate import frame_displacement
+
+    rng = np.random.default_rng(0)
+    T_true = np.stack([make_transform(euler_to_matrix("xyz", rng.normal(size=3) * 0.3),
+                                      rng.normal(size=3) * 0.1) for _ in range(3)])
+    err = [make_transform(np.eye(3), [1e-4, 0, 0]),
+           make_transform(euler_to_matrix("xyz", np.radians([0, 0, 0.02])), [0, 0, 0]),
+           np.eye(4)]
+    # T_used = E T_true, so the points placed with it are E times the true ones
+    T_used = np.stack([e @ t for e, t in zip(err, T_true, strict=True)])
+    true_pts = np.array([[0.3, 0.0, 0.1], [0.0, 0.3, -0.2], [0.1, 0.1, 0.1]])
+    frame = np.array([0, 1, 2])
+    placed = np.stack([(err[f] @ np.append(p, 1.0))[:3] for f, p in zip(frame, true_pts,
+                                                                        strict=True)])
+    disp, deg = frame_displacement(placed, frame, T_used, T_true)
+    np.testing.assert_allclose(disp, [0.1, 0.3e3 * np.radians(0.02), 0.0], atol=1e-9)
+    np.testing.assert_allclose(deg, [0.0, 0.02, 0.0], atol=1e-9)
+    with pytest.raises(ValueError, match="frame_index"):
+        frame_displacement(placed, np.array([0, 1, 3]), T_used, T_true)
+
+

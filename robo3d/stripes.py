@@ -814,6 +814,8 @@ CONTRASTS: tuple[str, ...] = ("red", "green", "blue", "lightness")
 _LIGHTNESS = 3
 #: Offsets (pixels) of the two-sided ridge test, and the lines linked across a gap.
 _RIDGE_A1, _RIDGE_A2, _LINK_GAP = 3, 6, 3
+#: Heights examined together by the scans' candidate updates (skipped when none counts).
+_BLOCK = 32
 #: The lightness is chosen over the best laser colour when its ridge is this much more
 #: consistent.
 _LIGHTNESS_PREFERRED = 8.0
@@ -840,39 +842,6 @@ def _contrast_px(img, r, c, k, nch):  # noqa: ANN001, ANN202
     return np.float32(0.5) * (max(max(a, b), d) + min(min(a, b), d)), np.float32(0.0)
 
 
-@njit(**_JIT)
-def _probe_lines(lines, k, a1, a2, sat, thr, sep):  # noqa: ANN001, ANN202
-    """The two strongest ridges of contrast k above ``thr`` along each of the (n, L, C)
-    lines, at least ``sep`` apart: heights and positions as :func:`_ridge_scan_cols`."""
-    n, m, nch = lines.shape
-    flat = lines.reshape(n, m * nch)
-    buf = np.zeros((3, m), np.float32)
-    laser = nch == 3 and k != _LIGHTNESS
-    m1 = np.full(n, thr, np.float32)
-    m2 = np.full(n, thr, np.float32)
-    p1 = np.full(n, -(10 ** 6), np.int32)
-    p2 = np.full(n, -(10 ** 6), np.int32)
-    nn = max(m - 2 * a2, 0)
-    x = np.zeros(nn, np.float32)
-    xo1 = np.zeros(nn, np.float32)
-    xo2 = np.zeros(nn, np.float32)
-    s0, su1, sd1, su2, sd2 = a2, a2 - a1, a2 + a1, 0, 2 * a2
-    b0, b1, b2 = buf[0], buf[1], buf[2]
-    for i in range(n):
-        _channels_row(flat, i, k, nch, False, b0, b1, b2)
-        _heights(x, b0[s0:s0 + nn], b0[su1:su1 + nn], b0[sd1:sd1 + nn], b0[su2:su2 + nn],
-                 b0[sd2:sd2 + nn], nn)
-        if laser:
-            _heights(xo1, b1[s0:s0 + nn], b1[su1:su1 + nn], b1[sd1:sd1 + nn],
-                     b1[su2:su2 + nn], b1[sd2:sd2 + nn], nn)
-            _heights(xo2, b2[s0:s0 + nn], b2[su1:su1 + nn], b2[sd1:sd1 + nn],
-                     b2[su2:su2 + nn], b2[sd2:sd2 + nn], nn)
-            _laser_heights(x, xo1, xo2, b0[s0:s0 + nn], sat, nn)
-        v1, c1, v2, c2 = _top2_line(x, nn, a2, thr, sep)
-        m1[i], p1[i], m2[i], p2[i] = v1, c1, v2, c2
-    return m1, p1, m2, p2
-
-
 def _saturation(dtype: np.dtype) -> float:
     """The level from which a channel counts as saturated (98 % of the full scale; 250
     for uint8)."""
@@ -886,25 +855,29 @@ def _probe(img: np.ndarray, k: int, step: int, thr: float) -> tuple[float, float
     lines: the stripe within 45 degrees of the lines' normal); the score is the summed
     height of the strongest curve over 3 sampled lines or more (0 for none), so that
     clutter, short and scattered, scores little and a long stripe much."""
-    rows = np.ascontiguousarray(img[step // 2::step])
-    cols = np.ascontiguousarray(img[:, step // 2::step].transpose(1, 0, 2))
     sat = np.float32(_saturation(img.dtype))
     sep = _RIDGE_A2 + 1
     out = []
-    for lines in (rows, cols):
-        m1, p1, m2, p2 = _probe_lines(lines, k, _RIDGE_A1, _RIDGE_A2, sat, np.float32(thr),
-                                      sep)
+    for along_u in (True, False):
+        m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2, np.float32(thr),
+                                      sep, sat, along_u)
         *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3)
         out.append(float(strong.max()) if strong.size else 0.0)
     return out[0], out[1]
 
 
 @njit(inline="always")
-def _channels_row(flat, r, k, nch, two, c0, c1, c2):  # noqa: ANN001, ANN202
-    """Row r of the (H, W * nch) view of an image, split for contrast k in one
-    vectorisable loop: the laser's channel into c0 and the other two into c1, c2; for
-    the lightness (or a mono image) the lightness into c0 (twice it when ``two``:
-    uint8 RGB into int16, exact)."""
+def _heights(x, y0, yu1, yd1, yu2, yd2, n):  # noqa: ANN001, ANN202
+    """x = y0 - min(max(yu1, yd1), max(yu2, yd2)): the two-sided ridge height."""
+    for c in range(n):
+        x[c] = y0[c] - min(max(yu1[c], yd1[c]), max(yu2[c], yd2[c]))
+
+
+@njit(inline="always")
+def _channel_row(flat, r, k, nch, two, c0):  # noqa: ANN001, ANN202
+    """Row r of the (H, W * nch) view of an image into c0, for contrast k, in one
+    vectorisable loop: the laser's channel, or the lightness (a mono image: its values;
+    twice the lightness when ``two``: uint8 RGB into int16, exact)."""
     w = c0.size
     if nch == 1:
         for c in range(w):
@@ -919,78 +892,39 @@ def _channels_row(flat, r, k, nch, two, c0, c1, c2):  # noqa: ANN001, ANN202
             s = max(max(a, b), d) + min(min(a, b), d)
             c0[c] = s if two else s / 2
         return
-    i1 = 1 if k == 0 else 0
-    i2 = 1 if k == 2 else 2
     for c in range(w):
         c0[c] = f[3 * c + k]
-        c1[c] = f[3 * c + i1]
-        c2[c] = f[3 * c + i2]
 
 
 @njit(inline="always")
-def _heights(x, y0, yu1, yd1, yu2, yd2, n):  # noqa: ANN001, ANN202
-    """x = y0 - min(max(yu1, yd1), max(yu2, yd2)): the two-sided ridge height."""
-    for c in range(n):
-        x[c] = y0[c] - min(max(yu1[c], yd1[c]), max(yu2[c], yd2[c]))
+def _rise_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
+    """Two-sided ridge height of channel ch at (r, c), across the line (along u or v)."""
+    if along_u:
+        y0 = np.float32(img[r, c, ch])
+        b1 = max(np.float32(img[r, c - a1, ch]), np.float32(img[r, c + a1, ch]))
+        b2 = max(np.float32(img[r, c - a2, ch]), np.float32(img[r, c + a2, ch]))
+    else:
+        y0 = np.float32(img[r, c, ch])
+        b1 = max(np.float32(img[r - a1, c, ch]), np.float32(img[r + a1, c, ch]))
+        b2 = max(np.float32(img[r - a2, c, ch]), np.float32(img[r + a2, c, ch]))
+    return y0 - min(b1, b2)
 
 
 @njit(inline="always")
-def _laser_heights(x, xo1, xo2, y0, sat, n):  # noqa: ANN001, ANN202
-    """x = min(x, x - max(xo1, xo2)): the laser's channel must rise, and more than the
-    other two (a laser adds light of its colour). Where the laser's channel is
-    saturated (y0 >= sat) its rise is clipped while the others still rise: there it
-    must rise more than half the others' rise."""
-    for c in range(n):
-        m = max(xo1[c], xo2[c])
-        m = m if y0[c] < sat else m // 2
-        x[c] = min(x[c], x[c] - m)
-
-
-@njit(inline="always")
-def _top2_update(x, r, m1, p1, m2, p2, sep):  # noqa: ANN001, ANN202
-    """Per column, the two strongest heights at least sep rows apart (see _ridge_scan_cols)."""
-    for c in range(x.size):
-        xc = x[c]
-        if xc > m2[c]:
-            if abs(r - p1[c]) <= sep:
-                if xc > m1[c]:
-                    m1[c] = xc
-                    p1[c] = r
-            elif xc > m1[c]:
-                m2[c] = m1[c]
-                p2[c] = p1[c]
-                m1[c] = xc
-                p1[c] = r
-            else:
-                m2[c] = xc
-                p2[c] = r
-
-
-@njit(inline="always")
-def _top2_line(x, n, off, thr, sep):  # noqa: ANN001, ANN202
-    """The two strongest heights of x[:n] above thr, at least sep apart: (height,
-    position + off) of each (position -10**6: none)."""
-    v1 = thr
-    v2 = thr
-    c1 = -(10 ** 6)
-    c2 = -(10 ** 6)
-    for i in range(n):
-        xc = x[i]
-        c = i + off
-        if xc > v2:
-            if abs(c - c1) <= sep:
-                if xc > v1:
-                    v1 = xc
-                    c1 = c
-            elif xc > v1:
-                v2 = v1
-                c2 = c1
-                v1 = xc
-                c1 = c
-            else:
-                v2 = xc
-                c2 = c
-    return v1, c1, v2, c2
+def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
+    """The laser's height at (r, c) from its channel's rise xk: ``min(xk, xk - max(rise
+    of the other two channels))`` (a laser adds light, mostly of its colour: its channel
+    rises, and more than the others; a thin white thing rises in all three, a grey joint
+    between red tiles more in blue than in green, a green cable on a white wall falls in
+    all three). Where the laser's channel is saturated (>= sat) its rise is clipped
+    while the others still rise: there it must rise more than half of theirs."""
+    i1 = 1 if k == 0 else 0
+    i2 = 1 if k == 2 else 2
+    m = max(_rise_at(img, r, c, i1, a1, a2, along_u), _rise_at(img, r, c, i2, a1, a2, along_u))
+    if np.float32(img[r, c, k]) >= sat:
+        m = np.float32(0.5) * m
+    x = np.float32(xk)
+    return min(x, x - m)
 
 
 @njit(**_JIT)
@@ -1000,15 +934,13 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001,
 
     The ridge height of a channel, ``x = y(r) - min(max(y(r -+ a1)), max(y(r -+ a2)))``,
     is a peak against the local baseline on both sides at one of two distances (zero on
-    a step edge or a gradient). For a laser colour the height is ``min(x_k, x_k -
-    max(x_o1, x_o2))``: a laser adds light, mostly of its colour, so its channel rises
-    and rises more than the other two (a thin white or grey thing rises in all three, a
-    green cable on a white wall falls in all three, a grey joint between red tiles rises
-    more in blue than in green). For the lightness it is ``x`` of the lightness.
-    One pass over the image: each row is split once into a ring of ``2 a2 + 1`` rows
-    per channel (``ring``: (3, 2 a2 + 1, W)), the heights of a row in vectorised loops,
-    and a column's candidates are updated only where a height beats its second (rare
-    once the threshold holds them)."""
+    a step edge or a gradient). For a laser colour, where the laser channel's height
+    could count (beats a column's second candidate), it is lowered by the other
+    channels' rise (:func:`_laser_at`); for the lightness it is ``x`` of the lightness.
+    One pass over the image: each row's channel is read once into a ring of ``2 a2 + 1``
+    rows (``ring``), the heights of a row in one vectorised loop, and a column's
+    candidates are updated only where a height beats its second (rare once the
+    threshold holds them)."""
     h, w = img.shape[0], img.shape[1]
     nch = img.shape[2]
     flat = img.reshape(h, w * nch)
@@ -1019,33 +951,49 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001,
     p1 = np.full(w, -(10 ** 6), np.int32)
     p2 = np.full(w, -(10 ** 6), np.int32)
     x = np.zeros(w, ring.dtype)
-    xo1 = np.zeros(w, ring.dtype)
-    xo2 = np.zeros(w, ring.dtype)
     for r in range(h):
-        j = r % nr
-        _channels_row(flat, r, k, nch, two, ring[0, j], ring[1, j], ring[2, j])
+        _channel_row(flat, r, k, nch, two, ring[r % nr])
         rc = r - a2
         if rc < a2:
             continue
-        i0, iu1, id1 = rc % nr, (rc - a1) % nr, (rc + a1) % nr
-        iu2, id2 = (rc - a2) % nr, (rc + a2) % nr
-        y = ring[0]
-        _heights(x, y[i0], y[iu1], y[id1], y[iu2], y[id2], w)
-        if laser:
-            y = ring[1]
-            _heights(xo1, y[i0], y[iu1], y[id1], y[iu2], y[id2], w)
-            y = ring[2]
-            _heights(xo2, y[i0], y[iu1], y[id1], y[iu2], y[id2], w)
-            _laser_heights(x, xo1, xo2, ring[0, i0], sat, w)
-        _top2_update(x, rc, m1, p1, m2, p2, sep)
+        _heights(x, ring[rc % nr], ring[(rc - a1) % nr], ring[(rc + a1) % nr],
+                 ring[(rc - a2) % nr], ring[(rc + a2) % nr], w)
+        for b in range(0, w, _BLOCK):
+            # whether any height of the block beats its column's second (vectorised)
+            e = min(b + _BLOCK, w)
+            anyb = False
+            for c in range(b, e):
+                anyb |= x[c] > m2[c]
+            if not anyb:
+                continue
+            for c in range(b, e):
+                xc = x[c]
+                if not xc > m2[c]:
+                    continue
+                if laser:
+                    xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat)
+                    if not xc > m2[c]:
+                        continue
+                if abs(rc - p1[c]) <= sep:
+                    if xc > m1[c]:
+                        m1[c] = xc
+                        p1[c] = rc
+                elif xc > m1[c]:
+                    m2[c] = m1[c]
+                    p2[c] = p1[c]
+                    m1[c] = xc
+                    p1[c] = rc
+                else:
+                    m2[c] = xc
+                    p2[c] = rc
     return m1, p1, m2, p2
 
 
 @njit(**_JIT)
 def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN001, ANN202
-    """As :func:`_ridge_scan_cols`, per row (profiles along the columns): each row is
-    split into ``rowbuf`` ((3, W)), its heights computed in vectorised loops, then its
-    two strongest ridges found."""
+    """As :func:`_ridge_scan_cols`, per row (profiles along the columns): each row's
+    channel read into ``rowbuf`` ((W,)), its heights computed in one vectorised loop,
+    then its two strongest ridges found."""
     h, w = img.shape[0], img.shape[1]
     nch = img.shape[2]
     flat = img.reshape(h, w * nch)
@@ -1056,27 +1004,110 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN00
     p2 = np.full(h, -(10 ** 6), np.int32)
     n = max(w - 2 * a2, 0)
     x = np.zeros(n, rowbuf.dtype)
-    xo1 = np.zeros(n, rowbuf.dtype)
-    xo2 = np.zeros(n, rowbuf.dtype)
-    # shifted views of the row buffers: loops over distinct arrays vectorise, indexing
+    # shifted views of the row buffer: loops over distinct arrays vectorise, indexing
     # one array at run-time offsets does not
+    b0 = rowbuf
     s0, su1, sd1, su2, sd2 = a2, a2 - a1, a2 + a1, 0, 2 * a2
-    b0, b1, b2 = rowbuf[0], rowbuf[1], rowbuf[2]
     for r in range(h):
-        _channels_row(flat, r, k, nch, two, b0, b1, b2)
+        _channel_row(flat, r, k, nch, two, b0)
         _heights(x, b0[s0:s0 + n], b0[su1:su1 + n], b0[sd1:sd1 + n], b0[su2:su2 + n],
                  b0[sd2:sd2 + n], n)
-        if laser:
-            _heights(xo1, b1[s0:s0 + n], b1[su1:su1 + n], b1[sd1:sd1 + n],
-                     b1[su2:su2 + n], b1[sd2:sd2 + n], n)
-            _heights(xo2, b2[s0:s0 + n], b2[su1:su1 + n], b2[sd1:sd1 + n],
-                     b2[su2:su2 + n], b2[sd2:sd2 + n], n)
-            _laser_heights(x, xo1, xo2, b0[s0:s0 + n], sat, n)
-        v1, c1, v2, c2 = _top2_line(x, n, a2, thr, sep)
+        v1 = thr
+        v2 = thr
+        c1 = -(10 ** 6)
+        c2 = -(10 ** 6)
+        for b in range(0, n, _BLOCK):
+            # a block's maximum (a vectorised reduction) decides whether to look inside:
+            # after the first candidates, almost no block holds a height above the second
+            e = min(b + _BLOCK, n)
+            bm = x[b]
+            for i in range(b + 1, e):
+                bm = max(bm, x[i])
+            if not bm > v2:
+                continue
+            for i in range(b, e):
+                xc = x[i]
+                if not xc > v2:
+                    continue
+                c = i + a2
+                if laser:
+                    xc = _laser_at(img, r, c, k, a1, a2, True, xc, sat)
+                    if not xc > v2:
+                        continue
+                if abs(c - c1) <= sep:
+                    if xc > v1:
+                        v1 = xc
+                        c1 = c
+                elif xc > v1:
+                    v2 = v1
+                    c2 = c1
+                    v1 = xc
+                    c1 = c
+                else:
+                    v2 = xc
+                    c2 = c
         m1[r] = v1
         m2[r] = v2
         p1[r] = c1
         p2[r] = c2
+    return m1, p1, m2, p2
+
+
+@njit(**_JIT)
+def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u):  # noqa: ANN001, ANN202
+    """:func:`_ridge_scan_rows` on every ``step``-th row (``along_u``: profiles along
+    u, a stripe crossing the rows) or :func:`_ridge_scan_cols` on every ``step``-th
+    column, read from the image in place: the two strongest ridges of each sampled
+    line."""
+    h, w, nch = img.shape
+    laser = nch == 3 and k != _LIGHTNESS
+    lines = np.arange(step // 2, h if along_u else w, step)
+    m = w if along_u else h
+    nl = lines.size
+    m1 = np.full(nl, thr, np.float32)
+    m2 = np.full(nl, thr, np.float32)
+    p1 = np.full(nl, -(10 ** 6), np.int32)
+    p2 = np.full(nl, -(10 ** 6), np.int32)
+    y = np.zeros(m, np.float32)
+    nn = max(m - 2 * a2, 0)
+    x = np.zeros(nn, np.float32)
+    for j in range(nl):
+        ln = lines[j]
+        for i in range(m):
+            if along_u:
+                y[i] = _contrast_at(img, ln, i, k, nch, False)
+            else:
+                y[i] = _contrast_at(img, i, ln, k, nch, False)
+        _heights(x, y[a2:a2 + nn], y[a2 - a1:a2 - a1 + nn], y[a2 + a1:a2 + a1 + nn],
+                 y[:nn], y[2 * a2:2 * a2 + nn], nn)
+        v1 = thr
+        v2 = thr
+        c1 = -(10 ** 6)
+        c2 = -(10 ** 6)
+        for i in range(nn):
+            xc = x[i]
+            if xc > v2:
+                c = i + a2
+                if laser:
+                    if along_u:
+                        xc = _laser_at(img, ln, c, k, a1, a2, True, xc, sat)
+                    else:
+                        xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat)
+                    if not xc > v2:
+                        continue
+                if abs(c - c1) <= sep:
+                    if xc > v1:
+                        v1 = xc
+                        c1 = c
+                elif xc > v1:
+                    v2 = v1
+                    c2 = c1
+                    v1 = xc
+                    c1 = c
+                else:
+                    v2 = xc
+                    c2 = c
+        m1[j], p1[j], m2[j], p2[j] = v1, c1, v2, c2
     return m1, p1, m2, p2
 
 
@@ -1085,7 +1116,7 @@ def _contrast_at(img, r, c, k, nch, two):  # noqa: ANN001, ANN202
     """The profile value of pixel (r, c) for contrast k, float64: the laser's own
     channel (its rise is the stripe; where the laser saturates the channel, a flat top
     centred on the stripe, where a chroma difference would dip), or the lightness
-    (twice it when ``two``, like :func:`_channels_row`)."""
+    (twice it when ``two``, like :func:`_channel_row`)."""
     if nch == 3 and k != _LIGHTNESS:
         return float(img[r, c, k])
     e, _ = _contrast_px(img, r, c, k, nch)
@@ -1584,10 +1615,10 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
     sep = _RIDGE_A2 + 1
     sat = wdt(_saturation(img.dtype))
     if axis == "rows":
-        m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros((3, w_img), wdt),
+        m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros(w_img, wdt),
                                           _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat)
     else:
-        ring = np.zeros((3, 2 * _RIDGE_A2 + 1, w_img), wdt)
+        ring = np.zeros((2 * _RIDGE_A2 + 1, w_img), wdt)
         m1, p1, m2, p2 = _ridge_scan_cols(img, k, two, ring, _RIDGE_A1, _RIDGE_A2, sep,
                                           thr_w, sat)
     n_lines = m1.size

@@ -92,12 +92,9 @@ def _best(fn, repeats: int, cpu: list | None = None) -> float:
 
 def _cfg_kw() -> dict:
     from robo3d.config import default_config
+    from robo3d.stripes import config_options
 
-    sc = default_config()["stripes"]
-    return {"band": sc["band"], "axis": sc["axis"], "min_peak": sc["min_peak"],
-            "max_width_px": sc["max_width_px"], "method": sc["method"],
-            "reference": sc["reference"], "reference_lines": sc["reference_lines"],
-            "s": sc["s"]}
+    return config_options(default_config()["stripes"])
 
 
 # ---------------------------------------------------------------------------- accuracy
@@ -452,6 +449,425 @@ def speed(n_frames: int, repeats: int, log) -> dict:
     return out
 
 
+# ---------------------------------------------------------------------------- ambient speed
+#: What a laser of each colour adds per channel (as the real webcam of srv records green).
+_LASER_RGB = {"red": (1.0, 0.12, 0.10), "green": (0.40, 1.0, 0.45), "blue": (0.20, 0.35, 1.0)}
+
+
+def ambient_frames(n: int, w: int = W_SPEED, h: int = H_SPEED,
+                   colour: str = "green") -> list[np.ndarray]:
+    """Room-lit RGB uint8 frames with a laser line of ``colour``: a textured background
+    under an illumination gradient, white, grey and coloured regions (albedo per
+    channel), thin white and coloured clutter, and the laser line (curved, at an angle
+    that changes from frame to frame between near-horizontal and near-vertical, FWHM
+    about 3 px, scaled by the surface's albedo and clipped at 255), 1.5 DN of noise."""
+    import cv2
+
+    rng0 = np.random.default_rng([SEED, 77])
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    albedo = np.full((h, w, 3), 0.5, np.float32)
+    albedo += (0.05 * np.sin(xx / 9.0 + 0.5 * np.sin(yy / 31.0)) * np.cos(yy / 23.0))[..., None]
+    cols = [(0.95, 0.95, 0.92), (0.9, 0.22, 0.18), (0.2, 0.7, 0.25), (0.2, 0.3, 0.85),
+            (0.9, 0.85, 0.2), (0.12, 0.12, 0.12), (0.95, 0.95, 0.95), (0.6, 0.4, 0.3)]
+    for i in range(16):
+        y0, x0 = rng0.integers(0, h - 100), rng0.integers(0, w - 120)
+        albedo[y0:y0 + rng0.integers(60, 260), x0:x0 + rng0.integers(80, 320)] = cols[i % 8]
+    light = (140.0 + 100.0 * (xx / w) - 50.0 * (yy / h)).astype(np.float32)
+    base = albedo * light[..., None]
+    for _ in range(60):  # clutter: thin lines, white and coloured
+        p0 = (int(rng0.integers(0, w)), int(rng0.integers(0, h)))
+        a = rng0.uniform(0, np.pi)
+        ln = rng0.uniform(20, 120)
+        p1 = (int(p0[0] + ln * np.cos(a)), int(p0[1] + ln * np.sin(a)))
+        tint = [(250, 250, 250), (200, 200, 200), (170, 70, 60), (70, 160, 80),
+                (70, 90, 180)][int(rng0.integers(0, 5))]
+        cv2.line(base, p0, p1, tint, 1, cv2.LINE_AA)
+    lrgb = np.array(_LASER_RGB[colour], np.float32)
+    frames = []
+    for i in range(n):
+        rng = np.random.default_rng([SEED, 78, i])
+        ang = np.radians(rng.uniform(-60.0, 60.0) + (90.0 if i % 2 else 0.0))
+        nrm = np.array([-np.sin(ang), np.cos(ang)], np.float32)
+        d = (xx - w / 2) * nrm[0] + (yy - h / 2) * nrm[1] - rng.uniform(-100, 100)
+        d += 12.0 * np.sin((xx * np.cos(ang) + yy * np.sin(ang)) / 90.0).astype(np.float32)
+        line = 160.0 * np.exp(-0.5 * (d / 1.3) ** 2)
+        img = base + albedo * (1.6 * line)[..., None] * lrgb
+        img += rng.normal(0.0, 1.5, img.shape).astype(np.float32)
+        frames.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    return frames
+
+
+def _peer_numpy(img: np.ndarray, rig: _Rig, colour: int = 1, thr: float = 8.0,
+                a1: int = 3, a2: int = 6, min_run: int = 8, half: int = 8) -> np.ndarray:
+    """The peer: the same method as a careful engineer writes it in vectorised numpy
+    (no loop over pixels or lines): the axis from the stripe's extent, the laser
+    channel's two-sided ridge height lowered where the others rise as much, the
+    strongest ridge per line, runs of neighbouring lines (steps <= 3 px) of at least
+    ``min_run`` lines, then the centre of gravity of the laser channel above its window
+    minimum in +-``half`` px; then the vectorised triangulation of :func:`naive`."""
+    import cv2
+
+    from robo3d.triangulation import laser_plane_in_camera
+
+    f = img.astype(np.int16)
+    # the axis: where the laser channel's excess is, its extent in u against v
+    ex = f[..., colour] - np.maximum(f[..., (colour + 1) % 3], f[..., (colour + 2) % 3])
+    ys, xs = np.nonzero(ex[::8, ::8] > np.percentile(ex[::8, ::8], 99.5))
+    rows = np.ptp(ys) * 8 > np.ptp(xs) * 8 if ys.size else False
+    g = np.swapaxes(f, 0, 1) if rows else f  # profiles along axis 0
+
+    def heights(y: np.ndarray) -> np.ndarray:
+        n = y.shape[0] - 2 * a2
+        b1 = np.maximum(y[a2 - a1:a2 - a1 + n], y[a2 + a1:a2 + a1 + n])
+        b2 = np.maximum(y[:n], y[2 * a2:2 * a2 + n])
+        return y[a2:a2 + n] - np.minimum(b1, b2)
+
+    xk = heights(g[..., colour])
+    xo = np.maximum(heights(g[..., (colour + 1) % 3]), heights(g[..., (colour + 2) % 3]))
+    x = np.minimum(xk, xk - xo)
+    p = np.argmax(x, axis=0)
+    lines = np.arange(x.shape[1])
+    ok = x[p, lines] >= thr
+    p = p + a2
+    # runs of neighbouring lines
+    brk = ~ok[1:] | ~ok[:-1] | (np.abs(np.diff(p)) > 3)
+    run_id = np.concatenate([[0], np.cumsum(brk)])
+    run_len = np.bincount(run_id, weights=ok)
+    keep = ok & (run_len[run_id] >= min_run)
+    lk, pk = lines[keep], p[keep]
+    # centre of gravity in the window
+    off = np.arange(-half, half + 1)
+    idx = np.clip(pk[:, None] + off[None, :], 0, g.shape[0] - 1)
+    prof = g[idx, lk[:, None], colour].astype(np.float32)
+    prof -= prof.min(axis=1, keepdims=True)
+    wts = np.clip(prof - 0.05 * prof.max(axis=1, keepdims=True), 0, None)
+    centre = pk + (wts * off).sum(axis=1) / np.maximum(wts.sum(axis=1), 1e-9)
+    uv = np.stack([centre, lk], 1) if rows else np.stack([lk, centre], 1)
+    xy = cv2.undistortPoints(uv.astype(np.float64).reshape(-1, 1, 2), rig.cam.K,
+                             rig.cam.D).reshape(-1, 2)
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    n, d = laser_plane_in_camera(rig.T_cl)
+    P = rays * (d / (rays @ n))[:, None]
+    return P @ rig.T_bc[:3, :3].T + rig.T_bc[:3, 3]
+
+
+def ambient_speed(n_frames: int = 16, repeats: int = 5, log=print) -> dict:
+    """Speed on ambient-lit 1280 x 960 RGB frames (:func:`ambient_frames`): ours
+    (:func:`ours` with the pipeline's configuration; the laser colour fixed once for the
+    recording as the stage does, and also found per frame), 1 and 2 threads; the
+    vectorised-numpy peer of the same method; decoding of the same frames as PNG and
+    JPEG (quality 92) and the whole stage (decode, detect, triangulate) against
+    decoding alone, both on 2 threads; a busy frame against a clean one (the line on a
+    flat grey scene). Returns the headline figures ``fps_ambient_1280x960`` and
+    ``stage_over_decode_ambient`` (PNG) with the rest."""
+    import cv2
+
+    from robo3d.stripes import estimate_laser_colour
+
+    rig = _Rig()
+    frames = ambient_frames(n_frames)
+    colour, _ = estimate_laser_colour(frames[:6], min_peak=rig.kw["min_peak"])
+    rig_auto = _Rig()
+    rig.kw["colour"] = colour
+    for f in frames[:2]:
+        ours(f, rig)
+        ours(f, rig_auto)
+        _peer_numpy(f, rig)
+    batch = frames * 3
+    nb = len(batch)
+    t1 = _best(lambda: [ours(f, rig) for f in batch], repeats)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        t2 = _best(lambda: list(pool.map(lambda f: ours(f, rig), batch)), repeats)
+        t2a = _best(lambda: list(pool.map(lambda f: ours(f, rig_auto), batch)), repeats)
+        tp2 = _best(lambda: list(pool.map(lambda f: _peer_numpy(f, rig), batch)),
+                    max(2, repeats // 2))
+    tp1 = _best(lambda: [_peer_numpy(f, rig) for f in frames], max(2, repeats // 2))
+    out = {"frames": n_frames, "laser_colour": colour,
+           "points_per_frame": float(np.mean([len(ours(f, rig)) for f in frames])),
+           "points_per_frame_peer": float(np.mean([len(_peer_numpy(f, rig)) for f in frames])),
+           "ours_1t_ms": 1e3 * t1 / nb, "ours_2t_ms": 1e3 * t2 / nb,
+           "fps_1t": nb / t1, "fps_2t": nb / t2, "fps_2t_colour_per_frame": nb / t2a,
+           "peer_1t_ms": 1e3 * tp1 / len(frames), "peer_fps_1t": len(frames) / tp1,
+           "peer_fps_2t": nb / tp2}
+    out["speedup_vs_peer_2t"] = out["fps_2t"] / out["peer_fps_2t"]
+    log(f"ambient 1280x960 RGB: ours {out['fps_2t']:.0f} fps on 2 threads ({out['fps_1t']:.0f} "
+        f"on 1; {out['fps_2t_colour_per_frame']:.0f} finding the colour per frame), numpy "
+        f"peer {out['peer_fps_2t']:.0f} fps on 2 threads: {out['speedup_vs_peer_2t']:.1f}x")
+    # busy against clean
+    clean = np.full_like(frames[0], 110)
+    diff = frames[0].astype(np.int16) - ambient_frames(1)[0].astype(np.int16)
+    del diff
+    yy, xx = np.mgrid[0:H_SPEED, 0:W_SPEED].astype(np.float32)
+    line = 160.0 * np.exp(-0.5 * (((xx - W_SPEED / 2) * 0.2 + (yy - H_SPEED / 2)) / 1.3) ** 2)
+    clean = np.clip(110 + 0.5 * 1.6 * line[..., None] * np.array(_LASER_RGB["green"]), 0,
+                    255).astype(np.uint8)
+    tb = _best(lambda: [ours(f, rig) for f in frames[:8]], repeats) / 8
+    tc = _best(lambda: [ours(clean, rig) for _ in range(8)], repeats) / 8
+    out["busy_ms"], out["clean_ms"], out["busy_over_clean"] = 1e3 * tb, 1e3 * tc, tb / tc
+
+    enc = {"png": [cv2.imencode(".png", f[..., ::-1])[1].tobytes() for f in frames],
+           "jpeg": [cv2.imencode(".jpg", f[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])[1]
+                    .tobytes() for f in frames]}
+
+    def dec(b: bytes) -> np.ndarray:
+        return cv2.cvtColor(cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR),
+                            cv2.COLOR_BGR2RGB)
+
+    def whole(b: bytes) -> np.ndarray:
+        return ours(dec(b), rig)
+
+    def whole_peer(b: bytes) -> np.ndarray:
+        return _peer_numpy(dec(b), rig)
+
+    for kind, blobs in enc.items():
+        blobs_b = blobs * 2
+        n2 = len(blobs_b)
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            d2 = _best(lambda blobs_b=blobs_b: list(pool.map(dec, blobs_b)), repeats)
+            s2 = _best(lambda blobs_b=blobs_b: list(pool.map(whole, blobs_b)), repeats)
+            p2 = _best(lambda blobs_b=blobs_b: list(pool.map(whole_peer, blobs_b)),
+                       max(2, repeats // 2))
+        out[kind] = {"kb_per_frame": float(np.mean([len(b) for b in blobs])) / 1e3,
+                     "decode_ms_2t": 1e3 * d2 / n2, "stage_ms_2t": 1e3 * s2 / n2,
+                     "stage_over_decode": s2 / d2, "peer_stage_over_decode": p2 / d2}
+        o = out[kind]
+        log(f"ambient {kind}: {o['kb_per_frame']:.0f} kB, decode {o['decode_ms_2t']:.2f} "
+            f"ms/frame on 2 threads, whole stage {o['stage_over_decode']:.3f} x decoding "
+            f"(peer {o['peer_stage_over_decode']:.3f} x)")
+    out["fps_ambient_1280x960"] = out["fps_2t"]
+    out["stage_over_decode_ambient"] = out["png"]["stage_over_decode"]
+    out["stage_over_decode_ambient_jpeg"] = out["jpeg"]["stage_over_decode"]
+    out["peer_fps_ambient_1280x960"] = out["peer_fps_2t"]
+    out["peer_stage_over_decode_ambient"] = out["png"]["peer_stage_over_decode"]
+    return out
+
+# ---------------------------------------------------------------------------- real frames
+SRV = ROOT.parent / "shared" / "real" / "srv_laser_calibration.mcap"
+SRV_BOARD = (8, 6)  # inner corners
+SRV_SQUARE_M = 0.040
+
+
+def _board_corners(gray: np.ndarray):
+    """The board's inner corners in a grey image (OpenCV's sector-based detector, which
+    also finds a board crossed by the laser line), or None."""
+    import cv2
+
+    ok, c = cv2.findChessboardCornersSB(gray, SRV_BOARD, cv2.CALIB_CB_EXHAUSTIVE
+                                        | cv2.CALIB_CB_ACCURACY)
+    return c.reshape(-1, 2).astype(np.float64) if ok else None
+
+
+def _board_object_points() -> np.ndarray:
+    nx, ny = SRV_BOARD
+    g = np.mgrid[0:nx, 0:ny].T.reshape(-1, 2).astype(np.float64) * SRV_SQUARE_M
+    return np.concatenate([g, np.zeros((len(g), 1))], axis=1)
+
+
+def _plane_fit(P: np.ndarray, tol: float, iters: int = 500, seed: int = SEED):
+    """RANSAC plane (inliers within tol), refined by least squares (SVD) on the inliers:
+    (unit normal n, offset d with n.x = d, inlier mask)."""
+    rng = np.random.default_rng(seed)
+    best = np.zeros(len(P), bool)
+    for _ in range(iters):
+        a, b, c = P[rng.choice(len(P), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        if np.linalg.norm(n) < 1e-12:
+            continue
+        n /= np.linalg.norm(n)
+        inl = np.abs(P @ n - n @ a) < tol
+        if inl.sum() > best.sum():
+            best = inl
+    for _ in range(3):
+        q = P[best]
+        cen = q.mean(axis=0)
+        n = np.linalg.svd(q - cen)[2][2]
+        d = float(n @ cen)
+        best = np.abs(P @ n - d) < tol
+    return n, d, best
+
+
+def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int = 1,
+                      overlay_dir: Path | None = None, log=print) -> dict:
+    """The stripe on the real board frames of ``srv_laser_calibration`` (Universitat de
+    les Illes Balears' desktop scanner: webcam 640 x 480 JPEG, green laser, room light).
+
+    Oracle (OpenCV, not robo3d): the intrinsics from the board views (``calibrateCamera``
+    on every ``view_step``-th view of ``/camera/image``; the recorded K is a placeholder),
+    then in every ``frame_step``-th laser frame the board (``findChessboardCornersSB``)
+    and its pose (``solvePnP``): the board's plane in the camera. Ours: the pipeline's
+    stripe detector with the default configuration (laser colour found once for the
+    recording, as the stage does). Each centre inside the board's region (the printed
+    pattern and the white board around it: 2 squares left and right, 1.5 above and
+    below) is cast as a ray onto the
+    board's plane; one laser plane is fitted to all these points (RANSAC within 2 mm,
+    then least squares on the inliers) and the points' distances to it give
+    ``srv_board_plane_rms_mm``. The laser plane meets each board's plane in a line: where
+    that line crosses the board's region is where the stripe must be, so a frame "has the
+    stripe on the board" when the detector's centres cover at least half of the expected
+    line there within 2 px, and the points on the board farther than 2 px from it are
+    a wrong (second) line. Points outside the region (wall, shelf, the person) are
+    counted apart.
+    """
+    import cv2
+
+    from robo3d.config import default_config
+    from robo3d.recording.reader import read_recording
+    from robo3d.stripes import estimate_laser_colour, extract_stripe_centres
+
+    rec = read_recording(path, roles=("views", "laser"))
+    obj = _board_object_points()
+    # intrinsics from the board views
+    views = rec.views[::view_step]
+    img_pts, obj_pts = [], []
+    for m in views:
+        c = _board_corners(cv2.cvtColor(rec.decode(m), cv2.COLOR_RGB2GRAY))
+        if c is not None:
+            img_pts.append(c.astype(np.float32))
+            obj_pts.append(obj.astype(np.float32))
+    h, w = rec.decode(views[0]).shape[:2]
+    rms_px, K, D, _, _ = cv2.calibrateCamera(obj_pts, img_pts, (w, h), None, None)
+    log(f"intrinsics from {len(img_pts)} of {len(views)} views: RMS {rms_px:.3f} px, "
+        f"f = {K[0, 0]:.1f} / {K[1, 1]:.1f}, pp = ({K[0, 2]:.1f}, {K[1, 2]:.1f})")
+
+    kw = _cfg_kw()
+    frames = rec.laser_frames[::frame_step]
+    images = [rec.decode(m) for m in frames]
+    sample = np.linspace(0, len(images) - 1, min(len(images), 12)).round().astype(int)
+    colour, _ = estimate_laser_colour([images[i] for i in sample],
+                                      min_peak=default_config()["stripes"]["min_peak"])
+    kw["colour"] = colour
+    nx, ny = SRV_BOARD
+    # the board's region: the pattern (one square beyond the inner corners) and the
+    # white board around it, 2 squares wide on the left and right and 1.5 squares
+    # above and below (as the frames show it: the laser often falls there)
+    x0r, x1r, y0r, y1r = -3.0, nx + 2.0, -2.5, ny + 1.5
+    quad_obj = np.array([[x0r, y0r, 0], [x1r, y0r, 0], [x1r, y1r, 0], [x0r, y1r, 0]],
+                        np.float64) * SRV_SQUARE_M
+    extract_stripe_centres(images[0], **kw)  # compiled or loaded before the clock runs
+    per = []
+    t_detect = 0.0
+    for i, img in enumerate(images):
+        t = time.perf_counter()
+        sp = extract_stripe_centres(img, **kw)
+        t_detect += time.perf_counter() - t
+        c = _board_corners(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
+        rec_i = {"frame": i * frame_step, "stripe": sp, "board": c is not None}
+        if c is not None:
+            ok, rvec, tvec = cv2.solvePnP(obj, c, K, D, flags=cv2.SOLVEPNP_ITERATIVE)
+            R = cv2.Rodrigues(rvec)[0]
+            n_b = R[:, 2]
+            d_b = float(n_b @ tvec.ravel())
+            quad = cv2.projectPoints(quad_obj, rvec, tvec, K, D)[0].reshape(-1, 2)
+            uv = sp.pixels_uv
+            inside = np.array([cv2.pointPolygonTest(quad.astype(np.float32),
+                                                    (float(a), float(b)), False) >= 0
+                               for a, b in uv], bool) if len(uv) else np.zeros(0, bool)
+            xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, D).reshape(-1, 2)
+            rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+            P = rays * (d_b / (rays @ n_b))[:, None]
+            rec_i.update(quad=quad, inside=inside, P=P, n_b=n_b, d_b=d_b, R=R,
+                         t=tvec.ravel())
+        per.append(rec_i)
+    boards = [p for p in per if p["board"]]
+    P_all = np.concatenate([p["P"][p["inside"]] for p in boards] or [np.zeros((0, 3))])
+    n_l, d_l, inl = _plane_fit(P_all, 0.002)
+    res = P_all @ n_l - d_l
+    rms_all = float(np.sqrt(np.mean(res ** 2))) * 1e3
+    rms_inl = float(np.sqrt(np.mean(res[inl] ** 2))) * 1e3
+
+    # where the stripe must be on each board: the laser plane's line on the board plane
+    n_found, n_expected, line_px, off_line, cover = 0, 0, [], 0, []
+    n_on_board = n_off_board = 0
+    for p in boards:
+        sp = p["stripe"]
+        n_on_board += int(p["inside"].sum())
+        n_off_board += int((~p["inside"]).sum())
+        # sample the laser/board intersection line across the region, project it
+        u_dir = np.cross(n_l, p["n_b"])
+        u_dir /= np.linalg.norm(u_dir)
+        A = np.stack([n_l, p["n_b"]])
+        x0 = np.linalg.lstsq(A, np.array([d_l, p["d_b"]]), rcond=None)[0]
+        s = np.linspace(-1.0, 1.0, 4001)
+        X = x0 + s[:, None] * u_dir  # metres, camera frame
+        # keep the part inside the board's region (board coordinates)
+        Xb = (X - p["t"]) @ p["R"]
+        inreg = ((Xb[:, 0] >= x0r * SRV_SQUARE_M) & (Xb[:, 0] <= x1r * SRV_SQUARE_M)
+                 & (Xb[:, 1] >= y0r * SRV_SQUARE_M) & (Xb[:, 1] <= y1r * SRV_SQUARE_M)
+                 & (X[:, 2] > 0))
+        if inreg.sum() < 2:
+            p["expected"] = None
+            continue
+        uvl = cv2.projectPoints(X[inreg], np.zeros(3), np.zeros(3), K, D)[0].reshape(-1, 2)
+        p["expected"] = uvl
+        # one expected point per image line of the stripe's axis
+        along = 1 if sp.axis == "rows" else 0
+        lines = np.unique(np.rint(uvl[:, along]).astype(int))
+        lines = lines[(lines >= 0) & (lines < (h if along else w))]
+        if lines.size < 10:
+            continue
+        n_expected += 1
+        order = np.argsort(uvl[:, along])
+        exp_across = np.interp(lines, uvl[order, along], uvl[order, 1 - along])
+        pts = sp.pixels_uv[p["inside"]]
+        got = dict(zip(np.rint(pts[:, along]).astype(int).tolist(),
+                       pts[:, 1 - along].tolist(), strict=True))
+        dev = np.array([got[ln] - e if ln in got else np.nan
+                        for ln, e in zip(lines.tolist(), exp_across, strict=True)])
+        hit = np.abs(dev) <= 2.0
+        cover.append(float(hit.mean()))
+        line_px.extend(np.abs(dev[hit]).tolist())
+        off_line += int((np.abs(dev) > 2.0).sum())
+        p["cover"] = float(hit.mean())
+        n_found += int(hit.mean() >= 0.5)
+    out = {
+        "frames": len(per), "frames_board_detected": len(boards),
+        "frames_stripe_expected_on_board": n_expected,
+        "frames_stripe_found_on_board": n_found,
+        "board_line_coverage_median": float(np.median(cover)) if cover else 0.0,
+        "board_line_coverage_min": float(np.min(cover)) if cover else 0.0,
+        "srv_board_plane_rms_mm": rms_inl, "board_plane_rms_all_mm": rms_all,
+        "points_on_board": int(len(P_all)), "points_on_board_inliers": int(inl.sum()),
+        "points_on_board_outlier_fraction": float(1 - inl.mean()) if len(inl) else 0.0,
+        "points_off_board": n_off_board,
+        "points_on_board_off_the_line": off_line,
+        "centre_to_expected_line_px_median": float(np.median(line_px)) if line_px else None,
+        "laser_colour": colour,
+        "axis": {a: sum(p["stripe"].axis == a for p in per) for a in ("rows", "columns")},
+        "angle_deg_median": float(np.nanmedian([p["stripe"].angle_deg for p in per])),
+        "detect_ms_per_frame": 1e3 * t_detect / max(len(per), 1),
+        "intrinsics": {"rms_px": float(rms_px), "views": len(img_pts),
+                       "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
+                       "cy": float(K[1, 2])},
+        "laser_plane_camera": {"n": n_l.tolist(), "d_m": d_l},
+        "per_frame": [{"frame": p["frame"], "board": p["board"], "points": len(p["stripe"]),
+                       "on_board": int(p["inside"].sum()) if p["board"] else 0,
+                       "line_coverage": p.get("cover"), "axis": p["stripe"].axis,
+                       "angle_deg": round(p["stripe"].angle_deg, 2),
+                       "rejected": p["stripe"].rejected} for p in per],
+    }
+    log(f"srv: board in {len(boards)} of {len(per)} frames, stripe expected on {n_expected}, "
+        f"found on {n_found}; plane RMS {rms_inl:.3f} mm ({inl.sum()} of {len(P_all)} points "
+        f"inliers; {rms_all:.3f} mm with all); {n_off_board} points off the board")
+    if overlay_dir is not None:
+        overlay_dir = Path(overlay_dir)
+        overlay_dir.mkdir(parents=True, exist_ok=True)
+        for p, img in zip(per, images, strict=True):
+            o = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+            if p["board"]:
+                cv2.polylines(o, [p["quad"].astype(np.int32)], True, (255, 128, 0), 1)
+                if p.get("expected") is not None:
+                    cv2.polylines(o, [p["expected"].astype(np.int32)], False, (0, 255, 255), 1)
+            sp = p["stripe"]
+            for k, (a, b) in enumerate(sp.pixels_uv):
+                on = p["board"] and p["inside"][k]
+                o[int(round(b)), int(round(a))] = (0, 0, 255) if on else (255, 0, 255)
+            cv2.putText(o, f"{p['frame']} {sp.colour} {sp.axis} {sp.angle_deg:.1f} deg "
+                        f"n={len(sp)} cover={p.get('cover', float('nan')):.2f}", (5, h - 8),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 255, 255), 1)
+            cv2.imwrite(str(overlay_dir / f"srv_{p['frame']:03d}.png"), o)
+    return out
+
+
 _COLD = """
 import time, numpy as np
 t0 = time.perf_counter()
@@ -479,17 +895,53 @@ def compile_times() -> dict:
             "first_call_filled_cache_s": res[1][1]}
 
 
+def real_and_ambient(log=print, quick: bool = False) -> dict:
+    """The issue-10 figures: speed on ambient-lit 1280 x 960 RGB frames
+    (:func:`ambient_speed`) and the stripe on the real srv board frames
+    (:func:`srv_board_figures`, when ``../shared/real`` is there): the headline keys and
+    their ``details``."""
+    amb = ambient_speed(8 if quick else 16, 3 if quick else 5, log)
+    out = {k: amb[k] for k in ("fps_ambient_1280x960", "stage_over_decode_ambient",
+                               "stage_over_decode_ambient_jpeg", "peer_fps_ambient_1280x960",
+                               "peer_stage_over_decode_ambient")}
+    out["speedup_vs_peer_ambient"] = amb["speedup_vs_peer_2t"]
+    details = {"ambient": amb}
+    if SRV.exists():
+        srv = srv_board_figures(SRV, view_step=2 if quick else 1, log=log)
+        out.update({k: srv[k] for k in ("srv_board_plane_rms_mm", "frames_board_detected",
+                                        "frames_stripe_expected_on_board",
+                                        "frames_stripe_found_on_board")})
+        out["srv_frames"] = srv["frames"]
+        details["srv"] = srv
+    out["details"] = details
+    return out
+
+
 # ---------------------------------------------------------------------------- main
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="one object, fewer frames/repeats")
     ap.add_argument("--work", default=None, help="keep the simulated recordings here")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "laser.json"))
+    ap.add_argument("--real-and-ambient-only", action="store_true",
+                    help="only the ambient-lit speed and the real srv frames, merged into "
+                         "the existing results file")
     args = ap.parse_args()
     t_start = time.perf_counter()
 
     def log(msg: str) -> None:
         print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", flush=True)
+
+    if args.real_and_ambient_only:
+        old = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
+        old.setdefault("details", {})
+        old.update(real_and_ambient(log, quick=args.quick))
+        old["details"]["real_and_ambient_load_avg"] = list(os.getloadavg())
+        with open(args.out, "w", encoding="utf-8") as f:
+            json.dump(old, f, indent=2, default=float)
+            f.write("\n")
+        log(f"wrote {args.out}")
+        return
 
     load0 = os.getloadavg()
     details: dict = {"cpu_count": os.cpu_count(), "load_avg_start": list(load0)}
@@ -508,6 +960,7 @@ def main() -> None:
             details["accuracy"] = accuracy_objects(objects, Path(tmp), log)
     details["plate"] = accuracy_plate([0.22, 0.25, 0.28, 0.31, 0.34],
                                       9 if args.quick else 17, log)
+    new = real_and_ambient(log, quick=args.quick)
     details["load_avg_end"] = list(os.getloadavg())
     details["seconds"] = time.perf_counter() - t_start
 
@@ -544,6 +997,8 @@ def main() -> None:
             f"{details['compile']['first_call_filled_cache_s']:.2f} s to load the cache."),
         "details": details,
     }
+    details.update(new.pop("details"))
+    result.update(new)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as f:
         json.dump(result, f, indent=2)

@@ -4,8 +4,77 @@ Implements the seed's §4.2 ("Detection of the laser path") and finishes its las
 "associate a line to the band", with a sub-pixel peak estimator, at the camera's frame
 rate (compiled kernels, a few passes over the image, no Python loop over pixels).
 
-The method, per frame
----------------------
+Two detectors share the sub-pixel estimators: the *ridge* detector (the default, built
+for real, ambient-lit frames: issue 10) and the seed's *band* detector as written
+(``detector="band"``).
+
+The ridge detector, per frame
+-----------------------------
+Real laser frames are lit by the room: white and coloured surfaces are as bright as the
+stripe, the light varies across the image, the line also falls on the table and the
+wall, and the scene is cluttered. The seed's lightness band (eq. 19-20) then selects
+white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
+
+1. The laser's colour. A contrast ``k`` of :data:`CONTRASTS`: the laser's own channel
+   (red, green or blue) or the lightness (mono images, white lasers). A laser *adds*
+   light, mostly of its colour: where it lies its channel rises against the
+   neighbourhood, and rises more than the other two channels. So the height of a
+   candidate is ``min(x_k, x_k - max(x_o1, x_o2))`` with ``x_c`` the ridge height of
+   channel ``c`` (below): a thin white or grey thing rises in all three channels (0), a
+   green cable on a white wall falls in all three (< 0), a light joint between red
+   tiles rises more in blue than in green (< 0). Where the laser's channel is saturated
+   (>= 98 % of full scale) its rise is clipped while the others still rise (a green
+   laser on a white board records as (245, 255, 255) on (229, 227, 240) in the real srv
+   frames): there it must rise more than *half* the others' rise. The colour is chosen
+   once per recording by the stage (:func:`estimate_laser_colour` on 12 spaced frames),
+   or per frame with ``colour="auto"``: the contrast in which the stripe is the
+   strongest *curve* (step 3) on every 1/48-th row and column; the lightness only when
+   it scores 8 times the best colour (it sees every thin bright thing of a room).
+2. Peak against a local baseline: the ridge height of a profile ``y`` across the line is
+   ``y(r) - min(max(y(r - 3), y(r + 3)), max(y(r - 6), y(r + 6)))``: both sides lower at
+   one of two distances (3 and 6 px: stripes up to ~8 px FWHM at full height), zero on
+   a step edge or a gradient of the room light.
+3. The stripe is a connected curve. Per line the two strongest candidates at least 7 px
+   apart are kept; each is linked to the nearest candidate of the previous lines (up to
+   3 lines back) within ``link_px`` px per line; per line the candidate on the longest
+   curve (then the strongest) wins if that curve spans ``min_run`` lines. Rejections are
+   counted: ``isolated`` (candidates on shorter curves: glints, texture, dots),
+   ``second_line`` (candidates on another long curve in a line that kept the stripe,
+   and every line of a curve that loses in more of its lines than it wins: a
+   reflection beside the stripe, also where the stripe itself is missing). The line on
+   the table or the wall in *other* lines is a curve of its own and is kept: the
+   workspace crop of the triangulation removes it.
+4. The axis, per frame, from the stripe's geometry: the probe of step 1 on sampled rows
+   (profiles along u: a stripe crossing the rows) and columns; the axis whose strongest
+   curve is stronger (a stripe within 45 degrees of vertical gets one centre per row).
+   The stripe's direction ``angle_deg`` is the median slope between centres of
+   neighbouring lines.
+5. The sub-pixel centre is the band detector's (step 5 below) on the profile of the
+   laser's own channel (flat-topped, still centred, where it saturates; a chroma
+   difference would dip there) or the lightness, around the winning candidate's
+   brightest pixel within 2 px, with a *linear* local baseline: the line through the
+   minima of the 3-pixel running mean on either side (a gradient does not bias it).
+6. Confidence: the SNR term and the width term below, a contrast term (the peak over the
+   frame's median peak, capped at 1) and a curve term (its length over ``2 min_run``,
+   capped at 1). ``s`` (eq. 18) is reported on the centres' pixels.
+7. Threshold: ``max(min_peak, 6 sigma)`` with ``sigma`` the contrast's noise (step 7
+   below).
+
+Cost: one pass over the image reads the laser's channel (or the lightness) of each row
+once, into a ring of 13 rows (one centre per column) or a row buffer (per row: no
+transpose), computes the heights in vectorised loops and updates a line's candidates
+only where a height beats its second (blocks of 32 are skipped by a vectorised test);
+the other channels are read only there. Clutter adds only those rare updates: a busy
+frame costs about what a clean one does (``benchmarks/laser.py``: 1.13x).
+
+Choices where issue 10 leaves room: the two-candidate limit (a third, stronger clutter
+ridge in a line hides the stripe there: counted ``too_weak`` or ``isolated``); the
+colour is not chosen from eq. 18 samples but from where the stripe is consistent
+(samples need the stripe first); ``min_peak`` default 8 grey levels (the real board's
+saturated stripe rises 13 levels).
+
+The band detector (the seed as written), per frame
+--------------------------------------------------
 1. Lightness ``L`` (seed eq. 19): ``L = (max(R, G, B) + min(R, G, B)) / 2``; a mono image
    is its own lightness. When a laser-off ``background`` frame is given, the frame is
    first replaced by ``max(image - background, 0)`` channel by channel.
@@ -100,12 +169,12 @@ Choices where the seed is vague
 * Images are read in their own units (grey levels for integer images); ``min_peak`` is
   in those units (the config's ``stripes.min_peak`` is in grey levels), and defaults to
   4 % of the full scale (255 for uint8, 65535 for uint16, 1.0 for float images).
-* The stripe of our rig runs roughly horizontally (the laser sits along camera -y and
-  its sheet spans camera x), so ``axis="columns"`` gives one centre per column: ``u`` is
-  the (integer) column and ``v`` the sub-pixel row. ``axis="rows"`` gives one centre per
-  row; ``axis="auto"`` picks the direction in which the stripe covers more lines (the
-  number of columns versus rows whose peak stands ``min_peak`` above their darkest
-  pixel), which costs nothing beyond the first pass.
+* ``axis="columns"`` gives one centre per column: ``u`` is the (integer) column and
+  ``v`` the sub-pixel row. ``axis="rows"`` gives one centre per row; ``axis="auto"``
+  (the default, for both detectors) picks it per frame from the stripe's geometry
+  (step 4 of the ridge detector, on the lightness for the band detector). Counting the
+  lines whose peak stands ``min_peak`` above their darkest pixel, as before, chose
+  columns for a nearly vertical real stripe (room light lifts every line).
 * Images with another number of channels than 1 or 3, booleans or non-finite floats are
   refused; integer types other than uint8/uint16 and float64 are read as float32.
 

@@ -36,7 +36,9 @@ Every recording runs through the Snakemake workflow with the DEFAULT configurati
       frames (``stripe_recall`` per colour, ``stripe_recall_min`` the worst colour).
 ``srv``
     ``../shared/real/srv_laser_calibration.mcap``: the stripe on the hand-held board
-    (``benchmarks/laser.py``'s ``measure_srv``).
+    (``benchmarks/laser.py``'s ``srv_board_figures``: an OpenCV oracle for the
+    intrinsics and each board's plane, the pipeline's detector for the stripe, one laser
+    plane through the stripe's points on the boards; its RMS residual).
 ``drift``
     The demo block (demo settings: 24 views, 7 sweeps, 1.1 mm profiles) with the robot
     error the alignment does not model (``robot_error="drift"``: the per-sweep error
@@ -51,9 +53,9 @@ Every recording runs through the Snakemake workflow with the DEFAULT configurati
     own evaluation (``metrics.json``): completeness counts the true surface in the
     workspace box ("what the sensors could observe": the box starts just above the table).
 ``speed``
-    ``benchmarks/laser.py``'s ambient-lit 1280x960 case: detection + triangulation
-    frames/s on 2 threads, the stripes stage over decoding alone, and the vectorised
-    numpy peer.
+    ``benchmarks/laser.py``'s ``ambient_speed`` on ambient-lit 1280x960 RGB frames:
+    detection + triangulation frames/s on 2 threads, the stripes stage over decoding
+    alone (PNG; JPEG beside it), and the vectorised-numpy peer of the same method.
 
 Writes ``benchmarks/results/front_end.json`` (keys as issue 10 names them, plus
 ``details``).
@@ -359,13 +361,13 @@ def part_srv() -> dict[str, Any]:
     path = REAL / "srv_laser_calibration.mcap"
     if not path.exists():
         return {"skipped": f"{path} not found"}
-    return laser.measure_srv(path)
+    return laser.srv_board_figures(path, log=lambda *a, **k: None)
 
 
 def part_speed() -> dict[str, Any]:
     import laser
 
-    return laser.measure_ambient()
+    return laser.ambient_speed(log=lambda *a, **k: None)
 
 
 # --------------------------------------------------------------------------- main

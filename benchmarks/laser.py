@@ -913,8 +913,42 @@ def real_and_ambient(log=print, quick: bool = False) -> dict:
                                         "frames_stripe_found_on_board")})
         out["srv_frames"] = srv["frames"]
         details["srv"] = srv
+    out["notes_real_and_ambient"] = _notes_real_and_ambient(out, details)
     out["details"] = details
     return out
+
+
+def _notes_real_and_ambient(out: dict, details: dict) -> str:
+    amb = details["ambient"]
+    txt = (f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared with other "
+           "jobs: speed figures are best-of-N wall clock under that load). "
+           "fps_ambient_1280x960: detection + triangulation + move into base of decoded "
+           "1280x960 RGB room-lit frames with a green laser line and clutter "
+           f"(ambient_frames), 2 threads ({amb['fps_1t']:.0f} fps on 1; "
+           f"{amb['fps_2t_colour_per_frame']:.0f} when the colour is also found per frame); "
+           f"the vectorised-numpy peer of the same method: {amb['peer_fps_2t']:.0f} fps on 2 "
+           f"threads. stage_over_decode_ambient: PNG ({amb['png']['kb_per_frame']:.0f} kB, "
+           f"decode {amb['png']['decode_ms_2t']:.1f} ms/frame on 2 threads); JPEG quality 92 "
+           f"({amb['jpeg']['kb_per_frame']:.0f} kB, {amb['jpeg']['decode_ms_2t']:.1f} ms): "
+           f"{amb['jpeg']['stage_over_decode']:.2f}. busy over clean frame: "
+           f"{amb['busy_over_clean']:.2f}.")
+    if "srv" in details:
+        srv = details["srv"]
+        txt += (f" srv_laser_calibration: OpenCV intrinsics from {srv['intrinsics']['views']} "
+                f"views (RMS {srv['intrinsics']['rms_px']:.3f} px); board found in "
+                f"{srv['frames_board_detected']} of {srv['frames']} laser frames; the laser "
+                "plane (fitted to the stripe's points on the boards) crosses the board "
+                f"region in {srv['frames_stripe_expected_on_board']} of them and the stripe "
+                f"covers at least half of that line in {srv['frames_stripe_found_on_board']} "
+                f"(median coverage {srv['board_line_coverage_median']:.2f}, centres "
+                f"{srv['centre_to_expected_line_px_median']:.2f} px from it); "
+                f"srv_board_plane_rms_mm over the RANSAC inliers (2 mm), "
+                f"{srv['board_plane_rms_all_mm']:.3f} mm over all "
+                f"{srv['points_on_board']} points on the boards "
+                f"({100 * srv['points_on_board_outlier_fraction']:.1f} % outliers); "
+                f"{srv['points_off_board']} centres off the board (wall, shelf, person: "
+                "left to the workspace crop).")
+    return txt
 
 
 # ---------------------------------------------------------------------------- main

@@ -115,6 +115,20 @@ def run_workflow(recording: Path, work: Path, targets: tuple[str, ...] = ("all",
     return dt
 
 
+def _simulated(base: Path, name: str, make) -> Path:
+    """``base/recordings/{name}.mcap``, simulated by ``make(path)`` unless already there
+    (the simulator is deterministic: the same file on every run)."""
+    path = base / "recordings" / f"{name}.mcap"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        print(f"== {name}: simulating ...", flush=True)
+        t0 = time.perf_counter()
+        make(path)
+        print(f"   {path.stat().st_size / 1e6:.1f} MB in {time.perf_counter() - t0:.0f} s",
+              flush=True)
+    return path
+
+
 def _prepared(work: Path, reuse: bool) -> bool:
     """True when ``work`` holds a finished run to reuse; else an empty ``work``."""
     if reuse and (work / "done.json").exists():
@@ -206,14 +220,12 @@ def part_cells(base: Path, reuse: bool) -> dict[str, Any]:
     for colour, (obj, obj_colour) in CELLS.items():
         name = f"cell_{colour}"
         work = base / name
-        rec_path = work / f"{name}.mcap"
+        rec_path = _simulated(base, name, lambda p, o=obj, c=colour, oc=obj_colour:
+                              simulate_recording(p, o, params=SimulationParams.cell(
+                                  laser=c, object_color=oc, **CELL_SIZE, **EXACT, seed=10),
+                                  threads=0))
         if not _prepared(work, reuse):
-            params = SimulationParams.cell(laser=colour, object_color=obj_colour,
-                                           **CELL_SIZE, **EXACT, seed=10)
-            print(f"== {name}: simulating {obj} ({obj_colour}) ...", flush=True)
-            sim = simulate_recording(rec_path, obj, params=params, threads=0)
-            print(f"   {sim.n_views} views, {sim.n_laser_frames} laser frames, "
-                  f"{sim.seconds:.0f} s; workflow ...", flush=True)
+            print(f"== {name}: {obj} ({obj_colour}), workflow ...", flush=True)
             e2e = run_workflow(rec_path, work)
             (work / "done.json").write_text(json.dumps({"end_to_end_s": e2e}))
         out[colour] = score_cell(rec_path, work / "results" / name)
@@ -294,14 +306,12 @@ def part_drift(base: Path, reuse: bool) -> dict[str, Any]:
 
     name = "drift_block"
     work = base / name
-    rec_path = work / f"{name}.mcap"
+    obj, demo = DEMOS["dimple_block"]
+    rec_path = _simulated(base, name, lambda p: simulate_recording(
+        p, obj, params=SimulationParams(**{**demo, **DRIFT}), threads=0))
     if not _prepared(work, reuse):
-        obj, demo = DEMOS["dimple_block"]
-        params = SimulationParams(**{**demo, **DRIFT})
-        print(f"== {name}: simulating the demo block with drifting robot error and a clock "
-              f"{DRIFT['clock_lag_ms']:g} ms late ...", flush=True)
-        simulate_recording(rec_path, obj, params=params, threads=0)
-        print("   workflow ...", flush=True)
+        print(f"== {name}: the demo block with drifting robot error and a clock "
+              f"{DRIFT['clock_lag_ms']:g} ms late, workflow ...", flush=True)
         e2e = run_workflow(rec_path, work)
         (work / "done.json").write_text(json.dumps({"end_to_end_s": e2e}))
     res = work / "results" / name

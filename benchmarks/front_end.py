@@ -21,7 +21,8 @@ Every recording runs through the Snakemake workflow with the DEFAULT configurati
     Simulated cells as real ones look (``SimulationParams.cell``: room light in the laser
     frames, a coloured textured glossy object on a bright ArUco table before a wall, JPEG
     80, webcam noise and vignetting), one per laser colour, with EXACT robot poses (no
-    pose error, no clock lag), so that what is scored is the front end alone:
+    pose error, no clock lag), so that what is scored is the front end alone (the workflow
+    runs up to the silhouettes and the triangulated clouds):
 
     * masks: every view's mask against the true silhouette (``ground_truth/silhouettes``);
     * stripe points: the raw triangulated clouds (``clouds.npz``, before alignment)
@@ -103,7 +104,7 @@ DRIFT = dict(seed=1, sweep_spacing=0.0011, robot_error="drift", clock_lag_ms=4.0
 def run_workflow(recording: Path, work: Path, targets: tuple[str, ...] = ("all",)) -> float:
     """One Snakemake run on one recording in ``work`` with the default config."""
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", "--quiet", "all", *[t for t in targets if t != "all"],
+           str(work), "--cores", "2", "--quiet", "all", *targets,
            "--config", f"recordings=[{recording}]"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -225,8 +226,9 @@ def part_cells(base: Path, reuse: bool) -> dict[str, Any]:
                                   laser=c, object_color=oc, **CELL_SIZE, **EXACT, seed=10),
                                   threads=0))
         if not _prepared(work, reuse):
-            print(f"== {name}: {obj} ({obj_colour}), workflow ...", flush=True)
-            e2e = run_workflow(rec_path, work)
+            print(f"== {name}: {obj} ({obj_colour}), workflow up to the clouds ...", flush=True)
+            e2e = run_workflow(rec_path, work, (f"results/{name}/silhouettes.npz",
+                                                f"results/{name}/clouds.npz"))
             (work / "done.json").write_text(json.dumps({"end_to_end_s": e2e}))
         out[colour] = score_cell(rec_path, work / "results" / name)
         out[colour]["object"], out[colour]["object_colour"] = obj, obj_colour

@@ -40,22 +40,39 @@ D. **Threshold.** ``f`` is heavy-tailed (an object's colours lie at many distanc
    Steps 6-7 follow, with the background's edge ``s_bg`` from the sample pixels below
    ``s``.
 E. **GrabCut** (``grabcut=True``, the pipeline's default): the mask seeds OpenCV's GrabCut
-   (Rother et al. 2004) at most 320 px wide: the mask eroded by 6 px is sure object, the
-   mask probable object, a 12 px band around it probable background, the rest and
-   everything outside the ROI sure background. Its colour mixtures and graph cut move the
-   outline onto the object's colour edge where a shadow, a reflection on the table or a
-   shaded part near a background colour misled the threshold (DTU scan24: mean IoU 0.980
-   → 0.987, worst view 0.920 → 0.958). Holes and specks are cleaned again afterwards; a
-   GrabCut that loses the object leaves the thresholded mask.
+   (Rother et al. 2004) at most 640 px wide (a webcam view at full resolution: at half
+   resolution its outline, scaled back, is 1-2 px off all round), one iteration: the mask
+   eroded by 12 px is sure object, the mask probable object, a 24 px band around it
+   probable background, the rest and everything outside the ROI sure background. Its
+   colour mixtures and graph cut move the outline onto the object's colour edge where a
+   shadow, a reflection on the table or a shaded part near a background colour misled
+   the threshold (DTU scan24: mean IoU 0.980 → 0.987, worst view 0.920 → 0.958). Holes and
+   specks are cleaned again afterwards; a refinement that loses the object leaves the
+   thresholded mask.
+F. **Edge refinement** (``edge_refine_px``, default 3; :func:`refine_edges`): at full
+   resolution, each pixel within 3 px of the outline is object when its colour, as a
+   blend of the colours just inside and just outside the outline (the nearest pixels
+   3 px deep on either side), is more than half the object's: the outline passes where
+   the ray through the pixel's centre leaves the object (the ground truth's definition),
+   on paper, ink, shadow or backdrop alike. Where the two sides look alike, or the pixel
+   is no blend of them (texture), it keeps its label. What it cannot mend: an error
+   wider than its reach (GrabCut taking in a black square that touches the object,
+   ``tests/test_silhouettes.py`` keeps such a scene as a strict xfail).
 
-Measured with the defaults: DTU scan24 (49 real views, published masks) mean IoU 0.987,
-worst 0.958; Middlebury templeSparseRing: no QA flag, the gaps between the columns kept;
-``robo3d simulate --scene cell`` (640 x 480, orange object, 24 views) mean 0.987, worst
-0.960; its 320 x 240 preset (10 views): orange 0.994 / 0.981, blue 0.991 / 0.978.
+Measured with the defaults: DTU scan24 (49 real views, published masks) mean IoU 0.989,
+worst 0.958 (before E at full resolution and F: 0.987 / 0.958); Middlebury
+templeSparseRing: no QA flag, the gaps between the columns kept; the benchmark's
+simulated cells (``benchmarks/front_end.py`` CELLS, 640 x 480, 12 views, room light, JPEG
+80): red laser / orange vase mean 0.998, worst 0.996 (before: 0.991 / 0.988), green laser /
+green blob 0.998 / 0.994 (0.989 / 0.979); GrabCut at 640 px, one iteration, plus F cost
+about 1.0-1.6 times the former 320 px, two iterations (220 ms per 640 x 480 view, 390 ms
+per 1600 x 1200 DTU view on a loaded 2-core machine).
 Known limit: an object whose colours are the background's (a white object on a white
 table, a grey object whose shaded side has the wall's, a shadow's or a marker blend's
 grey) is not told apart by colour (``tests/test_silhouettes.py`` keeps such scenes as
-strict xfails; the simulated 320 x 240 cell's grey and white objects score 0.65 and 0.15).
+strict xfails; the benchmark's blue cell, a white object on the bright marker table,
+scores mean 0.54, worst 0.15; a grey object on a bright table before a light wall is
+now found).
 
 The seed's grey threshold (``polarity="brighter"`` / ``"darker"``):
 
@@ -138,6 +155,8 @@ N. Otsu, "A threshold selection method from gray-level histograms", IEEE Trans. 
 1979.
 C. Rother, V. Kolmogorov, A. Blake, "GrabCut: interactive foreground extraction using
 iterated graph cuts", ACM Trans. Graphics 23(3), 2004.
+Y.-Y. Chuang, B. Curless, D. H. Salesin, R. Szeliski, "A Bayesian approach to digital
+matting", CVPR 2001 (the two-colour blend of step F).
 D. Arthur, S. Vassilvitskii, "k-means++: the advantages of careful seeding", SODA 2007.
 R. Jensen, A. Dahl, G. Vogiatzis, E. Tola, H. Aanæs, "Large scale multi-view stereopsis
 evaluation", CVPR 2014 (DTU, the masks scored against).
@@ -677,9 +696,9 @@ def refine_with_grabcut(
     mask: np.ndarray,
     roi: tuple[int, int, int, int] | None = None,
     *,
-    max_side_px: int = 320,
-    band_px: int = 12,
-    iterations: int = 2,
+    max_side_px: int = 640,
+    band_px: int = 24,
+    iterations: int = 1,
 ) -> np.ndarray:
     """Refine a silhouette's outline with GrabCut (Rother et al. 2004), seeded by the mask.
 
@@ -774,6 +793,110 @@ def refine_with_grabcut(
     return out
 
 
+def _nearest_colour(colour: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """For every pixel, ``colour`` at the nearest pixel of ``seed`` (bool, not empty):
+    one distance transform with per-pixel labels (OpenCV, 5 x 5 chamfer metric)."""
+    src = np.where(seed, np.uint8(0), np.uint8(1))
+    _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    vs, us = np.nonzero(seed)
+    lut = np.zeros((int(labels.max()) + 1, colour.shape[2]), np.float32)
+    lut[labels[vs, us]] = colour[vs, us]
+    return lut[labels]
+
+
+def refine_edges(
+    image: np.ndarray,
+    mask: np.ndarray,
+    roi: tuple[int, int, int, int] | None = None,
+    *,
+    reach_px: int = 3,
+    min_contrast: float = 0.06,
+) -> np.ndarray:
+    """Put a silhouette's outline on the object's edge at full resolution: each pixel
+    within ``reach_px`` of the outline is object when its colour is nearer the object's
+    than the background's next to it.
+
+    For a pixel of that band, ``F`` is the (slightly blurred, σ = 1 px) colour of the
+    nearest pixel that is object ``reach_px`` deep inside the mask and ``B`` that of the
+    nearest pixel ``reach_px`` outside it: the two colours the pixel blends. The pixel's
+    RGB colour ``c`` gives the blend's fraction ``α = (c - B)·(F - B) / |F - B|²`` (the
+    two-colour model of alpha matting, Chuang et al. 2001, with the colours taken from the
+    nearest sure pixels, as in Wang & Cohen's local sampling); the pixel is object when
+    ``α > 1/2``: the outline passes where the ray through the pixel's centre leaves the
+    object, whatever each side's colour — on white paper or black ink of a marker, in a
+    shadow, on a dark backdrop. Where ``|F - B|`` is below ``min_contrast`` (of the 0-1
+    RGB scale) the two sides look alike, and where ``c`` is no blend of the two (``α``
+    outside [-1/2, 3/2], or farther than ``|F - B| / 2`` from their segment: texture the
+    nearest sure pixels do not show), the pixel keeps its label. A mask more than
+    ``reach_px`` off is not moved farther than that.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
+    mask : (H, W) bool
+    roi : (u0, v0, u1, v1) int, optional
+        Nothing outside it is object.
+    reach_px : int
+        Half-width of the band that may change (pixels).
+    min_contrast : float
+        Smallest RGB distance (0-1 scale) of object and background colour that decides.
+
+    Returns
+    -------
+    mask : (H, W) bool
+
+    References
+    ----------
+    Y.-Y. Chuang, B. Curless, D. H. Salesin, R. Szeliski, "A Bayesian approach to digital
+    matting", CVPR 2001; J. Wang, M. F. Cohen, "Optimized color sampling for robust
+    matting", CVPR 2007.
+    """
+    m = np.asarray(mask, dtype=bool)
+    rgb8 = _as_uint8_rgb(image)
+    height, width = m.shape
+    if rgb8.shape[:2] != m.shape:
+        raise ValueError(f"mask must have the image's size {rgb8.shape[:2]}, got {m.shape}")
+    reach = int(reach_px)
+    vs, us = np.nonzero(m)
+    if reach <= 0 or vs.size == 0:
+        return m.copy()
+    pad = 3 * reach + 4  # the crop around the mask holds its outer side's colours
+    r0, r1 = max(int(vs.min()) - pad, 0), min(int(vs.max()) + pad + 1, height)
+    c0, c1 = max(int(us.min()) - pad, 0), min(int(us.max()) + pad + 1, width)
+    mc = np.ascontiguousarray(m[r0:r1, c0:c1])
+    rgb = rgb8[r0:r1, c0:c1].astype(np.float32) * np.float32(1.0 / 255.0)
+    ref = cv2.GaussianBlur(rgb, (0, 0), sigmaX=1.0, borderType=cv2.BORDER_REPLICATE)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
+    inner = cv2.erode(mc.view(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
+    outer = cv2.erode((~mc).view(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
+    if not inner.any() or not outer.any():
+        return m.copy()
+    band = ~inner & ~outer
+    fg = _nearest_colour(ref, inner)[band]
+    bg = _nearest_colour(ref, outer)[band]
+    fb = fg - bg
+    n2 = (fb * fb).sum(axis=1)
+    cb = rgb[band] - bg
+    alpha = (cb * fb).sum(axis=1) / np.maximum(n2, np.float32(1e-9))
+    # a colour off the blend's segment is neither (texture of either side that the
+    # nearest sure pixels do not show): it keeps its label
+    off = cb - alpha[:, None] * fb
+    decided = (n2 > np.float32(min_contrast) ** 2) & (alpha >= -0.5) & (alpha <= 1.5) \
+        & ((off * off).sum(axis=1) <= 0.25 * n2)
+    labels = mc[band]
+    labels[decided] = alpha[decided] > 0.5
+    out = m.copy()
+    crop = out[r0:r1, c0:c1]
+    crop[band] = labels
+    if roi is not None:
+        u0, v0, u1, v1 = _check_roi(roi, width, height)
+        inside = np.zeros_like(out)
+        inside[v0:v1, u0:u1] = True
+        out &= inside
+    return out
+
+
 # ---------------------------------------------------------------------- quality
 QA_FLAGS = ("fills_region", "touches_all_sides", "inverted")
 _FILL_LIMIT = 0.95
@@ -845,6 +968,7 @@ def segment_silhouette(
     max_hole_fraction: float = 1.0,
     background: np.ndarray | None = None,
     grabcut: bool = False,
+    edge_refine_px: int = 0,
 ) -> Silhouette:
     """Segment the object's silhouette in one view (seed §3.2).
 
@@ -884,6 +1008,9 @@ def segment_silhouette(
     grabcut : bool
         Refine the outline with GrabCut seeded by the thresholded mask
         (:func:`refine_with_grabcut`).
+    edge_refine_px : int
+        Move the outline onto the object's colour edge within this many pixels, at full
+        resolution (:func:`refine_edges`); 0 for none.
 
     Returns
     -------
@@ -914,6 +1041,8 @@ def segment_silhouette(
         raise ValueError(f"max_hole_fraction must be >= 0, got {max_hole_fraction}")
     if threshold is not None and not np.isfinite(threshold):
         raise ValueError(f"threshold must be finite, got {threshold}")
+    if int(edge_refine_px) < 0:
+        raise ValueError(f"edge_refine_px must be >= 0, got {edge_refine_px}")
 
     f = to_grey(image)
     height, width = f.shape
@@ -1032,12 +1161,14 @@ def segment_silhouette(
         return keep[labels], int(areas.size), int(areas.size) - int(np.count_nonzero(keep))
 
     mask, n_components, n_removed = clean(mask)
-    if grabcut:
-        refined = refine_with_grabcut(image, mask, box)
+    if grabcut or edge_refine_px > 0:
+        refined = refine_with_grabcut(image, mask, box) if grabcut else mask
+        if edge_refine_px > 0:
+            refined = refine_edges(image, refined, box, reach_px=int(edge_refine_px))
         try:
             mask = clean(refined)[0]
-        except StageError:  # GrabCut lost the object: keep the thresholded mask
-            _log.debug("grabcut left no silhouette %s; the thresholded mask is kept", where)
+        except StageError:  # the refinement lost the object: keep the thresholded mask
+            _log.debug("refinement left no silhouette %s; the thresholded mask is kept", where)
     if np.all(mask[v0:v1, u0:u1]):
         raise StageError(f"silhouette covers every pixel of the region analysed {where}: "
                          "wrong polarity or threshold, or the object fills the view")
@@ -1259,7 +1390,8 @@ def segment_view(
         roi = find_roi(image, margin_px=seg["roi_margin_px"], background=background, **kwargs)
         roi_source = "automatic"
     sil = segment_silhouette(image, roi=roi, background=background,
-                             grabcut=bool(seg.get("grabcut", False)), **kwargs)
+                             grabcut=bool(seg.get("grabcut", False)),
+                             edge_refine_px=int(seg.get("edge_refine_px", 0)), **kwargs)
     return sil, roi_source
 
 

@@ -17,6 +17,7 @@ from robo3d.silhouettes import (
     _distortion_limit_r2,
     colour_difference,
     find_roi,
+    refine_edges,
     refine_with_grabcut,
     roi_from_box,
     segment_silhouette,
@@ -461,7 +462,7 @@ def _segment_as_configured(img, **kw):
                 blur_sigma_px=seg["blur_sigma_px"], min_component_px=seg["min_component_px"],
                 min_component_fraction=seg["min_component_fraction"],
                 fill_holes=seg["fill_holes"], max_hole_fraction=seg["max_hole_fraction"],
-                grabcut=seg["grabcut"])
+                grabcut=seg["grabcut"], edge_refine_px=seg["edge_refine_px"])
     args.update(kw)
     return segment_silhouette(img, **args)
 
@@ -494,16 +495,22 @@ def test_auto_polarity_coloured_objects_on_a_marker_table(obj, table, wall):
     assert max(_iou(grey.mask, truth), _iou(darker.mask, truth)) < 0.97
 
 
-@pytest.mark.xfail(strict=True, reason="known limit: an object whose colours are the "
-                   "background's (a white object on a white table, a grey one whose shaded "
-                   "side is the wall's or the shadow's grey) is not told apart by colour")
+_KNOWN_LIMIT = pytest.mark.xfail(
+    strict=True, reason="known limit: an object whose colours are the background's (a white "
+    "object on a white table, a grey one whose shaded side is the wall's or the shadow's "
+    "grey) is not told apart by colour")
+
+
 @pytest.mark.parametrize(("obj", "table", "wall"), [
-    (WHITE, BRIGHT_TABLE, (0.35, 0.35, 0.37)),
-    (GREY, GREY_TABLE, (0.35, 0.35, 0.37)),
-    (GREY, BRIGHT_TABLE, (0.35, 0.35, 0.37)),
+    pytest.param(WHITE, BRIGHT_TABLE, (0.35, 0.35, 0.37), marks=_KNOWN_LIMIT),
+    pytest.param(GREY, GREY_TABLE, (0.35, 0.35, 0.37), marks=_KNOWN_LIMIT),
+    pytest.param(GREY, BRIGHT_TABLE, (0.35, 0.35, 0.37), marks=_KNOWN_LIMIT),
     (GREY, BRIGHT_TABLE, (0.85, 0.85, 0.85)),
 ], ids=["white-on-bright", "grey-on-grey", "grey-on-bright", "grey-on-bright-light-wall"])
 def test_auto_polarity_object_in_the_background_colours(obj, table, wall):
+    """Objects in the background's colours. A grey object on a bright table before a light
+    wall is found (full-resolution GrabCut and the edge refinement recover what the
+    colour threshold drops: IoU 1.000); the others stay known limits."""
     img, truth, roi = _cell_scene(obj, table, wall)
     assert _iou(_segment_as_configured(img, roi=roi).mask, truth) >= 0.985
 
@@ -558,8 +565,8 @@ def test_grabcut_refinement_follows_the_colour_edge():
     short of the outline; GrabCut, seeded by that mask, follows the colour edge there.
     GrabCut never adds anything outside the ROI, and an empty seed stays empty."""
     img, truth, roi = _cell_scene(BLUE, BRIGHT_TABLE)
-    plain = _segment_as_configured(img, roi=roi, grabcut=False)
-    refined = _segment_as_configured(img, roi=roi, grabcut=True)
+    plain = _segment_as_configured(img, roi=roi, grabcut=False, edge_refine_px=0)
+    refined = _segment_as_configured(img, roi=roi, grabcut=True, edge_refine_px=0)
     assert not plain.refined and refined.refined
     assert _iou(plain.mask, truth) < 0.99 <= 0.995 <= _iou(refined.mask, truth)
     wide = np.zeros_like(truth)
@@ -567,6 +574,74 @@ def test_grabcut_refinement_follows_the_colour_edge():
     out = refine_with_grabcut(img, wide, roi)
     assert not out[: roi[1]].any() and not out[:, : roi[0]].any()
     assert not refine_with_grabcut(img, np.zeros_like(truth), roi).any()
+
+
+
+def _marker_edge_scene(seed: int = 3, squares: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """An orange disc with a dark shaded side on white paper (with printed black squares,
+    or plain), drawn at 4 x 4 samples per pixel (each pixel the mean of its samples: the
+    true blend), blurred like a lens and noisy; truth: the disc at pixel centres."""
+    rng = np.random.default_rng(seed)
+    k = 4
+    v, u = (np.mgrid[0:H * k, 0:W * k] + 0.5) / k - 0.5
+    ink = ((np.floor(u / 23.0) + np.floor(v / 19.0)) % 2 == 0) & squares
+    img = np.where(ink[..., None], np.float32(0.06), np.float32(0.85)) * np.ones(3, np.float32)
+    inside = (u - CX) ** 2 + (v - CY) ** 2 <= R * R
+    shade = np.clip(0.35 + 0.65 * (CX + R - u) / (2 * R), 0.2, 1.0)[..., None]
+    img = np.where(inside[..., None], np.array(ORANGE, np.float32) * shade, img)
+    img = img.reshape(H, k, W, k, 3).mean(axis=(1, 3))
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.6)
+    img = np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1)
+    return np.rint(img * 255).astype(np.uint8), _disc()
+
+
+def test_refine_edges_puts_the_outline_on_the_pixel_centre_edge():
+    """On plain paper a mask 2 px too wide or too narrow all round (IoU 0.90) comes back
+    onto the true outline (lit and dark shaded side alike), also from a grey image; on
+    printed squares finer than the band's reach only where each side's nearest sure
+    colour is the one it blends with (measured: narrow 0.993, wide 0.905 -> 0.952); a
+    mask farther off than ``reach_px`` moves at most that far; nothing leaves the ROI; a
+    flat image keeps the mask."""
+    disc5 = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    plain, truth = _marker_edge_scene(squares=False)
+    wide = cv2.dilate(truth.view(np.uint8), disc5).astype(bool)
+    narrow = cv2.erode(truth.view(np.uint8), disc5).astype(bool)
+    assert _iou(wide, truth) < 0.91 and _iou(narrow, truth) < 0.91
+    grey = cv2.cvtColor(plain, cv2.COLOR_RGB2GRAY)
+    for start in (wide, narrow):  # measured 0.994 / 0.995, grey 0.994 / 0.994
+        assert _iou(refine_edges(plain, start, reach_px=3), truth) >= 0.99
+        assert _iou(refine_edges(grey, start), truth) >= 0.99
+    marked, _ = _marker_edge_scene()
+    assert _iou(refine_edges(marked, narrow), truth) >= 0.99
+    assert _iou(refine_edges(marked, wide), truth) >= 0.95
+    far = cv2.dilate(truth.view(np.uint8), np.ones((13, 13), np.uint8)).astype(bool)
+    moved = refine_edges(plain, far, reach_px=3)
+    assert moved[far & ~truth].mean() > 0.3 and not (moved & ~far).any()
+    roi = (0, 0, int(CX), H)
+    assert not refine_edges(plain, wide, roi)[:, int(CX):].any()
+    flat = np.full_like(plain, 128)
+    assert np.array_equal(refine_edges(flat, wide), wide)
+    assert np.array_equal(refine_edges(plain, wide, reach_px=0), wide)
+
+
+def test_edge_refinement_in_the_default_segmentation():
+    """The default segmentation (GrabCut, then the edge refinement) of the disc on plain
+    paper matches the pixel-centre truth; a negative reach is refused."""
+    img, truth = _marker_edge_scene(seed=4, squares=False)
+    roi = (int(CX - R - 20), int(CY - R - 20), int(CX + R + 21), int(CY + R + 21))
+    refined = _segment_as_configured(img, roi=roi)
+    assert _iou(refined.mask, truth) >= 0.995
+    with pytest.raises(ValueError, match="edge_refine_px"):
+        segment_silhouette(img, edge_refine_px=-1)
+
+
+@pytest.mark.xfail(strict=True, reason="known limit: GrabCut takes in black squares that "
+                   "touch the object (measured 0.967; the threshold alone 0.993), and the "
+                   "edge refinement moves the outline by at most reach_px")
+def test_default_segmentation_object_on_printed_squares():
+    img, truth = _marker_edge_scene(seed=4)
+    roi = (int(CX - R - 20), int(CY - R - 20), int(CX + R + 21), int(CY + R + 21))
+    assert _iou(_segment_as_configured(img, roi=roi).mask, truth) >= 0.99
 
 
 def test_colour_difference_border_sample_keeps_flat_modes_only():

@@ -60,6 +60,24 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
 7. Threshold: ``max(min_peak, 6 sigma)`` with ``sigma`` the contrast's noise (step 7
    below).
 
+8. Region of interest (``roi``, optional): where the stripe can be. The stage passes
+   the image region where the laser sheet inside the recording's workspace box
+   projects, grown by ``stripes.roi_margin_px``
+   (:func:`robo3d.triangulation.sheet_in_workspace`,
+   :func:`robo3d.triangulation.sheet_roi_mask`): a stripe point elsewhere cannot
+   triangulate into the box, so the workspace crop would drop it anyway, but outside
+   the region it can still beat the stripe (an orange object's lit rim, the line on the
+   wall) and vote for the wrong colour. Candidates are taken only in each line's span
+   of the region (between its first and last pixel: exact for the convex region of a
+   sheet in a box), in the colour vote, the axis probe and the scan alike; the heights
+   still read the pixels beyond it. Lines that miss the region are counted
+   ``outside_roi``. In a line, a candidate on a long curve that is more than twice as
+   high as the other wins even where the other lies on a longer curve: an object's lit
+   rim meets the stripe at the silhouette and the two link into one long curve (the
+   simulated orange vase). What the region cannot remove: that rim inside the sheet's
+   band in frames where the sheet misses the object there (no stripe in the line to
+   beat it; measured on the simulated red cell, the remaining outliers).
+
 Cost: one pass over the image reads the laser's channel (or the lightness) of each row
 once, into a ring of 13 rows (one centre per column) or a row buffer (per row: no
 transpose), computes the heights in vectorised loops and updates a line's candidates
@@ -228,6 +246,7 @@ REJECTION_REASONS: tuple[str, ...] = (
     "at_border",
     "isolated",
     "second_line",
+    "outside_roi",
 )
 
 _Axis = Literal["columns", "rows", "auto"]
@@ -485,11 +504,15 @@ def brightness_coefficient(
 
 # ---------------------------------------------------------------------------- kernels
 # Line status codes of the kernels: 0 = a centre, else 1 + index in REJECTION_REASONS.
-_OK, _NO_BAND, _TWO_BLOBS, _TOO_WEAK, _TOO_WIDE, _AT_BORDER, _ISOLATED, _SECOND = range(8)
+(_OK, _NO_BAND, _TWO_BLOBS, _TOO_WEAK, _TOO_WIDE, _AT_BORDER, _ISOLATED, _SECOND,
+ _OUTSIDE) = range(9)
 _JIT = {"nogil": True, "cache": True}
 #: Half-height of the first window read around a peak (rows); wider stripes are read again
 #: within the full window (from ``max_width_px``).
 _H_SMALL = 8
+#: In a line, a candidate on a long curve this many times the other's height wins even
+#: where the other lies on a longer curve.
+_DOMINANT = 2.0
 
 
 @njit(inline="always")
@@ -917,19 +940,23 @@ def _saturation(dtype: np.dtype) -> float:
     return 250.0 if dtype == np.uint8 else 0.98 * _full_scale(dtype)
 
 
-def _probe(img: np.ndarray, k: int, step: int, thr: float) -> tuple[float, float]:
+def _probe(img: np.ndarray, k: int, step: int, thr: float,
+           spans: tuple[np.ndarray, ...]) -> tuple[float, float]:
     """How strongly contrast k shows one stripe crossing the rows, and the columns: on
     every ``step``-th row (column), the two strongest ridges, linked into curves as
     :func:`_link` does for the lines (a step of at most ``step`` + 2 px between sampled
     lines: the stripe within 45 degrees of the lines' normal); the score is the summed
     height of the strongest curve over 3 sampled lines or more (0 for none), so that
-    clutter, short and scattered, scores little and a long stripe much."""
+    clutter, short and scattered, scores little and a long stripe much. Only the lines'
+    ``spans`` (:func:`_spans`: the region of interest) are searched."""
     sat = np.float32(_saturation(img.dtype))
     sep = _RIDGE_A2 + 1
+    clo, chi, rlo, rhi = spans
     out = []
     for along_u in (True, False):
+        lo, hi = (rlo, rhi) if along_u else (clo, chi)
         m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2, np.float32(thr),
-                                      sep, sat, along_u)
+                                      sep, sat, along_u, lo, hi)
         *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3)
         out.append(float(strong.max()) if strong.size else 0.0)
     return out[0], out[1]
@@ -996,8 +1023,44 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     return min(x, x - m)
 
 
+@njit(inline="always")
+def _outside(x, i0, i1, low):  # noqa: ANN001, ANN202
+    """x[i] = low outside i0 <= i <= i1 (the region of interest of one line)."""
+    n = x.size
+    for i in range(0, min(max(i0, 0), n)):
+        x[i] = low
+    for i in range(max(i1 + 1, 0), n):
+        x[i] = low
+
+
 @njit(**_JIT)
-def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001, ANN202
+def _roi_spans(mask):  # noqa: ANN001, ANN202
+    """Per column the first and last row of a (H, W) bool region, and per row the first
+    and last column, in one pass (an empty line: first = size, last = -1)."""
+    h, w = mask.shape
+    clo = np.full(w, h, np.int32)
+    chi = np.full(w, -1, np.int32)
+    rlo = np.full(h, w, np.int32)
+    rhi = np.full(h, -1, np.int32)
+    for r in range(h):
+        row = mask[r]
+        for c in range(w):
+            if row[c]:
+                clo[c] = min(clo[c], r)
+                chi[c] = r
+        for c in range(w):
+            if row[c]:
+                rlo[r] = c
+                break
+        for c in range(w - 1, -1, -1):
+            if row[c]:
+                rhi[r] = c
+                break
+    return clo, chi, rlo, rhi
+
+
+@njit(**_JIT)
+def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, ANN202
     """Per column (profiles along the rows) the two strongest ridges of contrast k
     above ``thr``, at least ``sep`` rows apart: heights and rows (-10**6: none).
 
@@ -1009,7 +1072,8 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001,
     One pass over the image: each row's channel is read once into a ring of ``2 a2 + 1``
     rows (``ring``), the heights of a row in one vectorised loop, and a column's
     candidates are updated only where a height beats its second (rare once the
-    threshold holds them)."""
+    threshold holds them). Only rows ``lo[c] <= r <= hi[c]`` of column c are candidates
+    (the region of interest)."""
     h, w = img.shape[0], img.shape[1]
     nch = img.shape[2]
     flat = img.reshape(h, w * nch)
@@ -1027,6 +1091,8 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001,
             continue
         _heights(x, ring[rc % nr], ring[(rc - a1) % nr], ring[(rc + a1) % nr],
                  ring[(rc - a2) % nr], ring[(rc + a2) % nr], w)
+        for c in range(w):  # outside the region: no candidate (a vectorised select)
+            x[c] = x[c] if (rc >= lo[c]) & (rc <= hi[c]) else thr
         for b in range(0, w, _BLOCK):
             # whether any height of the block beats its column's second (vectorised)
             e = min(b + _BLOCK, w)
@@ -1059,10 +1125,10 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat):  # noqa: ANN001,
 
 
 @njit(**_JIT)
-def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN001, ANN202
+def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, ANN202
     """As :func:`_ridge_scan_cols`, per row (profiles along the columns): each row's
     channel read into ``rowbuf`` ((W,)), its heights computed in one vectorised loop,
-    then its two strongest ridges found."""
+    then its two strongest ridges found, among columns ``lo[r] <= c <= hi[r]``."""
     h, w = img.shape[0], img.shape[1]
     nch = img.shape[2]
     flat = img.reshape(h, w * nch)
@@ -1081,6 +1147,7 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN00
         _channel_row(flat, r, k, nch, two, b0)
         _heights(x, b0[s0:s0 + n], b0[su1:su1 + n], b0[sd1:sd1 + n], b0[su2:su2 + n],
                  b0[sd2:sd2 + n], n)
+        _outside(x, lo[r] - a2, hi[r] - a2, thr)
         v1 = thr
         v2 = thr
         c1 = -(10 ** 6)
@@ -1123,11 +1190,11 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat):  # noqa: ANN00
 
 
 @njit(**_JIT)
-def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u):  # noqa: ANN001, ANN202
+def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u, lo, hi):  # noqa: ANN001, ANN202
     """:func:`_ridge_scan_rows` on every ``step``-th row (``along_u``: profiles along
     u, a stripe crossing the rows) or :func:`_ridge_scan_cols` on every ``step``-th
     column, read from the image in place: the two strongest ridges of each sampled
-    line."""
+    line ``ln`` between ``lo[ln]`` and ``hi[ln]`` (the region of interest)."""
     h, w, nch = img.shape
     laser = nch == 3 and k != _LIGHTNESS
     lines = np.arange(step // 2, h if along_u else w, step)
@@ -1149,6 +1216,7 @@ def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u):  # noqa: ANN001,
                 y[i] = _contrast_at(img, i, ln, k, nch, False)
         _heights(x, y[a2:a2 + nn], y[a2 - a1:a2 - a1 + nn], y[a2 + a1:a2 + a1 + nn],
                  y[:nn], y[2 * a2:2 * a2 + nn], nn)
+        _outside(x, lo[ln] - a2, hi[ln] - a2, thr)
         v1 = thr
         v2 = thr
         c1 = -(10 ** 6)
@@ -1348,8 +1416,13 @@ def _link(m1, p1, m2, p2, sep, link_px, gap, min_run):  # noqa: ANN001, ANN202
                         bs = s
                     else:
                         rb = root[2 * i + bs]
-                        if (size[rt] > size[rb]) or (size[rt] == size[rb]
-                                                     and strength[rt] > strength[rb]):
+                        vn, vb = val[node], val[2 * i + bs]
+                        # a candidate _DOMINANT times the other's height wins (the
+                        # stripe over an object's lit rim that joins it at the
+                        # silhouette into a longer curve); else the longer curve
+                        if vn > _DOMINANT * vb or (not vb > _DOMINANT * vn and (
+                                size[rt] > size[rb] or (size[rt] == size[rb]
+                                                        and strength[rt] > strength[rb]))):
                             bs = s
         best[i] = bs
         if bs >= 0:
@@ -1434,6 +1507,7 @@ def extract_stripe_centres(
     colour: str = "auto",
     min_run: int = 8,
     link_px: float = 3.0,
+    roi: np.ndarray | None = None,
 ) -> StripePoints:
     """Sub-pixel laser stripe centres, at most one per image column (or row).
 
@@ -1488,6 +1562,13 @@ def extract_stripe_centres(
     link_px : float, pixels
         Ridge detector: largest step of the stripe between neighbouring lines (per line
         of a gap) for the two to belong to one curve.
+    roi : (H, W) bool, optional
+        Ridge detector: the region where the stripe can be (the laser sheet inside the
+        workspace, :func:`robo3d.triangulation.sheet_roi_mask`); candidates are sought
+        only there, in each line between the region's first and last pixel (exact for
+        a convex region), for the colour, the axis and the stripe. Lines that do not
+        meet it are counted ``outside_roi``. None: the whole image. The band detector
+        ignores it.
 
     Returns
     -------
@@ -1531,6 +1612,7 @@ def extract_stripe_centres(
         raise ValueError(f"min_run must be an integer >= 1, got {min_run}")
     if not (link_px > 0):
         raise ValueError(f"link_px must be positive, got {link_px}")
+    roi = _check_roi(roi, image.shape)
     full_scale = _full_scale(image.dtype)
     min_peak_abs = 0.04 * full_scale if min_peak is None else float(min_peak)
     work = _subtract_background(image, background)
@@ -1547,7 +1629,7 @@ def extract_stripe_centres(
         return _extract_ridge(img, axis=axis, colour=colour, min_peak=min_peak_abs,
                               max_width_px=float(max_width_px), method=method,
                               tail_fraction=float(tail_fraction), noise_k=float(noise_k),
-                              min_run=int(min_run), link_px=float(link_px))
+                              min_run=int(min_run), link_px=float(link_px), roi=roi)
 
     # pass 1: the lines' brightest pixels (and the rows' for "auto")
     # the rows' extrema: to choose the axis, and to skip the rows of pass 2 that cannot
@@ -1633,15 +1715,18 @@ def _angle_deg(u: np.ndarray, v: np.ndarray, line: np.ndarray | None = None,
     return float(90.0 if ang <= -90.0 else ang)
 
 
-def _choose_contrast(img: np.ndarray, ks: Sequence[int], axis: str,
-                     thr: float) -> tuple[int, str, dict[str, float]]:
+def _choose_contrast(img: np.ndarray, ks: Sequence[int], axis: str, thr: float,
+                     spans: tuple[np.ndarray, ...] | None = None,
+                     ) -> tuple[int, str, dict[str, float]]:
     """The contrast and the axis in which the stripe is the most consistent ridge, from
     every ``step``-th row and column (``step``: about 1/48 of the image's smaller side)."""
     h, w, nch = img.shape
     step = max(4, int(round(min(h, w) / 48)))
+    if spans is None:
+        spans = _spans(None, h, w)
     scores, axes = {}, {}
     for k in ks:
-        s_rows, s_cols = _probe(img, k, step, thr)
+        s_rows, s_cols = _probe(img, k, step, thr, spans)
         s_rows = s_rows if axis in ("auto", "rows") else -1.0
         s_cols = s_cols if axis in ("auto", "columns") else -1.0
         scores[k] = max(s_rows, s_cols)
@@ -1658,11 +1743,34 @@ def _choose_contrast(img: np.ndarray, ks: Sequence[int], axis: str,
     return k_best, axes[k_best], {CONTRASTS[k]: v for k, v in scores.items()}
 
 
+def _spans(roi: np.ndarray | None, h: int, w: int) -> tuple[np.ndarray, ...]:
+    """The region of interest as per-line spans: rows [clo, chi] of each column and
+    columns [rlo, rhi] of each row (the whole image when ``roi`` is None). A convex
+    region is exactly its spans; another is searched within its lines' extents."""
+    if roi is None:
+        return (np.zeros(w, np.int32), np.full(w, h - 1, np.int32),
+                np.zeros(h, np.int32), np.full(h, w - 1, np.int32))
+    return _roi_spans(roi)
+
+
+def _check_roi(roi: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray | None:
+    if roi is None:
+        return None
+    roi = np.asarray(roi)
+    if roi.shape != tuple(shape[:2]):
+        raise ValueError(f"roi must be a (H, W) mask like the image {tuple(shape[:2])}, "
+                         f"got shape {roi.shape}")
+    return np.ascontiguousarray(roi if roi.dtype == np.bool_ else roi != 0)
+
+
 def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
                    max_width_px: float, method: str, tail_fraction: float, noise_k: float,
-                   min_run: int, link_px: float) -> StripePoints:
-    """The ridge detector on an (H, W, 1|3) kernel image (see the module docstring)."""
+                   min_run: int, link_px: float,
+                   roi: np.ndarray | None = None) -> StripePoints:
+    """The ridge detector on an (H, W, 1|3) kernel image (see the module docstring),
+    candidates only inside ``roi`` when given."""
     h_img, w_img, nch = img.shape
+    spans = _spans(roi, h_img, w_img)
     if nch == 1:
         ks: tuple[int, ...] = (_LIGHTNESS,)
     elif colour == "auto":
@@ -1671,7 +1779,7 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
         ks = (CONTRASTS.index(colour),)
     k = ks[0]
     if len(ks) > 1 or axis == "auto":
-        k, axis, _ = _choose_contrast(img, ks, axis, min_peak)
+        k, axis, _ = _choose_contrast(img, ks, axis, min_peak, spans)
     name = CONTRASTS[k]
     # the contrast image, in lines = columns
     # one pass over the image: the contrast, its ridges, two candidates per line
@@ -1683,13 +1791,16 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
     thr_w = wdt(np.ceil(thr)) if wdt is np.int16 else np.float32(thr)
     sep = _RIDGE_A2 + 1
     sat = wdt(_saturation(img.dtype))
+    clo, chi, rlo, rhi = spans
     if axis == "rows":
+        lo, hi = rlo, rhi
         m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros(w_img, wdt),
-                                          _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat)
+                                          _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat, lo, hi)
     else:
+        lo, hi = clo, chi
         ring = np.zeros((2 * _RIDGE_A2 + 1, w_img), wdt)
         m1, p1, m2, p2 = _ridge_scan_cols(img, k, two, ring, _RIDGE_A1, _RIDGE_A2, sep,
-                                          thr_w, sat)
+                                          thr_w, sat, lo, hi)
     n_lines = m1.size
     win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep, float(link_px),
                                                       _LINK_GAP, int(min_run))
@@ -1699,6 +1810,7 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
                                              float(scale * min_peak), float(max_width_px),
                                              method == "gaussian")
     status = np.where(status == _OK, st2, status)
+    status = np.where((status == _TOO_WEAK) & (lo > hi), np.int8(_OUTSIDE), status)
     counts = np.bincount(status, minlength=len(REJECTION_REASONS) + 1)
     rejected = {nm: int(counts[i + 1]) for i, nm in enumerate(REJECTION_REASONS)}
     rejected["isolated"] += int(n_isolated)
@@ -1741,7 +1853,9 @@ def config_options(section: dict) -> dict:
 
 def estimate_laser_colour(images: Sequence[np.ndarray], *,
                           backgrounds: Sequence[np.ndarray | None] | None = None,
-                          min_peak: float | None = None) -> tuple[str, dict[str, float]]:
+                          min_peak: float | None = None,
+                          rois: Sequence[np.ndarray | None] | None = None,
+                          ) -> tuple[str, dict[str, float]]:
     """The laser's colour in a set of laser frames: the contrast of :data:`CONTRASTS`
     in which the stripe is, summed over the frames, the most consistent ridge.
 
@@ -1759,6 +1873,10 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
         The laser-off frame of each image (subtracted, clipped at 0), or None.
     min_peak : float, optional
         Smallest ridge height counted, in the images' units (default 4 % of full scale).
+    rois : sequence of (H, W) bool or None, optional
+        Each image's region of interest (see :func:`extract_stripe_centres`): only
+        ridges inside it vote (a coloured object's lit rim outside the laser sheet's
+        band does not). None: the whole images.
 
     Returns
     -------
@@ -1773,14 +1891,20 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
     if len(backgrounds) != len(images):
         raise ValueError(f"need one background per image, got {len(backgrounds)} for "
                          f"{len(images)} images")
-    for image, bg in zip(images, backgrounds, strict=True):
+    if rois is None:
+        rois = [None] * len(images)
+    if len(rois) != len(images):
+        raise ValueError(f"need one roi per image, got {len(rois)} for {len(images)} images")
+    for image, bg, roi in zip(images, backgrounds, rois, strict=True):
         image = _check_image(np.asarray(image))
         img = _as_kernel_image(_subtract_background(image, bg))
         if img.size == 0:
             continue
         thr = 0.04 * _full_scale(image.dtype) if min_peak is None else float(min_peak)
         ks = (0, 1, 2, _LIGHTNESS) if img.shape[2] == 3 else (_LIGHTNESS,)
-        _, _, scores = _choose_contrast(img, ks, "auto", thr)
+        roi = _check_roi(roi, img.shape)
+        spans = _spans(roi, img.shape[0], img.shape[1])
+        _, _, scores = _choose_contrast(img, ks, "auto", thr, spans)
         for name, v in scores.items():
             totals[name] = totals.get(name, 0.0) + max(v, 0.0)
     colours = [c for c in CONTRASTS[:3] if c in totals]

@@ -112,6 +112,8 @@ __all__ = [
     "laser_transform_from_params",
     "laser_params_from_transform",
     "laser_plane_in_camera",
+    "sheet_in_workspace",
+    "sheet_roi_mask",
     "triangulate_pixels",
     "triangulate_pixels_eq17",
     "split_sweeps",
@@ -255,6 +257,139 @@ def _planes(T_camera_laser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     d = np.einsum("fi,fi->f", n, T_camera_laser[:, :3, 3])
     return n, d
+
+
+# ---------------------------------------------------------------------------- sheet ROI
+_BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7],
+                       [0, 4], [1, 5], [2, 6], [3, 7]])
+
+
+def sheet_in_workspace(T_base_camera: np.ndarray, T_camera_laser: np.ndarray,
+                       workspace: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The part of the laser sheet inside the workspace box, in the camera frame.
+
+    The sheet (the laser frame's x-z plane) meets the axis-aligned box (in ``base``) in
+    a convex polygon: the points where the box's 12 edges cross the plane, ordered by
+    angle about their centroid in the sheet's (x, z) coordinates. A stripe pixel outside
+    its projection cannot triangulate into the box.
+
+    Parameters
+    ----------
+    T_base_camera, T_camera_laser : (4, 4) float64
+        The camera's pose in ``base`` and the laser's in the camera, at the frame.
+    workspace : (min (3,), max (3,)) metres, in ``base``
+
+    Returns
+    -------
+    (M, 3) float64, metres
+        The polygon's vertices in the camera frame, in order (M = 0 when the sheet
+        misses the box, 3 to 6 otherwise).
+    """
+    lo, hi = (np.asarray(w, dtype=np.float64).reshape(3) for w in workspace)
+    idx = (np.arange(8)[:, None] >> np.arange(3)) & 1  # corner i: bit k picks max on axis k
+    corners = np.where(idx == 1, hi, lo)  # (8, 3) base
+    T_cl = np.asarray(T_camera_laser, dtype=np.float64)
+    T_bl = np.asarray(T_base_camera, dtype=np.float64) @ T_cl
+    # the corners in the laser frame: p_l = R^T (p_b - t)
+    c_l = (corners - T_bl[:3, 3]) @ T_bl[:3, :3]
+    y = c_l[:, 1]
+    ya, yb = y[_BOX_EDGES[:, 0]], y[_BOX_EDGES[:, 1]]
+    cross = (ya * yb <= 0) & (ya != yb)
+    t = ya[cross] / (ya[cross] - yb[cross])
+    a, b = c_l[_BOX_EDGES[cross, 0]], c_l[_BOX_EDGES[cross, 1]]
+    pts = a + t[:, None] * (b - a)
+    if len(pts) < 3:
+        return np.zeros((0, 3))
+    xz = pts[:, [0, 2]]
+    ang = np.arctan2(*(xz - xz.mean(axis=0)).T[::-1])
+    pts = pts[np.argsort(ang)]
+    pts[:, 1] = 0.0
+    return pts @ T_cl[:3, :3].T + T_cl[:3, 3]
+
+
+def sheet_roi_mask(camera: CameraModel, polygon_cam: np.ndarray, margin_px: float,
+                   near: float = 1e-3) -> np.ndarray | None:
+    """The image region where a convex polygon of the camera frame (the sheet inside the
+    workspace, :func:`sheet_in_workspace`) projects, grown by ``margin_px``.
+
+    The polygon is clipped to ``z >= near``, projected through the pinhole, clipped
+    to the undistorted image (grown by a quarter on each side: the distortion
+    polynomial is not trusted far outside it), its boundary sampled every ~1/32 of
+    each edge, distorted to pixels (:meth:`~robo3d.camera.CameraModel.project`), and
+    the convex hull of the samples, offset by ``margin_px`` in 8 directions, filled
+    with ``cv2.fillConvexPoly``. A few dozen points per frame, one polygon fill.
+
+    Returns
+    -------
+    (H, W) bool or None
+        The region (all False when the polygon does not reach the image); None when
+        ``polygon_cam`` is empty (no region: the caller searches the whole image).
+    """
+    import cv2
+
+    P = np.asarray(polygon_cam, dtype=np.float64).reshape(-1, 3)
+    H, W = int(camera.height), int(camera.width)
+    mask = np.zeros((H, W), np.uint8)
+    if len(P) < 3:
+        return None
+    # clip to z >= near (Sutherland-Hodgman against one plane, a handful of vertices)
+    z = P[:, 2] - near
+    nx = (np.arange(len(P)) + 1) % len(P)
+    Q, zq = P[nx], z[nx]
+    keep = P[z >= 0]
+    sel = (z >= 0) != (zq >= 0)
+    tt = z[sel] / (z[sel] - zq[sel])
+    cut = P[sel] + tt[:, None] * (Q[sel] - P[sel])
+    order = np.concatenate([np.flatnonzero(z >= 0) * 2.0, np.flatnonzero(sel) * 2.0 + 1.0])
+    P = np.concatenate([keep, cut])[np.argsort(order, kind="stable")]
+    if len(P) < 3:
+        return mask.view(bool)
+    xy = P[:, :2] / P[:, 2:3]
+    # clip to the (grown) undistorted image: a convex intersection in the normalized plane
+    box = _undistorted_extent(camera)
+    inter_area, inter = cv2.intersectConvexConvex(xy.astype(np.float32), box)
+    if inter is None or inter_area <= 0 or len(inter) < 3:
+        return mask.view(bool)
+    xy = inter.reshape(-1, 2).astype(np.float64)
+    nxt = xy[(np.arange(len(xy)) + 1) % len(xy)]
+    dense = (xy[:, None, :] + _EDGE_STEPS[None, :, None] * (nxt - xy)[:, None, :]).reshape(-1, 2)
+    uv = camera.normalized_to_pixels(camera.distort_normalized(dense)).astype(np.float32)
+    uv = cv2.convexHull(uv).reshape(-1, 2)
+    if margin_px > 0:
+        uv = cv2.convexHull((uv[:, None, :] + float(margin_px) * _RING[None]).reshape(-1, 2))
+    lim = 4.0 * max(H, W)
+    hull = np.clip(np.rint(uv.reshape(-1, 2) * 16), -16 * lim, 16 * lim).astype(np.int32)
+    cv2.fillConvexPoly(mask, hull, 1, lineType=cv2.LINE_8, shift=4)
+    return mask.view(bool)
+
+
+def _undistorted_extent(camera: CameraModel) -> np.ndarray:
+    """The undistorted normalized image's bounding box, grown by a quarter on each side,
+    as a (4, 2) float32 convex polygon (cached per camera model)."""
+    key = (camera.width, camera.height, tuple(np.ravel(camera.K)), tuple(np.ravel(camera.D)))
+    box = _EXTENT_CACHE.get(key)
+    if box is None:
+        W, H = camera.width, camera.height
+        t = np.linspace(0.0, 1.0, 33)
+        border = np.concatenate([
+            np.column_stack([t * (W - 1), np.zeros_like(t)]),
+            np.column_stack([t * (W - 1), np.full_like(t, H - 1)]),
+            np.column_stack([np.zeros_like(t), t * (H - 1)]),
+            np.column_stack([np.full_like(t, W - 1), t * (H - 1)])])
+        xy = camera.undistort_normalized(camera.pixels_to_normalized(border))
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        g = 0.25 * (hi - lo)
+        lo, hi = lo - g, hi + g
+        box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]],
+                       np.float32)
+        _EXTENT_CACHE[key] = box
+    return box
+
+
+_EXTENT_CACHE: dict = {}
+_EDGE_STEPS = np.linspace(0.0, 1.0, 24, endpoint=False)
+_RING = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7071, 0.7071], [0.7071, -0.7071],
+                  [-0.7071, 0.7071], [-0.7071, -0.7071]], np.float32)
 
 
 # ---------------------------------------------------------------------------- eq. 16-17

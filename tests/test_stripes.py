@@ -619,3 +619,69 @@ def test_busy_frame_costs_about_a_clean_one():
         return min(t)
 
     assert best(busy) < 1.5 * best(clean)
+
+
+# ---------------------------------------------------------------------------- region
+def _with_ridge(img: np.ndarray, v0: float, rgb: tuple[float, float, float],
+                amp: float, sigma: float = 1.4) -> np.ndarray:
+    """``img`` with a horizontal ridge of colour ``rgb`` along row ``v0`` over the whole
+    width (an object's lit rim, the line on the wall)."""
+    h = img.shape[0]
+    prof = amp * np.exp(-0.5 * ((np.arange(h) - v0) / sigma) ** 2)
+    out = img.astype(np.float64) + prof[:, None, None] * np.asarray(rgb)[None, None, :]
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def _band_roi(truth: dict, h: int, w: int, half: float, u0: int, u1: int) -> np.ndarray:
+    """The convex region within ``half`` px of the true line, columns u0..u1-1 (what the
+    laser sheet inside a workspace box projects to, grown by a margin)."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    d = xx * truth["n"][0] + yy * truth["n"][1] - truth["c"]
+    return (np.abs(d) <= half) & (xx >= u0) & (xx < u1)
+
+
+def test_region_of_interest_keeps_the_stripe_and_ignores_a_stronger_ridge_outside():
+    """A green laser line in room light and, 80 px above it, a brighter ridge of the
+    laser's colour over the whole width (longer than the stripe): on the whole image the
+    ridge wins; searched only in the sheet's band, the stripe is found (sub-pixel, every
+    line of the band) and nothing on the ridge; the lines off the band are counted."""
+    img, truth = _room_scene("green", 8.0, seed=21)
+    h, w = img.shape[:2]
+    v_ridge = 40.0
+    img = _with_ridge(img, v_ridge, (0.1, 1.0, 0.1), 230.0)
+    roi = _band_roi(truth, h, w, 30.0, 24, w - 16)
+    plain = extract_stripe_centres(img, colour="green")
+    on_ridge = np.abs(plain.v - v_ridge) < 2.0
+    assert on_ridge.mean() > 0.8, on_ridge.mean()  # the test can fail without the region
+    sp = extract_stripe_centres(img, colour="green", roi=roi)
+    assert sp.axis == "columns"
+    err = _line_errors(sp, truth)
+    on_line = np.abs(err) < 1.0
+    assert on_line.mean() > 0.95, sp.rejected
+    assert np.median(np.abs(err[on_line])) < 0.1
+    assert not (np.abs(sp.v - v_ridge) < 5.0).any()
+    lines = _visible_lines(truth, "columns", h, w)
+    lines = lines[(lines >= 24) & (lines < w - 16)]
+    assert np.isin(lines, sp.line[on_line]).mean() >= 0.95
+    assert sp.rejected["outside_roi"] == 24 + 16
+    # the whole image as the region: as without one
+    full = extract_stripe_centres(img, colour="green", roi=np.ones((h, w), bool))
+    np.testing.assert_array_equal(full.v, plain.v)
+    assert full.rejected["outside_roi"] == 0
+    with pytest.raises(ValueError, match="roi"):
+        extract_stripe_centres(img, roi=roi[:-1])
+
+
+def test_laser_colour_votes_only_inside_the_region():
+    """Green laser frames with an orange object's lit rim (a long red ridge, brighter
+    than the stripe) outside the sheet's band: the whole frames vote red, the bands
+    green."""
+    frames, rois = [], []
+    for i, a in enumerate((0.0, 12.0, -10.0)):
+        img, truth = _room_scene("green", a, seed=30 + i, reflection=0.0)
+        h, w = img.shape[:2]
+        frames.append(_with_ridge(img, 30.0 + 5 * i, (1.0, 0.35, 0.05), 200.0))
+        rois.append(_band_roi(truth, h, w, 30.0, 0, w))
+    assert estimate_laser_colour(frames)[0] == "red"
+    colour, scores = estimate_laser_colour(frames, rois=rois)
+    assert colour == "green" and scores["green"] > 2 * scores["red"], scores

@@ -681,13 +681,40 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     def background(i: int):
         return rec_off.decode(off_frames[pair[i]]) if rec_off is not None else None
 
-    # the laser's colour, once for the recording, from a few evenly spaced frames
+    # the region of interest: where the laser sheet inside the workspace box projects (a
+    # stripe point elsewhere cannot triangulate into the box: the crop would drop it)
+    tc = cfg["triangulation"]
+    use_roi = bool(sc["roi_from_workspace"] and kw["detector"] == "ridge"
+                   and rec.workspace is not None and tc["crop_to_workspace"])
+    T_roi_laser = T_camera_laser
+    if use_roi and tc["laser_params"] is not None:  # the laser the triangulation will use
+        from .triangulation import laser_transform_from_params
+
+        dx, dy, dz, phi, theta, psi = (float(x) for x in tc["laser_params"])
+        T_roi_laser = np.broadcast_to(laser_transform_from_params(
+            dx, dy, dz, *np.radians([phi, theta, psi])), T_camera_laser.shape)
+    roi_area = np.full(len(frames), np.nan)
+
+    def roi(i: int):
+        if not use_roi:
+            return None
+        from .triangulation import sheet_in_workspace, sheet_roi_mask
+
+        m = sheet_roi_mask(cameras[i], sheet_in_workspace(poses[i], T_roi_laser[i],
+                                                          rec.workspace),
+                           float(sc["roi_margin_px"]))
+        roi_area[i] = 1.0 if m is None else float(m.mean())
+        return m
+
+    # the laser's colour, once for the recording, from a few evenly spaced frames (only
+    # their regions of interest vote)
     colour_scores = None
     if kw["detector"] == "ridge" and kw["colour"] == "auto" and frames:
         sample = spaced_indices(len(frames), 12)
         kw["colour"], colour_scores = estimate_laser_colour(
             [rec.decode(frames[i]) for i in sample],
-            backgrounds=[background(i) for i in sample], min_peak=kw["min_peak"])
+            backgrounds=[background(i) for i in sample], min_peak=kw["min_peak"],
+            rois=[roi(int(i)) for i in sample])
         log.info("stripes: laser colour %s (scores %s)", kw["colour"],
                  {k: round(v) for k, v in colour_scores.items()})
 
@@ -696,7 +723,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
         image = rec.decode(frames[i])
         bg = background(i)
         tb = time.perf_counter()
-        sp = extract_stripe_centres(image, background=bg, **kw)
+        sp = extract_stripe_centres(image, background=bg, roi=roi(i), **kw)
         return sp, tb - ta, time.perf_counter() - tb
 
     progress = _Progress("finding stripes", len(frames))
@@ -720,7 +747,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     # why a frame has no stripe: every line too weak (nothing lit brightly enough: the
     # sheet misses the object, or falls on the dim table only), or the lines that had a
     # stripe were all rejected for another reason
-    all_weak = empty & (rejected[:, REJECTION_REASONS.index("too_weak")] == n_lines)
+    all_weak = empty & (rejected[:, REJECTION_REASONS.index("too_weak")]
+                        + rejected[:, REJECTION_REASONS.index("outside_roi")] == n_lines)
     if empty.any():
         log.warning("%d of %d laser frames have no stripe (%d with every line too weak: "
                     "the sheet misses the object or lights only the dim table)",
@@ -749,6 +777,11 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
         if np.isfinite(angles[with_stripe]).any() else None,
         "detector": sc["detector"], "laser_colour": kw["colour"],
         "laser_colour_scores": colour_scores,
+        "roi": {"used": use_roi, "source": "laser sheet inside the workspace box"
+                if use_roi else None,
+                "margin_px": float(sc["roi_margin_px"]) if use_roi else None,
+                "area_fraction_median": float(np.nanmedian(roi_area))
+                if use_roi and np.isfinite(roi_area).any() else None},
         "laser_off_frames": len(off_frames),
         "method": sc["method"], "reference": sc["reference"] if sc["s"] is None else "frame",
         "threads": n_threads,

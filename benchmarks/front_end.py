@@ -194,9 +194,10 @@ def part_dtu(base: Path, reuse: bool) -> dict[str, Any]:
           f"(view {int(np.argmin(ious))}); pictures in {work / 'pictures'}", flush=True)
     return {"mask_iou_mean": float(np.mean(ious)), "mask_iou_min": float(min(ious)),
             "worst_view": int(np.argmin(ious)), "mask_iou_per_view": ious,
-            "hull": {k: carve.get(k) for k in ("occupied_voxels", "volume_m3", "bbox_min",
-                                                "bbox_max", "views_left_out", "agreement")
-                     if k in carve},
+            "hull": {**{k: carve.get(k) for k in ("occupied_voxels", "volume_m3", "bbox_min",
+                                                   "bbox_max", "views_left_out")},
+                     "agreement": {k: carve.get("agreement", {}).get(k)
+                                   for k in ("flagged", "iou_min", "iou_median")}},
             "end_to_end_s": e2e}
 
 

@@ -685,3 +685,65 @@ def test_laser_colour_votes_only_inside_the_region():
     assert estimate_laser_colour(frames)[0] == "red"
     colour, scores = estimate_laser_colour(frames, rois=rois)
     assert colour == "green" and scores["green"] > 2 * scores["red"], scores
+
+
+def _look_down_rig() -> tuple:
+    """A camera 0.3 m above a 60 mm box looking down, a laser 80 mm beside it whose
+    sheet crosses the box (mild lens distortion)."""
+    from robo3d.camera import CameraModel
+
+    cam = CameraModel("camera", 320, 240, np.array([[300.0, 0, 159.5], [0, 300.0, 119.5],
+                                                    [0, 0, 1]]),
+                      np.array([-0.08, 0.02, 0.0005, -0.0003, 0.0]))
+    T_bc = np.eye(4)
+    T_bc[:3, :3] = np.diag([1.0, -1.0, -1.0])  # optical axis down
+    T_bc[:3, 3] = (0.004, -0.002, 0.3)
+    z_l = np.array([0.0, -0.08, 0.3]) / np.hypot(0.08, 0.3)
+    x_l = np.array([1.0, 0.0, 0.0])
+    T_cl = np.eye(4)
+    T_cl[:3, :3] = np.column_stack([x_l, np.cross(z_l, x_l), z_l])
+    T_cl[:3, 3] = (0.0, 0.08, 0.0)
+    box = (np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.06]))
+    return cam, T_bc, T_cl, box
+
+
+def test_sheet_inside_the_workspace_and_its_image_region():
+    """The sheet-box polygon lies on the sheet and in the box; its image region (grown
+    by the margin) holds the projection of every sheet point inside the box and none of
+    the sheet points that project farther than the margin from it."""
+    from scipy.spatial import cKDTree
+
+    from robo3d.camera import project_points
+    from robo3d.triangulation import sheet_in_workspace, sheet_roi_mask
+
+    cam, T_bc, T_cl, box = _look_down_rig()
+    poly = sheet_in_workspace(T_bc, T_cl, box)
+    assert 3 <= len(poly) <= 6
+    in_laser = (poly - T_cl[:3, 3]) @ T_cl[:3, :3]
+    np.testing.assert_allclose(in_laser[:, 1], 0.0, atol=1e-12)
+    in_base = poly @ T_bc[:3, :3].T + T_bc[:3, 3]
+    assert np.all((in_base >= box[0] - 1e-9) & (in_base <= box[1] + 1e-9))
+    margin = 3.0
+    roi = sheet_roi_mask(cam, poly, margin)
+    assert roi.shape == (240, 320) and 0.02 < roi.mean() < 0.8
+    # points of the sheet (laser x-z plane), in the box and around it
+    rng = np.random.default_rng(0)
+    xz = rng.uniform([-0.1, 0.1], [0.1, 0.45], (100_000, 2))
+    p_l = np.column_stack([xz[:, 0], np.zeros(len(xz)), xz[:, 1]])
+    p_b = (p_l @ T_cl[:3, :3].T + T_cl[:3, 3]) @ T_bc[:3, :3].T + T_bc[:3, 3]
+    uv, front = project_points(p_b, cam, T_bc)
+    seen = front & np.all((uv >= 0) & (uv <= [319, 239]), axis=1)
+    inside = np.all((p_b >= box[0]) & (p_b <= box[1]), axis=1)
+    px = np.rint(uv).astype(int)
+    assert (seen & inside).sum() > 500
+    assert roi[px[seen & inside, 1], px[seen & inside, 0]].all()
+    # outside: farther than the margin (+ rounding) from the in-box points' image
+    far = cKDTree(uv[seen & inside]).query(uv[seen & ~inside])[0] > margin + 2.0
+    assert far.sum() > 500
+    out_px = px[seen & ~inside][far]
+    assert not roi[out_px[:, 1], out_px[:, 0]].any()
+    # a sheet that misses the box: no polygon, no region (the caller searches everywhere)
+    T_far = T_cl.copy()
+    T_far[:3, 3] = (0.0, 0.6, 0.0)
+    assert len(sheet_in_workspace(T_bc, T_far, box)) == 0
+    assert sheet_roi_mask(cam, sheet_in_workspace(T_bc, T_far, box), margin) is None

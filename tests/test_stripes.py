@@ -747,3 +747,21 @@ def test_sheet_inside_the_workspace_and_its_image_region():
     T_far[:3, 3] = (0.0, 0.6, 0.0)
     assert len(sheet_in_workspace(T_bc, T_far, box)) == 0
     assert sheet_roi_mask(cam, sheet_in_workspace(T_bc, T_far, box), margin) is None
+
+
+def test_a_ridge_where_the_other_channels_fall_is_no_laser_light():
+    """A thin line brighter in red only while green and blue fall (a JPEG edge's
+    ringing, an orange object's dark rim) is no red laser; the same red rise with green
+    and blue rising a little (a laser's light in the overlapping filters) is."""
+    rng = np.random.default_rng(4)
+    h, w = 80, 120
+    prof = np.exp(-0.5 * ((np.arange(h) - 40.3) / 1.4) ** 2)[:, None, None]
+    base = np.full((h, w, 3), 100.0) + rng.normal(0, 1.0, (h, w, 3))
+    for others, found in ((-12.0, False), (4.0, True)):
+        img = base + prof * np.array([40.0, others, others])
+        sp = extract_stripe_centres(np.clip(np.rint(img), 0, 255).astype(np.uint8),
+                                    colour="red")
+        if found:
+            assert len(sp) > 0.9 * w - 20 and np.median(np.abs(sp.v - 40.3)) < 0.1
+        else:
+            assert len(sp) == 0, len(sp)

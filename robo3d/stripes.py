@@ -1060,10 +1060,10 @@ def _roi_spans(mask):  # noqa: ANN001, ANN202
     rhi = np.full(h, -1, np.int32)
     for r in range(h):
         row = mask[r]
-        for c in range(w):
-            if row[c]:
-                clo[c] = min(clo[c], r)
-                chi[c] = r
+        for c in range(w):  # branch-free: vectorises
+            on = row[c]
+            clo[c] = min(clo[c], r if on else h)
+            chi[c] = r if on else chi[c]
         for c in range(w):
             if row[c]:
                 rlo[r] = c

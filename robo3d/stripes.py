@@ -85,7 +85,11 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    vase 6 %, blue on the blue block 7 %, green on the green blob 1.5 % of the points
    > 1 mm; medians 0.04-0.07 mm). Such points lie in free space (on the cone of rays
    that graze the object); a test against the other frames' rays or the visual hull
-   would remove them, the detector alone cannot.
+   would remove them, the detector alone cannot. Without the region the line on the
+   table or the wall (outside the box) wins those lines and the crop drops it, which
+   hides the rim: on the red and blue cells the region costs outliers (6.1 vs 5.4 %,
+   6.3 vs 4.3 %) and gains recall where that line would beat the stripe (blue 0.93 vs
+   0.91).
 
 Cost: one pass over the image reads the laser's channel (or the lightness) of each row
 once, into a ring of 13 rows (one centre per column) or a row buffer (per row: no

@@ -106,7 +106,7 @@ DRIFT = dict(seed=1, sweep_spacing=0.0011, robot_error="drift", clock_lag_ms=4.0
 def run_workflow(recording: Path, work: Path, targets: tuple[str, ...] = ("all",)) -> float:
     """One Snakemake run on one recording in ``work`` with the default config."""
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", "--quiet", "all", *targets,
+           str(work), "--cores", "2", *targets, "--quiet", "all",
            "--config", f"recordings=[{recording}]"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)

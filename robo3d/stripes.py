@@ -973,7 +973,7 @@ def _probe(img: np.ndarray, k: int, step: int, thr: float,
         lo, hi = (rlo, rhi) if along_u else (clo, chi)
         m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2, np.float32(thr),
                                       sep, sat, along_u, lo, hi)
-        *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3)
+        *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3, False)
         out.append(float(strong.max()) if strong.size else 0.0)
     return out[0], out[1]
 
@@ -1361,18 +1361,22 @@ def _find(parent, i):  # noqa: ANN001, ANN202
 
 
 @njit(**_JIT)
-def _link(m1, p1, m2, p2, sep, link_px, gap, min_run):  # noqa: ANN001, ANN202
+def _link(m1, p1, m2, p2, sep, link_px, gap, min_run, ambiguous):  # noqa: ANN001, ANN202
     """Connect the lines' ridge candidates into curves and keep one per line.
 
     Candidate j of line i links to the nearest candidate of the closest earlier line
     (at most ``gap`` lines back) within ``link_px`` per line of distance. Per line, the
     candidate on the longest curve (then the strongest) wins when that curve spans at
     least ``min_run`` lines; a curve that loses in more of its lines than it wins is a
-    second line (a reflection) in all of them. Returns the winner's row (-1: none), the
-    line's status (_OK, _TOO_WEAK: no candidate, _ISOLATED: only candidates on short
-    curves, _SECOND), the winner's curve length, the number of dropped candidates by
-    reason (second line: on another long curve; isolated: on a short one), and the
-    summed height of the winner's curve."""
+    second line (a reflection) in all of them. With ``ambiguous``, a line whose two
+    candidates lie on comparable long curves (neither ``_DOMINANT`` times the other's
+    height, nearly as long and as strong) is rejected as ``two_blobs`` (the axis probe
+    passes False: two parallel lines still say which way they run). Returns the
+    winner's row (-1: none), the line's status (_OK, _TOO_WEAK: no candidate,
+    _ISOLATED: only candidates on short curves, _SECOND, _TWO_BLOBS), the winner's
+    curve length, the number of dropped candidates by reason (second line: on another
+    long curve; isolated: on a short one), and the summed height of the winner's
+    curve."""
     n = m1.size
     pos = np.zeros(2 * n, np.float64)
     val = np.zeros(2 * n, np.float64)
@@ -1469,6 +1473,16 @@ def _link(m1, p1, m2, p2, sep, link_px, gap, min_run):  # noqa: ANN001, ANN202
         if lost[rt] > won[rt]:
             status[i] = _SECOND
             continue
+        if ambiguous and ok[other] and size[root[other]] >= min_run:
+            # two comparable long curves (neither _DOMINANT times the other's height,
+            # nearly as long, nearly as strong on average): nothing says which one is
+            # the laser's, so the line is ambiguous, as two band blobs are (seed §4.2)
+            ro = root[other]
+            vb, vo = val[2 * i + bs], val[other]
+            if (not vb > _DOMINANT * vo and size[ro] * 10 >= size[rt] * 9
+                    and strength[ro] * size[rt] * 10 >= strength[rt] * size[ro] * 8):
+                status[i] = _TWO_BLOBS
+                continue
         status[i] = _OK
         win[i] = int(pos[2 * i + bs])
         run[i] = size[rt]
@@ -1823,7 +1837,7 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
                                           thr_w, sat, lo, hi)
     n_lines = m1.size
     win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep, float(link_px),
-                                                      _LINK_GAP, int(min_run))
+                                                      _LINK_GAP, int(min_run), True)
     h = int(np.ceil(1.1 * max_width_px)) + 2
     st2, centre, amp, width = _ridge_centres(img, k, two, axis == "rows", win, h, _H_SMALL,
                                              float(tail_fraction), float(noise_k * sigma_n),

@@ -1190,18 +1190,7 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat, lo, hi):  # noq
                     xc = _laser_at(img, r, c, k, a1, a2, True, xc, sat)
                     if not xc > v2:
                         continue
-                if abs(c - c1) <= sep:
-                    if xc > v1:
-                        v1 = xc
-                        c1 = c
-                elif xc > v1:
-                    v2 = v1
-                    c2 = c1
-                    v1 = xc
-                    c1 = c
-                else:
-                    v2 = xc
-                    c2 = c
+                v1, c1, v2, c2 = _keep_two(xc, c, v1, c1, v2, c2, sep)
         m1[r] = v1
         m2[r] = v2
         p1[r] = c1
@@ -1252,20 +1241,29 @@ def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u, lo, hi):  # noqa:
                         xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat)
                     if not xc > v2:
                         continue
-                if abs(c - c1) <= sep:
-                    if xc > v1:
-                        v1 = xc
-                        c1 = c
-                elif xc > v1:
-                    v2 = v1
-                    c2 = c1
-                    v1 = xc
-                    c1 = c
-                else:
-                    v2 = xc
-                    c2 = c
+                v1, c1, v2, c2 = _keep_two(xc, c, v1, c1, v2, c2, sep)
         m1[j], p1[j], m2[j], p2[j] = v1, c1, v2, c2
     return m1, p1, m2, p2
+
+
+@njit(inline="always")
+def _keep_two(xc, c, v1, c1, v2, c2, sep):  # noqa: ANN001, ANN202
+    """Offer candidate ``xc`` at ``c`` (already above the second best ``v2``) to a line's
+    two best ridges ``(v1, c1)``, ``(v2, c2)``: within ``sep`` of the best it can only
+    replace the best (one ridge); else it becomes the best or the second."""
+    if abs(c - c1) <= sep:
+        if xc > v1:
+            v1 = xc
+            c1 = c
+    elif xc > v1:
+        v2 = v1
+        c2 = c1
+        v1 = xc
+        c1 = c
+    else:
+        v2 = xc
+        c2 = c
+    return v1, c1, v2, c2
 
 
 @njit(inline="always")

@@ -143,22 +143,18 @@ def _prepared(work: Path, reuse: bool) -> bool:
 
 
 def mask_ious(rec, silhouettes_npz: Path) -> list[float]:
-    """IoU of every segmented mask with the recording's true silhouette, in view order."""
-    import cv2
+    """IoU of every segmented mask with the recording's true silhouette, in view order
+    (:func:`robo3d.evaluate.silhouette_iou`, as the workflow's evaluation scores them)."""
+    from robo3d.evaluate import silhouette_iou
 
     with np.load(silhouettes_npz) as z:
         shape = tuple(int(x) for x in z["mask_shape"])
         masks = np.unpackbits(z["masks"], axis=-1, count=shape[2]).astype(bool)
-    out = []
-    for i, m in enumerate(masks):
-        data = rec.attachments.get(f"ground_truth/silhouettes/{i:03d}.png")
-        if data is None:
-            raise KeyError(f"{rec.path}: no ground_truth/silhouettes/{i:03d}.png")
-        t = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
-        m = m[: t.shape[0], : t.shape[1]]
-        union = np.count_nonzero(m | t)
-        out.append(float(np.count_nonzero(m & t) / union) if union else 1.0)
-    return out
+    r = silhouette_iou(list(masks), rec.attachments)
+    if r["n_scored"] != len(masks):
+        raise KeyError(f"{rec.path}: only {r['n_scored']} of {len(masks)} views have a usable "
+                       f"true silhouette ({r['skipped']})")
+    return [float(v["iou"]) for v in r["per_view"]]
 
 
 def _overlay(image: np.ndarray, mask: np.ndarray, truth: np.ndarray, path: Path) -> None:

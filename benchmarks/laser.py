@@ -712,7 +712,7 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
 
     from robo3d.config import default_config
     from robo3d.recording.reader import read_recording
-    from robo3d.stripes import estimate_laser_colour, extract_stripe_centres
+    from robo3d.stripes import centre_on_for, estimate_laser_colour, extract_stripe_centres
 
     rec = read_recording(path, roles=("views", "laser"))
     obj = _board_object_points()
@@ -736,6 +736,8 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
     colour, _ = estimate_laser_colour([images[i] for i in sample],
                                       min_peak=default_config()["stripes"]["min_peak"])
     kw["colour"] = colour
+    kw["centre_on"] = centre_on_for(kw["centre_on"], rec.laser_frames[0].data
+                                    if rec.laser_frames else None)  # as the stage does
     nx, ny = SRV_BOARD
     # the board's region: the pattern (one square beyond the inner corners) and the
     # white board around it, 2 squares wide on the left and right and 1.5 squares

@@ -78,7 +78,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import CameraModel, pixel_rays
+from .camera import CameraModel, pixel_rays, project_points
 from .errors import StageError
 from .silhouettes import _check_box, _distortion_limit_r2
 from .transforms import invert_transform
@@ -93,6 +93,7 @@ __all__ = [
     "hull_to_mesh",
     "view_agreement",
     "flag_disagreeing_views",
+    "outside_silhouettes",
     "resolution_report",
 ]
 
@@ -1107,6 +1108,63 @@ def flag_disagreeing_views(
 
 
 # ---------------------------------------------------------------------- mesh
+def outside_silhouettes(points: np.ndarray, masks, cameras, T_base_cameras, *,
+                        tol_px: float = 2.0, tol_m: float = 0.0005
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """How far outside each view's silhouette a set of points lies: the visual hull's
+    test for measured points (a point of the object cannot project outside any correct
+    silhouette of it).
+
+    A point is *outside* view ``i`` when its projection falls in the image and farther
+    from the silhouette than ``tol_px`` pixels plus ``tol_m`` (the poses' and the
+    calibration's error, metres at the object) seen at the point's depth. The distance
+    is the exact Euclidean distance transform of the silhouette's complement
+    (OpenCV), read at the projected pixel. Points that project outside a view's image or
+    behind its camera are not judged by it.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Points in ``base``.
+    masks, cameras, T_base_cameras
+        The views, as in :func:`carve_dense`.
+    tol_px : float, pixels
+        Tolerated distance from the silhouette for the masks' own edge error.
+    tol_m : float, metres
+        Tolerated distance at the object for the views' and the points' pose error.
+
+    Returns
+    -------
+    n_outside : (N,) int32
+        The number of views whose silhouette the point lies outside of.
+    worst_m : (N,) float64
+        The largest distance outside a silhouette, in metres at the point (0 inside all).
+    """
+    ms, cams, T = _as_views(masks, cameras, T_base_cameras)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n_out = np.zeros(len(p), np.int32)
+    worst = np.zeros(len(p))
+    if len(p) == 0:
+        return n_out, worst
+    for m, cam, t in zip(ms, cams, T, strict=True):
+        if m.all():
+            continue
+        dist = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        uv, front = project_points(p, cam, t)
+        t_inv = invert_transform(t)
+        z = p @ t_inv[2, :3] + t_inv[2, 3]
+        col = np.floor(uv[:, 0] + 0.5)
+        row = np.floor(uv[:, 1] + 0.5)
+        ok = front & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        d_px = np.zeros(len(p), np.float32)
+        d_px[ok] = dist[row[ok].astype(np.int64), col[ok].astype(np.int64)]
+        px_m = np.where(ok, z, 0.0) / np.sqrt(cam.fx * cam.fy)  # one pixel at the point
+        d_m = d_px * px_m
+        n_out += (ok & (d_m > tol_m + tol_px * px_m)).astype(np.int32)
+        np.maximum(worst, d_m, out=worst)
+    return n_out, worst
+
+
 def hull_to_mesh(grid: VoxelGrid, *, smooth_sigma_vox: float = 0.8
                  ) -> tuple[np.ndarray, np.ndarray]:
     """A closed triangle mesh of the occupied voxels (marching cubes at level 0.5).

@@ -645,6 +645,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     from .stripes import (
         REJECTION_REASONS,
+        centre_on_for,
         config_options,
         estimate_laser_colour,
         extract_stripe_centres,
@@ -718,6 +719,10 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log.info("stripes: laser colour %s (scores %s)", kw["colour"],
                  {k: round(v) for k, v in colour_scores.items()})
 
+    # the centre's profile: the luma for JPEGs whose colour is stored at half resolution
+    # (the laser's channel lives mostly in the blurred chroma there), else the laser's
+    kw["centre_on"] = centre_on_for(kw["centre_on"], frames[0].data if frames else None)
+
     def work(i: int):
         ta = time.perf_counter()
         image = rec.decode(frames[i])
@@ -776,6 +781,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       "max": float(np.max(angles[with_stripe]))}
         if np.isfinite(angles[with_stripe]).any() else None,
         "detector": sc["detector"], "laser_colour": kw["colour"],
+        "centre_on": kw.get("centre_on"),
         "laser_colour_scores": colour_scores,
         "roi": {"used": use_roi, "source": "laser sheet inside the workspace box"
                 if use_roi else None,
@@ -1020,8 +1026,10 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                     "correction_model": {"rotation": np.asarray(rot).tolist(),
                                          "translation": np.asarray(tr).tolist()}}
         c.points_base, c.sensor_origin_base, c.normals_base = p, o, n
+    hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)
     report = {"n_sweeps": len(clouds), **align_report,
               "corrections": [C.tolist() for C in corrections],
+              "outside_hull": hull_check,
               "seconds": round(time.perf_counter() - t0, 3)}
     save_clouds_npz(outputs["npz"], clouds)
     write_point_cloud(outputs["ply"], np.concatenate([c.points_base for c in clouds]),
@@ -1032,6 +1040,9 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         for c in clouds:
             log_points(rr_stream, f"base/aligned/sweep_{c.sweep:02d}", c.points_base,
                        colors=_sweep_color(c.sweep))
+        if len(rejected):
+            log_points(rr_stream, "base/rejected/outside_hull", rejected,
+                       colors=[255, 0, 255])
         log_report(rr_stream, "reports/align", report)
     write_json(outputs["report"], report)
     flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
@@ -1039,6 +1050,71 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
              align_report.get("gauge", "-"), report["seconds"],
              f"; flagged and kept at the robot's pose: {flagged}" if flagged else "")
     return report
+
+
+def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
+                         ac: Mapping[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
+    """Drop the aligned points that lie outside a view's silhouette (in place).
+
+    A point of the object cannot project outside a correct silhouette of it; a laser
+    point that does is light of the laser's colour that the sheet did not put on the
+    object there (the object's lit rim, a glint, a reflection) triangulated into empty
+    space (:func:`robo3d.carving.outside_silhouettes`). Views flagged by the silhouettes'
+    QA are not used; nor is a view whose silhouette alone would drop more than
+    ``outside_hull_max_view_fraction`` of the points (the laser contradicts the mask).
+
+    Returns the report (per sweep: points dropped) and the dropped points.
+    """
+    from .carving import outside_silhouettes
+
+    if not ac["reject_outside_hull"]:
+        return {"skipped": "alignment.reject_outside_hull is false"}, np.zeros((0, 3))
+    if views is None:
+        return {"skipped": "no silhouette views"}, np.zeros((0, 3))
+    n_all = sum(len(c) for c in clouds)
+    if n_all == 0:
+        return {"skipped": "no points"}, np.zeros((0, 3))
+    with np.load(inputs["silhouettes"]) as z:
+        qa = z["qa_flagged"].astype(bool) if "qa_flagged" in z.files else None
+    idx = [i for i in range(len(views.cameras)) if qa is None or not qa[i]]
+    pts = np.concatenate([c.points_base for c in clouds])
+    tol_px, tol_m = float(ac["outside_hull_px"]), 1e-3 * float(ac["outside_hull_mm"])
+    per_view = np.zeros((len(idx), len(pts)), bool)
+    for j, i in enumerate(idx):
+        n_i, _ = outside_silhouettes(pts, [views.masks[i]], [views.cameras[i]],
+                                     views.T_base_camera[i:i + 1], tol_px=tol_px, tol_m=tol_m)
+        per_view[j] = n_i > 0
+    frac = per_view.mean(axis=1) if len(idx) else np.zeros(0)
+    distrust = frac > float(ac["outside_hull_max_view_fraction"])
+    n_out = per_view[~distrust].sum(axis=0)
+    drop = n_out >= int(ac["outside_hull_min_views"])
+    starts = np.cumsum([0] + [len(c) for c in clouds])
+    per_sweep = []
+    for k, c in enumerate(clouds):
+        d = drop[starts[k]:starts[k + 1]]
+        per_sweep.append({"sweep": c.sweep, "dropped": int(d.sum()), "points": len(c)})
+        if d.any():
+            keep = ~d
+            c.points_base, c.normals_base = c.points_base[keep], c.normals_base[keep]
+            c.frame_index, c.confidence = c.frame_index[keep], c.confidence[keep]
+            c.sensor_origin_base = c.sensor_origin_base[keep]
+            c.report = {**(c.report or {}), "dropped_outside_hull": int(d.sum())}
+    not_used = [{"view": int(idx[j]), "would_drop_fraction": round(float(frac[j]), 4)}
+                for j in np.flatnonzero(distrust)]
+    report = {"views_used": int(len(idx) - distrust.sum()),
+              "views_not_used_qa_flagged": [i for i in range(len(views.cameras))
+                                            if i not in idx],
+              "views_not_used_contradict_laser": not_used,
+              "tol_px": tol_px, "tol_mm": 1e3 * tol_m,
+              "min_views": int(ac["outside_hull_min_views"]),
+              "dropped": int(drop.sum()), "points": int(n_all),
+              "dropped_fraction": float(drop.mean()), "per_sweep": per_sweep}
+    log.info("alignment: %d of %d laser points (%.2f %%) lie outside a silhouette: dropped "
+             "(%d views used%s)", int(drop.sum()), n_all, 100 * float(drop.mean()),
+             report["views_used"],
+             f"; not used, contradict the laser: {[v['view'] for v in not_used]}"
+             if not_used else "")
+    return report, pts[drop]
 
 
 def _silhouette_views(inputs: Mapping[str, str], cfg: Mapping[str, Any]):

@@ -23,6 +23,7 @@ from robo3d.carving import (
     carve_dense,
     hull_to_mesh,
     make_grid,
+    outside_silhouettes,
     resolution_report,
 )
 from robo3d.errors import StageError
@@ -796,3 +797,34 @@ def test_agreement_on_dtu_published_masks():
     masks[7] = ~masks[7]
     masks[33] = masks[33] & (np.arange(masks[33].shape[1]) >= masks[33].shape[1] // 2)
     assert flag_disagreeing_views(grid, masks, cams, poses)["flagged"] == [7, 33]
+
+
+# ---------------------------------------------------------------------- points vs. the hull
+def test_points_outside_the_silhouettes(sphere_views):
+    """Points on the sphere lie inside every silhouette; points off it by more than the
+    tolerance lie outside some, by about their true distance (seen at their depth)."""
+    cam, Ts, masks = sphere_views
+    rng = np.random.default_rng(3)
+    dirs = rng.normal(size=(400, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    on = CENTRE + RADIUS * dirs
+    n_on, worst_on = outside_silhouettes(on, masks, cam, Ts, tol_px=1.0, tol_m=0.0)
+    assert n_on.max() == 0
+    # one pixel at the sphere is DIST / F = 1.3 mm: mask edges are exact to about that
+    assert worst_on.max() < 1.5 * DIST / F
+    off = CENTRE + (RADIUS + 0.006) * dirs  # 6 mm off: outside the silhouette of views
+    n_off, worst_off = outside_silhouettes(off, masks, cam, Ts, tol_px=1.0, tol_m=0.0005)
+    assert n_off.min() >= 1 and np.median(n_off) >= 6
+    # the farthest a view sees it outside is close to the true 6 mm (depth of the point)
+    assert np.all((worst_off > 0.004) & (worst_off < 0.0075))
+    # a tolerance larger than the offset keeps them all
+    n_tol, _ = outside_silhouettes(off, masks, cam, Ts, tol_px=1.0, tol_m=0.008)
+    assert n_tol.max() == 0
+    # a point is judged only by the views it projects into (in front of the camera)
+    far = CENTRE + np.array([0.0, 0.0, 50.0])
+    sees = [(invert_transform(T)[2, :3] @ far + invert_transform(T)[2, 3]) > 0
+            and 0 <= _cv2_pixels(far, cam, T)[0, 0] < cam.width
+            and 0 <= _cv2_pixels(far, cam, T)[0, 1] < cam.height for T in Ts]
+    n_far, _ = outside_silhouettes(far[None], masks, cam, Ts)
+    assert n_far[0] == sum(sees) < len(Ts)
+    assert outside_silhouettes(np.zeros((0, 3)), masks, cam, Ts)[0].shape == (0,)

@@ -32,6 +32,7 @@ __all__ = [
     "encode_image",
     "decode_image",
     "decode_checked",
+    "chroma_subsampled",
 ]
 
 #: Compressed encodings robo3d writes (``foxglove.CompressedImage.format``).
@@ -182,6 +183,43 @@ def _decode_raw(msg: ImageMessage, enc: str) -> np.ndarray:
     if enc == "bgr8":
         img = img[..., ::-1]
     return np.ascontiguousarray(img)
+
+
+def chroma_subsampled(data: bytes) -> bool:
+    """Whether a JPEG stores its colour (Cb, Cr) at a lower resolution than its luma.
+
+    Read from the frame header (SOF marker): a component's sampling factors below the
+    luma's mean its plane was stored at half (4:2:2, 4:2:0) or a quarter the resolution.
+    Cheap (the header is near the start) and False for anything that is not a colour
+    JPEG (PNG, raw buffers, grey JPEG, or a header that does not parse).
+    """
+    b = bytes(data[:65536])
+    if len(b) < 4 or b[0] != 0xFF or b[1] != 0xD8:
+        return False
+    i = 2
+    while i + 4 <= len(b):
+        if b[i] != 0xFF:
+            return False
+        marker = b[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        seg = int.from_bytes(b[i + 2:i + 4], "big")
+        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC9, 0xCA, 0xCB):  # start of frame
+            n = b[i + 9] if i + 9 < len(b) else 0
+            comps = b[i + 10:i + 10 + 3 * n]
+            if n < 3 or len(comps) < 9:
+                return False
+            factors = [(comps[3 * j + 1] >> 4, comps[3 * j + 1] & 15) for j in range(n)]
+            (h0, v0), rest = factors[0], factors[1:3]
+            return any(h < h0 or v < v0 for h, v in rest)
+        if marker == 0xDA:  # start of scan before any frame header: malformed
+            return False
+        i += 2 + seg
+    return False
 
 
 def decode_image(msg: ImageMessage) -> np.ndarray:

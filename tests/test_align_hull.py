@@ -1,0 +1,80 @@
+"""The alignment stage's test of the laser points against the silhouettes: points
+triangulated into empty space are dropped and counted, measured points are kept, and a
+view whose mask contradicts the laser is not trusted (and named)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robo3d.camera import CameraModel, pixel_rays
+from robo3d.config import default_config
+from robo3d.pipeline import _reject_outside_hull
+from robo3d.registration import SilhouetteViews
+from robo3d.sim.rig import look_at
+from robo3d.triangulation import SweepCloud
+
+CENTRE, RADIUS, F = np.array([0.0, 0.0, 0.1]), 0.04, 300.0
+
+
+def _views(n: int = 10):
+    cam = CameraModel("camera", 240, 180, [[F, 0, 119.5], [0, F, 89.5], [0, 0, 1]],
+                      np.zeros(5))
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    eyes = CENTRE + 0.35 * np.stack([np.cos(ang), np.sin(ang), np.full(n, 0.6)], 1)
+    Ts = np.stack([look_at(e, CENTRE) for e in eyes])
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    masks = []
+    for T in Ts:
+        o, d = pixel_rays(uv, cam, T)
+        b = d @ (o - CENTRE)
+        masks.append((b * b - ((o - CENTRE) @ (o - CENTRE) - RADIUS**2) >= 0)
+                     .reshape(cam.height, cam.width))
+    return cam, Ts, masks
+
+
+def _cloud(points: np.ndarray, sweep: int) -> SweepCloud:
+    n = len(points)
+    return SweepCloud(points, np.tile([0.0, 0.0, 1.0], (n, 1)), np.arange(n) // 50,
+                      np.ones(n), sweep, np.tile([0.0, 0.0, 0.5], (n, 1)))
+
+
+def test_points_in_empty_space_are_dropped_and_counted(tmp_path):
+    cam, Ts, masks = _views()
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(600, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = CENTRE + RADIUS * d[:500]
+    space = CENTRE + (RADIUS + 0.008) * d[500:]  # 8 mm off the object
+    clouds = [_cloud(np.concatenate([surface[:250], space[:60]]), 0),
+              _cloud(np.concatenate([surface[250:], space[60:]]), 1)]
+    bad = [m.copy() for m in masks]
+    bad[3][:] = False  # a wrong (empty) mask: it would drop every point
+    npz = tmp_path / "silhouettes.npz"
+    np.savez(npz, qa_flagged=np.array([False] * 9 + [True]))  # the QA flagged view 9
+    views = SilhouetteViews([m.astype(float) for m in bad], bad, [cam] * len(Ts), Ts)
+    report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)},
+                                           default_config()["alignment"])
+    assert report["points"] == 600
+    assert [s["dropped"] for s in report["per_sweep"]] == [60, 40]
+    assert len(clouds[0]) == 250 and len(clouds[1]) == 250
+    np.testing.assert_allclose(np.linalg.norm(np.concatenate(
+        [c.points_base for c in clouds]) - CENTRE, axis=1), RADIUS)
+    assert len(dropped) == 100
+    assert [v["view"] for v in report["views_not_used_contradict_laser"]] == [3]
+    assert report["views_not_used_qa_flagged"] == [9]
+    assert report["views_used"] == 8
+    assert clouds[0].report["dropped_outside_hull"] == 60
+    # the arrays of a cloud stay consistent
+    assert len(clouds[1].frame_index) == len(clouds[1].confidence) == 250
+
+
+def test_without_views_or_when_off_nothing_is_dropped(tmp_path):
+    cloud = _cloud(CENTRE + np.array([[1.0, 0.0, 0.0]]), 0)
+    report, dropped = _reject_outside_hull([cloud], None, {}, default_config()["alignment"])
+    assert "skipped" in report and len(dropped) == 0 and len(cloud) == 1
+    cam, Ts, masks = _views(4)
+    views = SilhouetteViews([m.astype(float) for m in masks], masks, [cam] * 4, Ts)
+    off = {**default_config()["alignment"], "reject_outside_hull": False}
+    report, dropped = _reject_outside_hull([cloud], views, {}, off)
+    assert "skipped" in report and len(cloud) == 1

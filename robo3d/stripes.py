@@ -983,10 +983,24 @@ def _probe(img: np.ndarray, k: int, step: int, thr: float,
     sep = _RIDGE_A2 + 1
     clo, chi, rlo, rhi = spans
     out = []
+    fast = _fast8(img, k)
+    h, w, nch = img.shape
+    ch = k if nch == 3 else 0
     for along_u in (True, False):
         lo, hi = (rlo, rhi) if along_u else (clo, chi)
-        m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2, np.float32(thr),
-                                      sep, sat, along_u, lo, hi)
+        if fast and along_u:  # the sampled rows, read in place
+            lines = np.arange(step // 2, h, step)
+            m1, p1, m2, p2 = _lines8(img, img.reshape(h, w * nch), nch, k, lines, lines,
+                                     _RIDGE_A1, _RIDGE_A2, sep, float(np.float32(thr)), sat,
+                                     lo, hi, True)
+        elif fast:  # the sampled columns, gathered in one pass over the rows
+            lines = np.arange(step // 2, w, step)
+            m1, p1, m2, p2 = _lines8(img, _gather_cols8(img, ch, lines), 1, k, lines,
+                                     np.arange(lines.size), _RIDGE_A1, _RIDGE_A2, sep,
+                                     float(np.float32(thr)), sat, lo, hi, False)
+        else:
+            m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2,
+                                          np.float32(thr), sep, sat, along_u, lo, hi)
         *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3, False)
         out.append(float(strong.max()) if strong.size else 0.0)
     return out[0], out[1]
@@ -1212,6 +1226,228 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat, lo, hi):  # noq
     return m1, p1, m2, p2
 
 
+@njit(inline="always")
+def _channel8(f, stride, ch, buf):  # noqa: ANN001, ANN202
+    """Channel ``ch`` of a row of interleaved uint8 pixels (``stride`` channels each)
+    into ``buf``, at literal offsets (so that the loads vectorise as shuffles)."""
+    w = buf.size
+    if stride == 1:
+        for c in range(w):
+            buf[c] = f[c]
+    elif ch == 0:
+        for c in range(w):
+            buf[c] = f[3 * c]
+    elif ch == 1:
+        for c in range(w):
+            buf[c] = f[3 * c + 1]
+    else:
+        for c in range(w):
+            buf[c] = f[3 * c + 2]
+
+
+@njit(inline="always")
+def _over8(xb, f0, fu1, fd1, fu2, fd2, tb, n):  # noqa: ANN001, ANN202
+    """uint8 profiles: ``xb[i]`` = by how much the two-sided ridge height
+    ``f0 - min(max(fu1, fd1), max(fu2, fd2))`` (clipped at 0) of pixel i beats
+    ``tb[i]`` (0 where it does not), in saturating byte arithmetic (32 pixels per
+    instruction); returns the largest."""
+    for i in range(n):
+        y0 = f0[i]
+        m = min(min(max(fu1[i], fd1[i]), max(fu2[i], fd2[i])), y0)
+        x = np.uint8(y0 - m)
+        xb[i] = np.uint8(x - min(x, tb[i]))
+    acc = np.uint8(0)
+    for i in range(n):
+        x = xb[i]
+        acc = x if x > acc else acc
+    return acc
+
+
+@njit(inline="always")
+def _nonzero8(xbuf, words, i0, i1, cj):  # noqa: ANN001, ANN202
+    """The indices ``i0 <= i < i1`` of the non-zero bytes of ``xbuf`` (``words``: its
+    uint64 view, read 8 bytes at a time), in order, into ``cj``; returns their number."""
+    nc = 0
+    for wi in range(i0 // 8, (i1 + 7) // 8):
+        wv = words[wi]
+        i = 8 * wi
+        while wv != 0:
+            if (wv & np.uint64(0xFF)) and i >= i0 and i < i1:
+                cj[nc] = i
+                nc += 1
+            wv >>= np.uint64(8)
+            i += 1
+    return nc
+
+
+def _fast8(img: np.ndarray, k: int) -> bool:
+    """Whether the byte kernels (:func:`_lines8`, :func:`_ridge_scan_cols8`) serve
+    contrast k of this kernel image: uint8, a laser colour or a mono image."""
+    return img.dtype == np.uint8 and (img.shape[2] == 1 or k != _LIGHTNESS)
+
+
+@njit(**_JIT)
+def _lines8(img, arr, stride, k, lines, rows, a1, a2, sep, thr, sat, lo, hi,
+            along_u):  # noqa: ANN001, ANN202
+    """:func:`_ridge_scan_rows` (and the axis probe's lines) on a uint8 image, with the
+    same results, in byte arithmetic: line ``lines[q]`` is row ``rows[q]`` of ``arr``
+    (the image's rows, ``stride`` = its channels, or gathered columns of the laser's
+    channel, ``stride`` = 1). Per line the laser's channel (a mono image's values) is
+    read into a buffer, its heights above ``thr`` found in vectorised loops (32 pixels
+    per instruction) and only the pixels where a height beats ``thr`` (8 bytes at a
+    time) are offered to the line's two best ridges as :func:`_ridge_scan_rows` does
+    (the laser's height :func:`_laser_at` from the image; ``along_u``: across the
+    image's columns). A pixel on the best ridge that is not above it is passed over
+    (it changes nothing; :func:`_laser_at` never raises a height). Only pixels
+    ``lo[line] <= i <= hi[line]`` are candidates. Returns float32 heights and int32
+    positions."""
+    nl = lines.size
+    length = arr.shape[1] // stride
+    laser = img.shape[2] == 3
+    ch = k if stride == 3 else 0
+    nw = (length + 7) // 8
+    xbuf = np.zeros(8 * nw, np.uint8)
+    words = xbuf.view(np.uint64)
+    buf = np.zeros(length, np.uint8)
+    cj = np.zeros(length, np.int64)
+    t8 = np.uint8(min(max(np.floor(thr), 0.0), 255.0))  # x > thr <=> x > floor(thr)
+    tb = np.full(length, t8, np.uint8)
+    thr32 = np.float32(thr)
+    m1 = np.full(nl, thr32, np.float32)
+    m2 = np.full(nl, thr32, np.float32)
+    p1 = np.full(nl, -(10 ** 6), np.int32)
+    p2 = np.full(nl, -(10 ** 6), np.int32)
+    for q in range(nl):
+        ln = lines[q]
+        i0 = max(lo[ln], a2)
+        i1 = min(hi[ln], length - 1 - a2) + 1
+        if i0 >= i1:
+            continue
+        _channel8(arr[rows[q]], stride, ch, buf)
+        acc = _over8(xbuf[i0:i1], buf[i0:i1], buf[i0 - a1:i1 - a1], buf[i0 + a1:i1 + a1],
+                     buf[i0 - a2:i1 - a2], buf[i0 + a2:i1 + a2], tb[i0:i1], i1 - i0)
+        if acc == 0:
+            continue
+        nc = _nonzero8(xbuf, words, i0, i1, cj)
+        v1 = thr32
+        v2 = thr32
+        c1 = -(10 ** 6)
+        c2 = -(10 ** 6)
+        for i in range(nc):
+            c = cj[i]
+            xc = np.float32(np.int32(xbuf[c]) + np.int32(t8))
+            if not xc > v2:
+                continue
+            if abs(c - c1) <= sep and not xc > v1:
+                continue
+            if laser:
+                if along_u:
+                    xc = _laser_at(img, ln, c, k, a1, a2, True, xc, sat)
+                else:
+                    xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat)
+                if not xc > v2:
+                    continue
+            v1, c1, v2, c2 = _keep_two(xc, c, v1, c1, v2, c2, sep)
+        m1[q] = v1
+        m2[q] = v2
+        p1[q] = c1
+        p2[q] = c2
+    return m1, p1, m2, p2
+
+
+@njit(**_JIT)
+def _gather_cols8(img, ch, cols):  # noqa: ANN001, ANN202
+    """Channel ch of the image's columns ``cols`` as (len(cols), H) uint8 rows, read
+    row by row (one pass over the image instead of one per column)."""
+    h = img.shape[0]
+    out = np.empty((cols.size, h), np.uint8)
+    for r in range(h):
+        for j in range(cols.size):
+            out[j, r] = img[r, cols[j], ch]
+    return out
+
+
+@njit(**_JIT)
+def _ridge_scan_cols8(img, k, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, ANN202
+    """:func:`_ridge_scan_cols` on a uint8 image (a laser colour or mono), with the same
+    results, in byte arithmetic: each row's laser channel is read once into a ring of
+    ``2 a2 + 1`` rows; per row the heights of every column beating a per-column
+    threshold (its second candidate; 255 where the column's region does not hold the
+    row) in vectorised loops (32 columns per instruction); only the columns where a
+    height beats it (found 8 at a time) are updated as :func:`_ridge_scan_cols` does
+    (a pixel on the best ridge not above it is passed over: it changes nothing). Rows
+    that no column's region holds are not read."""
+    h, w, nch = img.shape
+    laser = nch == 3
+    ch = k if laser else 0
+    flat = img.reshape(h, w * nch)
+    nr = 2 * a2 + 1
+    ring = np.zeros((nr, w), np.uint8)
+    nw = (w + 7) // 8
+    xbuf = np.zeros(8 * nw, np.uint8)
+    words = xbuf.view(np.uint64)
+    cj = np.zeros(w, np.int64)
+    tb = np.full(w, 255, np.uint8)
+    m1 = np.full(w, thr, np.int16)
+    m2 = np.full(w, thr, np.int16)
+    p1 = np.full(w, -(10 ** 6), np.int32)
+    p2 = np.full(w, -(10 ** 6), np.int32)
+    # column c is searched in rows lo[c] .. hi[c]: it joins at row lo[c], leaves after hi[c]
+    on = np.argsort(lo)
+    off = np.argsort(hi)
+    rmin = h
+    rmax = -1
+    for c in range(w):
+        if lo[c] <= hi[c]:
+            rmin = min(rmin, lo[c])
+            rmax = max(rmax, hi[c])
+    r0 = max(rmin, a2)
+    r1 = min(rmax, h - 1 - a2)
+    ion = 0
+    ioff = 0
+    for r in range(r0 - a2, r1 + a2 + 1):
+        _channel8(flat[r], nch, ch, ring[r % nr])
+        rc = r - a2
+        if rc < r0:
+            continue
+        while ion < w and lo[on[ion]] <= rc:
+            c = on[ion]
+            if hi[c] >= rc:
+                tb[c] = np.uint8(min(max(np.int32(m2[c]), 0), 255))
+            ion += 1
+        while ioff < w and hi[off[ioff]] < rc:
+            tb[off[ioff]] = 255
+            ioff += 1
+        acc = _over8(xbuf, ring[rc % nr], ring[(rc - a1) % nr], ring[(rc + a1) % nr],
+                     ring[(rc - a2) % nr], ring[(rc + a2) % nr], tb, w)
+        if acc == 0:
+            continue
+        nc = _nonzero8(xbuf, words, 0, w, cj)
+        for i in range(nc):
+            c = cj[i]
+            xc = np.float32(np.int32(xbuf[c]) + np.int32(tb[c]))  # > m2[c]
+            if abs(rc - p1[c]) <= sep and not xc > m1[c]:
+                continue
+            if laser:
+                xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat)
+                if not xc > m2[c]:
+                    continue
+            if abs(rc - p1[c]) <= sep:
+                if xc > m1[c]:
+                    m1[c] = xc
+                    p1[c] = rc
+            elif xc > m1[c]:
+                m2[c] = m1[c]
+                p2[c] = p1[c]
+                m1[c] = xc
+                p1[c] = rc
+            else:
+                m2[c] = xc
+                p2[c] = rc
+            tb[c] = np.uint8(min(max(np.int32(m2[c]), 0), 255))
+    return m1, p1, m2, p2
+
+
 @njit(**_JIT)
 def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u, lo, hi):  # noqa: ANN001, ANN202
     """:func:`_ridge_scan_rows` on every ``step``-th row (``along_u``: profiles along
@@ -1336,8 +1572,11 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
         p0 = win[i]
         if p0 < 0:
             continue
-        lo = max(0, p0 - 2 - h)
-        hi = min(length, p0 + 3 + h)
+        # the profile within +-(2 + hs) of p0 first (all that the first window reads:
+        # the same values and image borders as the full one), the full +-(2 + h) only
+        # when that window is too small for the stripe
+        lo = max(0, p0 - 2 - hs)
+        hi = min(length, p0 + 3 + hs)
         for j in range(lo, hi):
             if rows_axis:
                 prof[j - lo, 0, 0] = _contrast_at(img, i, j, k, nch, two)
@@ -1354,6 +1593,16 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
                                                     tail_fraction, noise_t, min_peak,
                                                     gaussian, True)
         if short and hs < h:
+            lo_f = max(0, p0 - 2 - h)
+            hi_f = min(length, p0 + 3 + h)
+            for j in range(lo_f, hi_f):
+                if rows_axis:
+                    prof[j - lo_f, 0, 0] = _contrast_at(img, i, j, k, nch, two)
+                else:
+                    prof[j - lo_f, 0, 0] = _contrast_at(img, j, i, k, nch, two)
+            p += lo - lo_f
+            lo = lo_f
+            view = prof[:hi_f - lo_f]
             st, offset, amp, width, short = _profile_at(view, 1, 0, p, h, y, valid,
                                                         tail_fraction, noise_t, min_peak,
                                                         gaussian, True)
@@ -1531,10 +1780,23 @@ def _transpose(img: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(t.reshape(img.shape[1], img.shape[0], nch))
 
 
+@njit(**_JIT)
+def _channel_sums(img, rows, cols):  # noqa: ANN001, ANN202
+    """Per channel, the sum of the pixels (rows, cols) of an (H, W, C) image, float64."""
+    nch = img.shape[2]
+    out = np.zeros(nch, np.float64)
+    for i in range(rows.size):
+        for ch in range(nch):
+            out[ch] += img[rows[i], cols[i], ch]
+    return out
+
+
 def _eq18(img: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
     """Eq. 18 on the pixels (rows, cols) of an (H, W, C) kernel image."""
-    px = img[rows, cols].astype(np.float64)  # (n, C)
-    means = px.mean(axis=0)
+    if np.issubdtype(img.dtype, np.integer):  # exact sums in any order: numpy's mean
+        means = _channel_sums(img, rows, cols) / rows.size
+    else:
+        means = img[rows, cols].astype(np.float64).mean(axis=0)  # (n, C) -> (C,)
     return float((means.max() + means.min()) / 2.0)
 
 
@@ -1851,10 +2113,21 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
     sep = _RIDGE_A2 + 1
     sat = wdt(_saturation(img.dtype))
     clo, chi, rlo, rhi = spans
-    if axis == "rows":
+    fast = _fast8(img, k)
+    if axis == "rows" and fast:
+        lo, hi = rlo, rhi
+        rows = np.arange(h_img)
+        m1, p1, m2, p2 = _lines8(img, img.reshape(h_img, w_img * nch), nch, k, rows, rows,
+                                 _RIDGE_A1, _RIDGE_A2, sep, float(thr_w), sat, lo, hi, True)
+        m1, m2 = m1.astype(np.int16), m2.astype(np.int16)  # as _ridge_scan_rows stores
+    elif axis == "rows":
         lo, hi = rlo, rhi
         m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros(w_img, wdt),
                                           _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat, lo, hi)
+    elif fast:
+        lo, hi = clo, chi
+        m1, p1, m2, p2 = _ridge_scan_cols8(img, k, _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat,
+                                           lo, hi)
     else:
         lo, hi = clo, chi
         ring = np.zeros((2 * _RIDGE_A2 + 1, w_img), wdt)

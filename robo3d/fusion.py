@@ -66,7 +66,17 @@ import numpy as np
 
 from .errors import StageError
 
-__all__ = ["fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull", "remove_vertices"]
+__all__ = ["fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull", "remove_vertices",
+           "SOURCES", "CLOSE_MODES", "face_source", "source_area_fractions", "keep_vertices"]
+
+#: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
+#: its index here. ``measured``: on the laser's observed surface; ``hull``: inferred, the
+#: visual hull's surface where the laser saw nothing; ``filled``: inferred, a gap closed
+#: between the laser's observed and seen-empty space.
+SOURCES: tuple[str, ...] = ("measured", "hull", "filled")
+MEASURED, HULL, FILLED = 0, 1, 2
+#: What fusion does where the laser saw nothing (``fusion.close``).
+CLOSE_MODES: tuple[str, ...] = ("hull", "free_space", "none")
 
 log = logging.getLogger(__name__)
 
@@ -454,7 +464,11 @@ def fuse_tsdf(
     interp_floor: float = 0.05,
     max_voxels: int = 64_000_000,
     threads: int = 1,
-) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    close: str = "hull",
+    max_fill_distance_m: float = 0.003,
+    return_attributes: bool = False,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | tuple[np.ndarray, np.ndarray,
+                                                           dict[str, Any], dict[str, np.ndarray]]:
     """Volumetric fusion of range scans after Curless & Levoy (1996), bounded and closed by
     the visual hull.
 
@@ -477,8 +491,20 @@ def fuse_tsdf(
        laser saw nothing the surface is the boundary between the space seen empty and the
        hull; the solid/empty indicator is smoothed over one voxel for a smooth surface.
        Without a hull no surface is made where nothing was observed.
-    6. Marching cubes (Lewiner) at level 0. Each triangle is attributed to the laser when
-       its vertices lie on grid edges between observed voxels, otherwise to the hull.
+    6. Marching cubes (Lewiner) at level 0. Each vertex gets its provenance
+       (:data:`SOURCES`): *measured* when it lies on a grid edge between two observed
+       voxels, else *inferred*: from the hull when one of the edge's voxels lies within
+       two voxels of the outside of the hull (the surface there is the hull's, moved by
+       the one-voxel smoothing), else *filled* (a gap closed between
+       the space seen empty and the solid, next to measurements). And its evidence: the
+       number of scans that observed it, their weighted mean incidence ``cos``, the TSDF
+       weight, the distance to the nearest measured point, and a ``confidence`` in
+       [0, 1] (0 for inferred vertices, see :func:`_vertex_confidence`).
+    7. ``close`` chooses what is done where the laser saw nothing: ``hull`` closes every
+       hole (step 5, watertight); ``free_space`` closes only what lies within
+       ``max_fill_distance_m`` of a measured point and leaves the mesh open farther away
+       (an inferred patch that far is invention); ``none`` keeps only measured surface.
+       Inferred surface never moves measured surface: observed voxels keep their TSDF.
 
     Parameters
     ----------
@@ -521,12 +547,23 @@ def fuse_tsdf(
         Largest grid allowed (memory: about 10 bytes per voxel).
     threads : int
         Ray-casting and nearest-neighbour threads (results do not depend on it).
+    close : {"hull", "free_space", "none"}
+        Where the laser saw nothing: close from the hull, close only near measurements,
+        or leave open (step 7).
+    max_fill_distance_m : float, metres
+        With ``close="free_space"``: inferred surface farther than this from every
+        measured point is left out.
+    return_attributes : bool
+        Also return the per-vertex attributes (step 6).
 
     Returns
     -------
     vertices : (V, 3) float64, metres
     faces : (F, 3) int64
         Counter-clockwise seen from outside.
+    attributes : dict of str to (V,) array, with ``return_attributes``
+        ``source`` (uint8, :data:`SOURCES`), ``n_obs`` (uint16), ``incidence``,
+        ``tsdf_weight``, ``dist_measured_m``, ``confidence`` (float32).
     report : dict
         ``n_points``, ``n_points_used``, ``n_scans``, ``voxel_size``, ``trunc``,
         ``grid_shape``, ``n_voxels_observed``, ``n_voxels_seen_empty``,
@@ -575,6 +612,8 @@ def fuse_tsdf(
                          f"and {trunc_voxels}")
     if not min_weight > 0:
         raise ValueError(f"min_weight must be > 0, got {min_weight}")
+    if close not in CLOSE_MODES:
+        raise ValueError(f"close must be one of {CLOSE_MODES}, got {close!r}")
     n_total = int(sum(len(p) for p in P))
     # points seen from the front only (normals toward the sensor), with confidence
     for k in range(len(P)):
@@ -611,6 +650,8 @@ def fuse_tsdf(
     report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
     sum_w = np.zeros(n_vox, dtype=np.float32)
     sum_wd = np.zeros(n_vox, dtype=np.float32)
+    sum_wc = np.zeros(n_vox, dtype=np.float32)  # weight x cos: the mean incidence
+    n_obs = np.zeros(n_vox, dtype=np.uint16)  # scans that reached the voxel
     seen_empty = np.zeros(n_vox, dtype=bool)
     shift = 0.5 * (lo + hi)  # float32 ray casting in a frame centred on the object
     scans = []
@@ -669,6 +710,8 @@ def fuse_tsdf(
         keep = w > 0
         np.add.at(sum_w, lin[keep], w[keep].astype(np.float32))
         np.add.at(sum_wd, lin[keep], (w * sdf)[keep].astype(np.float32))
+        np.add.at(sum_wc, lin[keep], (w * cos)[keep].astype(np.float32))
+        n_obs[lin[keep]] += 1  # the band's voxels are unique within one scan
         seen_empty[lin[sdf > 0.5 * voxel_size]] = True
         t_rays += time.perf_counter() - ta
         if carve_free_space:
@@ -694,6 +737,9 @@ def fuse_tsdf(
     report.update(n_voxels_observed=int(observed.sum()), n_voxels_seen_empty=int(
         seen_empty.sum()), range_surfaces=scans)
     filled = False
+    inside = None
+    if close == "none":
+        fill_holes = False
     if hull is not None:
         inside = _hull_field(hull, origin, voxel_size, shape, hull_margin_voxels,
                              hull_smooth_vox)
@@ -712,10 +758,15 @@ def fuse_tsdf(
         report["hull_fill"] = "no hull: no surface where the laser saw nothing"
     clock["field"] = time.perf_counter() - ta
     ta = time.perf_counter()
+    sum_w, sum_wc, n_obs = (x.reshape(shape) for x in (sum_w, sum_wc, n_obs))
+    # the hull's boundary as the inferred surface sees it: within 2 voxels of outside (the
+    # solid indicator is smoothed over one voxel, which moves the crossing by about one)
+    near_out = None if inside is None else ndimage.binary_dilation(~inside, iterations=2)
     if not (np.any(tsdf < 0) and np.any(tsdf > 0)):
         v = np.zeros((0, 3))
         f = np.zeros((0, 3), dtype=np.int64)
-        laser_v = np.zeros(0, dtype=bool)
+        attrs = _vertex_attributes(np.zeros((0, 3), np.int64), np.zeros((0, 3), np.int64),
+                                   observed, sum_w, sum_wc, n_obs, near_out)
     else:
         v, f, _, _ = measure.marching_cubes(tsdf, level=0.0, gradient_direction="descent",
                                             allow_degenerate=False)
@@ -723,14 +774,25 @@ def fuse_tsdf(
         q = v.astype(np.float64)
         lo_i = np.clip(np.floor(q + 1e-3).astype(np.int64), 0, np.array(shape) - 1)
         hi_i = np.clip(np.ceil(q - 1e-3).astype(np.int64), 0, np.array(shape) - 1)
-        laser_v = (observed[lo_i[:, 0], lo_i[:, 1], lo_i[:, 2]]
-                   & observed[hi_i[:, 0], hi_i[:, 1], hi_i[:, 2]])
+        attrs = _vertex_attributes(lo_i, hi_i, observed, sum_w, sum_wc, n_obs, near_out)
         v = origin + q * voxel_size
         if not filled:  # crossings next to unobserved voxels are not surface
-            keep_v = laser_v
-            v, f = remove_vertices(v, f, keep_v)
-            laser_v = np.ones(len(v), dtype=bool)
+            v, f, attrs = keep_vertices(v, f, attrs, attrs["source"] == MEASURED)
+    if len(v):
+        attrs["dist_measured_m"] = cKDTree(allp).query(v, k=1, workers=int(threads))[0
+                                                                                   ].astype(np.float32)
+    else:
+        attrs["dist_measured_m"] = np.zeros(0, np.float32)
+    n_far = 0
+    if filled and close == "free_space":
+        far = (attrs["source"] != MEASURED) & (attrs["dist_measured_m"] > max_fill_distance_m)
+        n_far = int(far.sum())
+        v, f, attrs = keep_vertices(v, f, attrs, ~far)
+    attrs["confidence"] = _vertex_confidence(attrs, voxel_size)
+    report["close"] = close
+    report["n_vertices_left_open_far_from_measured"] = n_far
     clock["marching_cubes"] = time.perf_counter() - ta
+    laser_v = attrs["source"] == MEASURED
     if len(f):
         area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
                                     axis=1)
@@ -742,10 +804,84 @@ def fuse_tsdf(
     report.update(laser_area_fraction=lf, hull_area_fraction=(1.0 - lf) if len(f) else 0.0,
                   n_vertices=int(len(v)), n_faces=int(len(f)),
                   seconds={k: round(t, 3) for k, t in clock.items()})
+    report.update(source_area_fraction=source_area_fractions(v, f, attrs["source"]))
     log.info("TSDF fusion: %d scans, %d points, grid %s, %d observed voxels -> %d faces "
              "(%.1f%% of the area from the laser)", len(P), n_used, shape,
              report["n_voxels_observed"], len(f), 100 * lf)
+    if return_attributes:
+        return v, f, report, attrs
     return v, f, report
+
+
+def _vertex_attributes(lo_i: np.ndarray, hi_i: np.ndarray, observed: np.ndarray,
+                       sum_w: np.ndarray, sum_wc: np.ndarray, n_obs: np.ndarray,
+                       near_outside: np.ndarray | None) -> dict[str, np.ndarray]:
+    """Provenance and evidence of marching-cubes vertices on the grid edges ``lo_i`` -
+    ``hi_i`` (fuse_tsdf, step 6); ``near_outside``: voxels at the hull's boundary."""
+    a = tuple(lo_i.T)
+    b = tuple(hi_i.T)
+    measured = observed[a] & observed[b]
+    source = np.full(len(lo_i), FILLED, np.uint8)
+    if near_outside is not None:
+        source[near_outside[a] | near_outside[b]] = HULL
+    source[measured] = MEASURED
+    w = 0.5 * (sum_w[a] + sum_w[b])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inc = np.where(w > 0, 0.5 * (sum_wc[a] + sum_wc[b]) / w, 0.0)
+    return {"source": source,
+            "n_obs": np.maximum(n_obs[a], n_obs[b]).astype(np.uint16),
+            "incidence": inc.astype(np.float32),
+            "tsdf_weight": w.astype(np.float32)}
+
+
+def _vertex_confidence(attrs: dict[str, np.ndarray], voxel_size: float) -> np.ndarray:
+    """Confidence of a vertex in [0, 1]: 0 for inferred surface; for measured surface
+    ``(1 - exp(-W))`` (TSDF weight ``W``: about one frontal observation gives 0.63) times
+    ``exp(-(d / 2 voxels)^2)`` with ``d`` the distance to the nearest measured point
+    (between profiles the range surface is a chord)."""
+    w = attrs["tsdf_weight"].astype(np.float64)
+    d = attrs["dist_measured_m"].astype(np.float64)
+    c = (1.0 - np.exp(-w)) * np.exp(-(d / (2.0 * voxel_size)) ** 2)
+    return np.where(attrs["source"] == MEASURED, c, 0.0).astype(np.float32)
+
+
+def keep_vertices(v: np.ndarray, f: np.ndarray, attrs: dict[str, np.ndarray],
+                   keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """:func:`remove_vertices` that carries the per-vertex attributes along."""
+    keep = np.asarray(keep, dtype=bool)
+    f_in = np.asarray(f, dtype=np.int64).reshape(-1, 3)
+    used = np.zeros(len(v), dtype=bool)
+    used[f_in[np.all(keep[f_in], axis=1)].ravel()] = True  # what remove_vertices keeps
+    v2, f2 = remove_vertices(v, f, keep)
+    return v2, f2, {k: x[used] for k, x in attrs.items()}
+
+
+def source_area_fractions(vertices: np.ndarray, faces: np.ndarray, source: np.ndarray
+                          ) -> dict[str, float]:
+    """Area fraction of a mesh per provenance (:data:`SOURCES`): a face is *measured*
+    when its three vertices are; else it takes its vertices' least trustworthy source
+    (hull over filled)."""
+    out = {name: 0.0 for name in SOURCES}
+    if len(faces) == 0:
+        return out
+    v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
+                                axis=1)
+    fs = face_source(f, source)
+    total = float(area.sum())
+    for i, name in enumerate(SOURCES):
+        out[name] = float(area[fs == i].sum() / total) if total > 0 else 0.0
+    return out
+
+
+def face_source(faces: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """Provenance of each face (:data:`SOURCES` index): measured when all three vertices
+    are, hull when any is, else filled."""
+    s = np.asarray(source)[np.asarray(faces, np.int64)]
+    out = np.full(len(s), FILLED, np.uint8)
+    out[np.all(s == MEASURED, axis=1)] = MEASURED
+    out[np.any(s == HULL, axis=1)] = HULL
+    return out
 
 
 def _carve_lines_of_sight(seen_empty: np.ndarray, p: np.ndarray, o: np.ndarray,

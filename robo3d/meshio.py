@@ -45,6 +45,7 @@ __all__ = [
     "write_point_cloud",
     "read_point_cloud",
     "read_point_cloud_attributes",
+    "read_vertex_attributes",
     "check_mesh",
 ]
 
@@ -202,6 +203,7 @@ def write_mesh(
     *,
     vertex_normals: np.ndarray | None = None,
     vertex_colors: np.ndarray | None = None,
+    attributes: dict[str, np.ndarray] | None = None,
 ) -> None:
     """Write a triangle mesh, atomically, in the format its suffix names.
 
@@ -217,6 +219,11 @@ def write_mesh(
         Unit normals per vertex (PLY and OBJ; STL stores face normals only).
     vertex_colors : (V, 3) uint8 or float in [0, 1], optional
         Colours per vertex (PLY and OBJ; STL has none).
+    attributes : dict of str to (V,) array, optional
+        Custom scalar properties per vertex (PLY only; e.g. the fusion's ``source`` and
+        ``confidence``), stored with their type (bool and uint8 as ``uchar``, other
+        integers as ``int``, floats as ``float``/``double``); read back with
+        :func:`read_vertex_attributes`.
 
     Raises
     ------
@@ -240,6 +247,10 @@ def write_mesh(
                           for i, k in enumerate(("nx", "ny", "nz"))]
             if c is not None:
                 props += [(k, "uchar", c[:, i]) for i, k in enumerate(("red", "green", "blue"))]
+            for name, arr in (attributes or {}).items():
+                if name in {p[0] for p in props} or not name.isidentifier():
+                    raise ValueError(f"attribute name {name!r} is reserved or not a name")
+                props.append((name, *_ply_scalar(name, arr, len(v))))
             _write_ply(tmp, props, f)
         elif suffix == ".obj":
             _write_obj(tmp, v, f, n, c)
@@ -433,6 +444,66 @@ def read_point_cloud(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | 
     pts = pc.point.positions.numpy().astype(np.float64)
     nrm = pc.point.normals.numpy().astype(np.float64) if "normals" in pc.point else None
     return pts, nrm
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2",
+              "int16": "<i2", "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4",
+              "uint": "<u4", "uint32": "<u4", "float": "<f4", "float32": "<f4",
+              "double": "<f8", "float64": "<f8"}
+
+
+def read_vertex_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every per-vertex property of a binary little-endian PLY mesh (as robo3d writes
+    them) except positions, normals and colours: e.g. ``source`` and ``confidence`` of
+    fused.ply and mesh.ply.
+
+    Returns
+    -------
+    dict of str to (V,) array
+        Each property in its stored type.
+
+    Raises
+    ------
+    ValueError
+        The file is not a PLY, not binary little-endian, or its vertex element has list
+        properties (or it is truncated); the message names the file.
+    """
+    path = Path(path)
+    with open(path, "rb") as fh:
+        data = fh.read()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    body = data.index(b"\n", end) + 1
+    lines = data[:end].decode("ascii", "replace").splitlines()
+    if not any(ln.strip() == "format binary_little_endian 1.0" for ln in lines):
+        raise ValueError(f"{path}: only binary little-endian PLY is read here")
+    n, props, in_vertex, before = None, [], False, True
+    for ln in lines:
+        parts = ln.split()
+        if not parts:
+            continue
+        if parts[0] == "element":
+            in_vertex = parts[1] == "vertex"
+            if in_vertex:
+                n = int(parts[2])
+                before = False
+            elif before:
+                raise ValueError(f"{path}: an element before the vertices is not supported")
+        elif parts[0] == "property" and in_vertex:
+            if parts[1] == "list" or parts[1] not in _PLY_TYPES:
+                raise ValueError(f"{path}: vertex property {' '.join(parts[1:])!r} is not a "
+                                 "scalar PLY type")
+            props.append((parts[2], _PLY_TYPES[parts[1]]))
+    if n is None:
+        raise ValueError(f"{path}: no vertex element")
+    dt = np.dtype(props)
+    if len(data) < body + n * dt.itemsize:
+        raise ValueError(f"{path}: truncated ({len(data)} bytes, the vertices need "
+                         f"{body + n * dt.itemsize})")
+    rec = np.frombuffer(data, dtype=dt, count=n, offset=body)
+    skip = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}
+    return {name: rec[name].copy() for name, _ in props if name not in skip}
 
 
 def read_point_cloud_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:

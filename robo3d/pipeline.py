@@ -1150,7 +1150,15 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     The report says what fraction of the surface came from the laser and from the hull.
     """
     from .carving import VoxelGrid, hull_to_mesh
-    from .fusion import fuse_poisson, fuse_tsdf
+    from .fusion import (
+        HULL,
+        MEASURED,
+        SOURCES,
+        fuse_poisson,
+        fuse_tsdf,
+        keep_vertices,
+        source_area_fractions,
+    )
     from .meshio import write_mesh
     from .triangulation import load_clouds_npz
     from .viz import log_mesh, log_report, rerun_log
@@ -1162,22 +1170,28 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         clouds = load_clouds_npz(inputs["aligned"])
         crop = hull if (hull is not None and fc["crop_to_hull"]) else None
         if fc["method"] == "tsdf":
-            V, F, fuse_report = fuse_tsdf(
+            V, F, fuse_report, attrs = fuse_tsdf(
                 [c.points_base for c in clouds], [c.normals_base for c in clouds],
                 [c.sensor_origin_base for c in clouds],
                 confidences=[c.confidence for c in clouds], voxel_size=fc["tsdf_voxel_m"],
                 trunc_voxels=int(fc["tsdf_trunc_voxels"]), hull=crop,
                 hull_margin_voxels=fc["hull_margin_voxels"], fill_holes=fc["fill_holes"],
                 carve_free_space=fc["carve_free_space"], min_weight=fc["min_weight"],
-                min_cos_view=fc["min_cos_view"], threads=_stage_threads(threads))
-            source = "laser (TSDF)" + (", holes closed from the hull" if crop is not None
-                                        and fc["fill_holes"] else "")
+                min_cos_view=fc["min_cos_view"], threads=_stage_threads(threads),
+                close=fc["close"], max_fill_distance_m=1e-3 * fc["max_fill_distance_mm"],
+                carve_depth_m=fc["carve_depth_m"], return_attributes=True)
+            source = "laser (TSDF)" + {
+                "hull": ", holes closed from the hull",
+                "free_space": ", holes near measurements closed, far ones left open",
+                "none": ", holes left open"}[fc["close"]] if (
+                crop is not None and fc["fill_holes"]) else "laser (TSDF)"
         else:
             pts = np.concatenate([c.points_base for c in clouds])
             nrm = np.concatenate([c.normals_base for c in clouds])
             V, F, fuse_report = fuse_poisson(pts, nrm, depth=fc["poisson_depth"],
                                              density_quantile=fc["density_quantile"],
                                              hull=crop, seed=cfg["seed"])
+            attrs = _poisson_provenance(V, pts, fc["tsdf_voxel_m"])
             source = "laser (screened Poisson)"
             if crop is not None:
                 cut = str(fuse_report.get("hull_cut", "applied"))
@@ -1186,17 +1200,36 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         V, F = hull_to_mesh(hull, smooth_sigma_vox=cfg["carving"]["smooth_sigma_vox"])
         fuse_report = {"note": "no laser frames: the fused mesh is the visual hull's",
                        "laser_area_fraction": 0.0, "hull_area_fraction": 1.0}
+        attrs = {"source": np.full(len(V), HULL, np.uint8),
+                 "n_obs": np.zeros(len(V), np.uint16),
+                 "incidence": np.zeros(len(V), np.float32),
+                 "tsdf_weight": np.zeros(len(V), np.float32),
+                 "dist_measured_m": np.full(len(V), np.inf, np.float32),
+                 "confidence": np.zeros(len(V), np.float32)}
         source = "visual hull"
     else:
         raise StageError("fusion needs aligned clouds or a hull, got neither")
     if len(F) == 0:
         raise StageError(f"fusion produced an empty mesh from {source}")
+    if isinstance(fuse_report.get("source_area_fraction"), dict):
+        fuse_report.pop("source_area_fraction")
+    fractions = source_area_fractions(V, F, attrs["source"])
+    Vm, Fm, attrs_m = keep_vertices(V, F, attrs, attrs["source"] == MEASURED)
     report = {"source": source, "method": fc["method"] if inputs.get("aligned") else "hull",
               **fuse_report, "vertices": len(V), "faces": len(F),
+              "source_area_fraction": fractions,
+              "inferred_area_fraction": 1.0 - fractions["measured"],
+              "measured_faces": len(Fm),
+              "vertex_attributes": {"source": {str(i): n for i, n in enumerate(SOURCES)},
+                                    "fields": sorted(attrs)},
               "seconds": round(time.perf_counter() - t0, 3)}
-    write_mesh(outputs["ply"], V, F)
+    write_mesh(outputs["ply"], V, F, vertex_colors=source_colors(attrs["source"]),
+               attributes=attrs)
+    if outputs.get("measured"):
+        write_mesh(outputs["measured"], Vm, Fm,
+                   attributes={k: a for k, a in attrs_m.items() if k != "source"})
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        log_mesh(rr_stream, "base/fused", V, F, albedo=[200, 200, 200, 255])
+        log_mesh(rr_stream, "base/fused", V, F, vertex_colors=source_colors(attrs["source"]))
         log_report(rr_stream, "reports/fuse", report)
     write_json(outputs["report"], report)
     lf = report.get("laser_area_fraction")
@@ -1206,6 +1239,35 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     return report
 
 
+#: Vertex colours of the provenance in fused.ply and mesh.ply (and their rerun logs):
+#: measured grey, inferred from the hull orange, filled yellow.
+_SOURCE_RGB = np.array([[190, 190, 190], [240, 120, 30], [240, 210, 40]], dtype=np.uint8)
+
+
+def source_colors(source: np.ndarray) -> np.ndarray:
+    """RGB per vertex for its provenance (:data:`robo3d.fusion.SOURCES`)."""
+    return _SOURCE_RGB[np.clip(np.asarray(source, np.int64), 0, len(_SOURCE_RGB) - 1)]
+
+
+def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float) -> dict[str, np.ndarray]:
+    """Provenance of screened-Poisson vertices: measured within ``2 * voxel`` of a laser
+    point (or twice the points' median spacing, if larger), else inferred (hull)."""
+    from scipy.spatial import cKDTree
+
+    from .fusion import HULL, MEASURED
+
+    tree = cKDTree(pts)
+    d, _ = tree.query(V, k=1)
+    spacing = float(np.median(tree.query(pts[:: max(1, len(pts) // 5000)], k=2)[0][:, 1]))
+    near = d <= max(2.0 * voxel, 2.0 * spacing)
+    return {"source": np.where(near, MEASURED, HULL).astype(np.uint8),
+            "n_obs": np.zeros(len(V), np.uint16), "incidence": np.zeros(len(V), np.float32),
+            "tsdf_weight": np.zeros(len(V), np.float32),
+            "dist_measured_m": d.astype(np.float32),
+            "confidence": np.where(near, np.exp(-(d / (2 * voxel)) ** 2), 0.0
+                                   ).astype(np.float32)}
+
+
 def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
     """Clean the fused mesh (duplicates, zero-area faces, small floating components) and
@@ -1213,13 +1275,16 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ``simplify.max_error_m``; the Hausdorff distance to the fused mesh must stay within
     ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does). Writes
     ``ply`` and, when given, ``stl`` / ``obj`` outputs."""
-    from .meshio import read_mesh, write_mesh
-    from .simplify import clean_mesh, simplify_mesh
+    from .fusion import source_area_fractions
+    from .meshio import read_mesh, read_vertex_attributes, write_mesh
+    from .simplify import clean_mesh, simplify_mesh, transfer_vertex_attributes
     from .viz import log_mesh, log_report, rerun_log
 
     t0 = time.perf_counter()
     sc = cfg["simplify"]
     V, F = read_mesh(inputs["fused"])
+    attrs_in = read_vertex_attributes(inputs["fused"])
+    V0 = V
     V, F, clean_report = clean_mesh(V, F, min_component_fraction=sc["min_component_fraction"])
     bound = sc["hausdorff_tolerance_m"]
     if sc["max_error_m"] is not None:
@@ -1236,11 +1301,21 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "within_tolerance": bool(within),
               "exports": [k for k in ("ply", "stl", "obj") if outputs.get(k)],
               "seconds": round(time.perf_counter() - t0, 3)}
+    attrs = transfer_vertex_attributes(V0, attrs_in, V2)
+    if "source" in attrs:
+        fractions = source_area_fractions(V2, F2, attrs["source"])
+        report["source_area_fraction"] = fractions
+        report["inferred_area_fraction"] = 1.0 - fractions["measured"]
+    colours = source_colors(attrs["source"]) if "source" in attrs else None
     for key in ("ply", "stl", "obj"):
         if outputs.get(key):
-            write_mesh(outputs[key], V2, F2)
+            write_mesh(outputs[key], V2, F2, vertex_colors=colours if key == "ply" else None,
+                       attributes=attrs if key == "ply" else None)
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        log_mesh(rr_stream, "base/mesh", V2, F2, albedo=[230, 200, 160, 255])
+        if colours is not None:
+            log_mesh(rr_stream, "base/mesh", V2, F2, vertex_colors=colours)
+        else:
+            log_mesh(rr_stream, "base/mesh", V2, F2, albedo=[230, 200, 160, 255])
         log_report(rr_stream, "reports/simplify", report)
     write_json(outputs["report"], report)
     log.info("simplified %d -> %d faces, Hausdorff %.3f mm (%.1f s)", len(F), len(F2),
@@ -1294,8 +1369,16 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     metrics["stages"] = stages
     metrics["timings"] = _stage_timings(rec_name, stages)
     fuse = stages.get("fuse", {})
-    metrics["surface_sources"] = {"laser_area_fraction": fuse.get("laser_area_fraction"),
-                                  "hull_area_fraction": fuse.get("hull_area_fraction")}
+    simp = stages.get("simplify", {})
+    metrics["surface_sources"] = {
+        "laser_area_fraction": fuse.get("laser_area_fraction"),
+        "hull_area_fraction": fuse.get("hull_area_fraction"),
+        # per vertex provenance (the source property of fused.ply and mesh.ply), by area
+        "fused": fuse.get("source_area_fraction"),
+        "mesh": simp.get("source_area_fraction"),
+        "inferred_area_fraction": simp.get("inferred_area_fraction",
+                                           fuse.get("inferred_area_fraction")),
+        "close": cfg["fusion"]["close"]}
     carve = stages.get("carve", {})
     if isinstance(carve, dict) and "views_left_out" in carve:
         metrics["views_left_out"] = carve["views_left_out"]
@@ -1354,6 +1437,9 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 "whole": mesh_accuracy(V, F, truth, n_samples=ev["n_samples"] // 4,
                                        seed=cfg["seed"], thresholds_mm=thresholds),
             }
+        if inputs.get("measured"):
+            ev_out["measured"] = _measured_evaluation(inputs["measured"], truth, ev, cfg,
+                                                      scored, region)
         if inputs.get("aligned") and "ground_truth/tf.json" in rec.attachments:
             ev_out["poses"] = _pose_errors(rec, inputs)
         vertex_error_mm = truth.distance(V_final) * 1e3
@@ -1385,6 +1471,31 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     write_json(outputs["metrics"], metrics)
     _log_summary(metrics)
     return metrics
+
+
+def _measured_evaluation(path: str, truth, ev: Mapping[str, Any], cfg: Mapping[str, Any],
+                         scored, region) -> dict[str, Any]:
+    """Accuracy and completeness of the measured surface alone (measured.ply): what an
+    inspection tool compares with CAD. ``outlier_area_fraction_0_5mm`` is the share of its
+    area farther than 0.5 mm from the truth (area-uniform samples)."""
+    from .evaluate import completeness, mesh_accuracy, sample_surface
+    from .meshio import read_mesh
+
+    V, F = read_mesh(path)
+    thresholds = tuple(ev["thresholds_mm"])
+    if len(F) == 0:
+        return {"n_faces": 0, "note": "nothing was measured (no laser surface)"}
+    acc = mesh_accuracy(V, F, truth, n_samples=ev["n_samples"], seed=cfg["seed"],
+                        thresholds_mm=thresholds, region=scored)
+    samples = sample_surface(V, F, ev["n_samples"] // 4, seed=cfg["seed"])
+    d = truth.distance(samples)
+    area = float(0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                      axis=1).sum())
+    return {**acc, "n_faces": int(len(F)), "area_m2": area,
+            "outlier_area_fraction_0_5mm": float(np.mean(d > 0.5e-3)),
+            "completeness": completeness(V, F, truth, thresholds_mm=thresholds,
+                                         n_samples=ev["n_samples"], region=region,
+                                         seed=cfg["seed"])}
 
 
 def _mask_evaluation(inputs: Mapping[str, str], rec, has_true_masks: bool,
@@ -1596,6 +1707,14 @@ def _log_summary(metrics: Mapping[str, Any]) -> None:
     if c:
         parts.append("completeness " + ", ".join(f"{v:.3f} at {k} mm" for k, v in c.items()
                                                  if v is not None))
+    me = ev.get("measured") or {}
+    if me.get("median_mm") is not None:
+        parts.append(f"measured surface median {me['median_mm']:.3f} mm, p95 "
+                     f"{me['p95_mm']:.3f} mm, {100 * me['outlier_area_fraction_0_5mm']:.2f} % "
+                     "of its area > 0.5 mm off")
+    inf = (metrics.get("surface_sources") or {}).get("inferred_area_fraction")
+    if inf is not None:
+        parts.append(f"{100 * inf:.1f} % of the mesh's area inferred (not measured)")
     if metrics.get("skipped"):
         parts.append(f"skipped: {metrics['skipped']}")
     log.info("%s: %s", metrics["name"], "; ".join(parts))

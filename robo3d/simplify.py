@@ -43,7 +43,7 @@ import numpy as np
 
 from .meshio import check_mesh
 
-__all__ = ["clean_mesh", "simplify_mesh", "hausdorff_distance"]
+__all__ = ["clean_mesh", "simplify_mesh", "hausdorff_distance", "transfer_vertex_attributes"]
 
 log = logging.getLogger(__name__)
 
@@ -369,3 +369,37 @@ def simplify_mesh(
 
 def _zero() -> dict[str, float]:
     return {"max": 0.0, "mean": 0.0, "rms": 0.0}
+
+
+def transfer_vertex_attributes(vertices_from: np.ndarray, attributes: dict[str, np.ndarray],
+                               vertices_to: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-vertex attributes (e.g. the fusion's provenance and confidence) carried from a
+    mesh to its cleaned / simplified version: each new vertex takes those of the nearest
+    original vertex (quadric collapse places a vertex on the surface it replaces, within
+    the Hausdorff tolerance, so its nearest original vertex lies in the same region).
+
+    Parameters
+    ----------
+    vertices_from : (V, 3) float
+        The original mesh's vertices, one row per entry of each attribute.
+    attributes : dict of str to (V,) array
+    vertices_to : (W, 3) float
+
+    Returns
+    -------
+    dict of str to (W,) array
+        Same keys and dtypes; empty when ``attributes`` is.
+    """
+    from scipy.spatial import cKDTree
+
+    if not attributes:
+        return {}
+    v0 = np.asarray(vertices_from, np.float64).reshape(-1, 3)
+    v1 = np.asarray(vertices_to, np.float64).reshape(-1, 3)
+    for k, a in attributes.items():
+        if len(a) != len(v0):
+            raise ValueError(f"attribute {k!r} has {len(a)} values for {len(v0)} vertices")
+    if len(v1) == 0 or len(v0) == 0:
+        return {k: np.zeros(len(v1), a.dtype) for k, a in attributes.items()}
+    _, nn = cKDTree(v0).query(v1, k=1)
+    return {k: np.asarray(a)[nn] for k, a in attributes.items()}

@@ -284,3 +284,50 @@ def test_tsdf_errors():
         fuse_tsdf(pts, [-n for n in nrm], org)  # normals facing away from the sensor
     with pytest.raises(ValueError, match="min_weight"):
         fuse_tsdf(pts, nrm, org, min_weight=0.0)
+
+
+def test_tsdf_provenance_per_vertex_and_close_modes():
+    """Seen from above only, with the sphere's hull: every vertex says where it came
+    from; the measured cap is the laser's (and identical whatever is done below it); the
+    hull's part is labelled, far from any measurement, and left out on request."""
+    from robo3d.fusion import CLOSE_MODES, HULL, MEASURED, face_source, fuse_tsdf
+
+    pts, nrm, org = _views_of_sphere(20000, axes=[[0.0, 0.0, 1.0]])
+    out = {}
+    for close in CLOSE_MODES:
+        out[close] = fuse_tsdf(pts, nrm, org, voxel_size=1e-3, hull=_exact_hull(),
+                               max_edge_factor=3.0, close=close, max_fill_distance_m=3e-3,
+                               return_attributes=True)
+    v, f, rep, a = out["hull"]
+    assert set(a) == {"source", "n_obs", "incidence", "tsdf_weight", "dist_measured_m",
+                      "confidence"}
+    assert all(len(x) == len(v) for x in a.values())
+    meas = a["source"] == MEASURED
+    err = _radial_error(v)
+    # measured vertices are on the seen cap, exact; hull vertices below, 2 mm voxels
+    assert v[meas, 2].min() > C[2] - 0.1 * R and err[meas].max() < 0.1e-3  # 0.082 mm
+    assert np.all(a["source"][v[:, 2] < C[2] - 0.3 * R] == HULL)
+    assert np.all(a["n_obs"][meas] >= 1) and np.all(a["confidence"][~meas] == 0)
+    assert np.all((a["incidence"][meas] > 0) & (a["incidence"][meas] <= 1))
+    assert np.median(a["dist_measured_m"][meas]) < 1e-3  # 1 mm voxels
+    assert a["dist_measured_m"][v[:, 2] < C[2] - 0.5 * R].min() > 5e-3  # far below
+    fs = face_source(f, a["source"])
+    assert rep["source_area_fraction"]["measured"] == pytest.approx(
+        rep["laser_area_fraction"], abs=1e-9)
+    assert np.all(fs[np.all(meas[f], axis=1)] == MEASURED)
+    # free_space: the part far from any measurement is left open, the rest kept
+    v2, f2, rep2, a2 = out["free_space"]
+    assert a2["dist_measured_m"][a2["source"] != MEASURED].max() <= 3e-3
+    assert rep2["n_vertices_left_open_far_from_measured"] > 0
+    assert len(f2) < len(f) and np.any(_edge_uses(f2) == 1)  # open
+    # none: only the measured surface
+    v3, f3, _, a3 = out["none"]
+    assert np.all(a3["source"] == MEASURED) and len(f3) < len(f2)
+    # inferred surface never moves measured surface: the measured vertices that every
+    # mode keeps are at the same places
+    for vv, aa in ((v2, a2), (v3, a3)):
+        m = vv[aa["source"] == MEASURED]
+        common = np.isin(m.round(9).view("f8,f8,f8"), v[meas].round(9).view("f8,f8,f8"))
+        assert common.mean() > 0.95
+    with pytest.raises(ValueError, match="close"):
+        fuse_tsdf(pts, nrm, org, close="everything")

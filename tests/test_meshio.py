@@ -162,3 +162,39 @@ def test_failed_read_keeps_the_working_directory(tmp_path):
     with pytest.raises(StageError):
         meshio.read_mesh(b"this is not a mesh", suffix=".ply")
     assert os.getcwd() == before
+
+
+def test_vertex_attributes_round_trip_and_errors(tmp_path):
+    from robo3d.meshio import read_mesh, read_vertex_attributes, write_mesh
+
+    rng = np.random.default_rng(0)
+    v = rng.random((5, 3))
+    f = np.array([[0, 1, 2], [0, 2, 3], [1, 3, 4]])
+    attrs = {"source": np.array([0, 1, 2, 0, 1], np.uint8),
+             "n_obs": np.array([3, 0, 0, 1, 70000], np.int64),
+             "confidence": np.array([1.0, 0.0, 0.0, 0.5, 0.25], np.float32),
+             "flag": np.array([True, False, True, False, True])}
+    p = tmp_path / "m.ply"
+    write_mesh(p, v, f, vertex_colors=np.full((5, 3), 200, np.uint8), attributes=attrs)
+    back = read_vertex_attributes(p)
+    assert set(back) == set(attrs)
+    for k, a in attrs.items():
+        np.testing.assert_array_equal(back[k], a.astype(back[k].dtype))
+    assert back["source"].dtype == np.uint8 and back["n_obs"].dtype == np.int32
+    V, F = read_mesh(p)  # other readers still read the mesh
+    np.testing.assert_allclose(V, v)
+    np.testing.assert_array_equal(F, f)
+    with pytest.raises(ValueError, match="shape"):
+        write_mesh(p, v, f, attributes={"source": np.zeros(4, np.uint8)})
+    with pytest.raises(ValueError, match="reserved"):
+        write_mesh(p, v, f, attributes={"x": np.zeros(5)})
+    bad = tmp_path / "t.ply"
+    # truncated in the faces: the vertices still read; truncated in the vertices: error
+    bad.write_bytes(p.read_bytes()[:-10])
+    assert set(read_vertex_attributes(bad)) == set(attrs)
+    bad.write_bytes(p.read_bytes()[: p.read_bytes().index(b"end_header") + 20])
+    with pytest.raises(ValueError, match="truncated"):
+        read_vertex_attributes(bad)
+    bad.write_bytes(b"solid x\n")
+    with pytest.raises(ValueError, match="not a PLY"):
+        read_vertex_attributes(bad)

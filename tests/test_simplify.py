@@ -112,3 +112,24 @@ def test_decimation_does_not_depend_on_units():
     assert len(f_m) == len(f_mm)
     assert rep_m["hausdorff_max_m"] * 1e3 == pytest.approx(rep_mm["hausdorff_max_m"], rel=0.1)
     assert rep_m["hausdorff_max_m"] < 0.5e-3  # a 30 mm sphere in 600 faces
+
+
+def test_simplification_keeps_the_vertex_provenance():
+    """The attributes of each simplified vertex are those of the nearest original one: a
+    sphere labelled measured above its equator and inferred below stays so."""
+    import open3d as o3d
+
+    from robo3d.simplify import simplify_mesh, transfer_vertex_attributes
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.03, resolution=60)
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles)
+    attrs = {"source": (v[:, 2] < 0).astype(np.uint8), "confidence": (v[:, 2] > 0) * 0.9}
+    v2, f2, _ = simplify_mesh(v, f, target_faces=len(f) // 8)
+    a2 = transfer_vertex_attributes(v, attrs, v2)
+    assert set(a2) == set(attrs) and all(len(x) == len(v2) for x in a2.values())
+    assert a2["source"].dtype == np.uint8
+    far = np.abs(v2[:, 2]) > 0.002  # away from the boundary the label is exact
+    np.testing.assert_array_equal(a2["source"][far], (v2[far, 2] < 0).astype(np.uint8))
+    assert transfer_vertex_attributes(v, {}, v2) == {}
+    with pytest.raises(ValueError, match="vertices"):
+        transfer_vertex_attributes(v[:10], attrs, v2)

@@ -43,7 +43,8 @@ def get_evaluate_inputs(wildcards):
     stages = recording_stages(RECORDINGS[wildcards.rec])
     out = {"recording": RECORDINGS[wildcards.rec].path,
            "mesh": f"results/{wildcards.rec}/mesh.ply",
-           "fused": f"results/{wildcards.rec}/fused.ply"}
+           "fused": f"results/{wildcards.rec}/fused.ply",
+           "measured": f"results/{wildcards.rec}/measured.ply"}
     if "hull" in stages:
         out["hull"] = f"results/{wildcards.rec}/hull.npz"
         out["silhouettes"] = f"results/{wildcards.rec}/silhouettes.npz"  # mask IoU
@@ -62,8 +63,8 @@ def get_all_outputs():
             out.append(f"results/{name}/hull.ply")
         if "laser" in stages:
             out.append(f"results/{name}/aligned.ply")
-        out += [f"results/{name}/fused.ply", f"results/{name}/mesh.ply",
-                f"results/{name}/metrics.json"]
+        out += [f"results/{name}/fused.ply", f"results/{name}/measured.ply",
+                f"results/{name}/mesh.ply", f"results/{name}/metrics.json"]
     if RECORDINGS:
         out.append("results/batch.tsv")
     return out

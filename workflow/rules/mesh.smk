@@ -28,6 +28,7 @@ rule fuse:
         unpack(get_fuse_inputs),
     output:
         ply="results/{rec}/fused.ply",
+        measured="results/{rec}/measured.ply",  # the laser-measured surface only
         report="results/{rec}/reports/fuse.json",
         rrd="results/{rec}/fuse.rrd",
     log:

@@ -313,6 +313,87 @@ def _fit(src: tuple[np.ndarray, np.ndarray], tgt: tuple[np.ndarray, np.ndarray],
     return float(np.mean(ok)), float(np.sqrt(np.mean(r**2)))
 
 
+def _twist(t: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(rotation vector, displacement of ``c``) of a rigid transform: its twist about c."""
+    return np.r_[_log_so3(t[:3, :3]), t[:3, :3] @ c + t[:3, 3] - c]
+
+
+def _from_twist(u: np.ndarray, c: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = _exp_so3(u[:3])
+    out[:3, 3] = c + u[3:] - out[:3, :3] @ c
+    return out
+
+
+def _pair_info(src: tuple[np.ndarray, np.ndarray], tgt: tuple[np.ndarray, np.ndarray], tree,
+               t: np.ndarray, max_dist: float, c: np.ndarray, prior_sd: np.ndarray,
+               voxel_size: float):
+    """Whitened point-to-plane normal equations of a pair at ``t`` (twist about ``c``).
+
+    Returns (eigenvalues, eigenvectors, gradient) of ``S J^T J S / sigma^2`` and of
+    ``S J^T r / sigma^2`` (``S = diag(prior_sd)``), or None with fewer than 6
+    correspondences. The normal of a correspondence is the sum of the two (symmetric
+    ICP's); ``sigma`` is the RMS residual, at least a tenth of the voxel.
+    """
+    p = src[0] @ t[:3, :3].T + t[:3, 3]
+    d, idx = tree.query(p, k=1, distance_upper_bound=max_dist)
+    ok = np.isfinite(d)
+    if np.count_nonzero(ok) < 6:
+        return None
+    x, y = p[ok], tgt[0][idx[ok]]
+    n = src[1][ok] @ t[:3, :3].T + tgt[1][idx[ok]]
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    r = np.einsum("ij,ij->i", x - y, n)
+    sigma = max(float(np.sqrt(np.mean(r**2))), 0.1 * voxel_size, 1e-6)
+    jac = np.hstack([np.cross(x - c, n), n]) * prior_sd
+    w = _huber(r / sigma, 2.0) / sigma**2
+    hw = jac.T @ (jac * w[:, None])
+    lam, vec = np.linalg.eigh(0.5 * (hw + hw.T))
+    return lam, vec, jac.T @ (w * r)
+
+
+def _held_icp(src, tgt, tree, max_corr_dist: float, fine_dist: float, c: np.ndarray,
+              prior_sd: np.ndarray, ratio: float, voxel_size: float, max_iterations: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Point-to-plane ICP (symmetric normals) from the robot's relative pose in which
+    the directions the overlap does not constrain stay at it (Zhang, Kaess & Singh 2016,
+    solution remapping): each Gauss-Newton step is taken in the subspace whose whitened
+    information is at least ``ratio``, and the estimate is projected onto it. Coarse to
+    fine like :func:`_icp`. Returns the result and its last step."""
+    dists = [max_corr_dist]
+    while dists[-1] / 2 >= fine_dist * (1 - 1e-9) and len(dists) < 3:
+        dists.append(dists[-1] / 2)
+    u = np.zeros(6)  # whitened twist about c
+    t = np.eye(4)
+    step = np.eye(4)
+    damping, last = 1.0, np.inf
+    for d in dists:
+        for _ in range(max_iterations):
+            got = _pair_info(src, tgt, tree, t, d, c, prior_sd, voxel_size)
+            if got is None:
+                return t, np.eye(4) * np.nan
+            lam, vec, g = got
+            keep = vec[:, lam >= ratio]
+            if keep.shape[1] == 0:
+                return np.eye(4), np.eye(4)
+            du = -keep @ ((keep.T @ g) / lam[lam >= ratio])
+            # sparse profiles: the correspondences may flip between two sets and the
+            # steps cycle; shorten them once they grow (as in refine_sweeps)
+            size = float(np.linalg.norm(du))
+            if size > last:
+                damping = max(damping * 0.5, 1 / 16)
+            last = size
+            du = du * damping
+            u_new = keep @ (keep.T @ (u + du))
+            t_new = _from_twist(prior_sd * u_new, c)
+            step = t_new @ invert_transform(t)
+            u, t = u_new, t_new
+            if np.linalg.norm(prior_sd[3:] * du[3:]) < 1e-7 and np.linalg.norm(
+                    prior_sd[:3] * du[:3]) < 1e-6:
+                break
+    return t, step
+
+
 def _step_small(step: np.ndarray, centroid: np.ndarray, voxel_size: float) -> bool:
     mm, deg = _motion(step, centroid)
     return mm * 1e-3 <= max(0.01 * voxel_size, 1e-7) and deg <= 0.005
@@ -384,6 +465,8 @@ def align_sweeps(
     rim_weight: float = 3.0,
     normal_k: int = 8,
     normal_max_spacing: float = 1.5e-3,
+    degenerate_ratio: float = 200.0,
+    pair_degenerate_ratio: float = 10.0,
 ) -> AlignmentResult:
     """Align laser sweeps to each other, starting from the robot's poses.
 
@@ -478,7 +561,9 @@ def align_sweeps(
                         max_corr_dist=max_corr_dist, max_iterations=max_iterations,
                         max_correction_mm=max_correction_mm,
                         max_correction_deg=max_correction_deg, min_overlap=min_overlap,
-                        method=method, gauge=gauge, max_points=max_points, seed=seed)
+                        method=method, gauge=gauge, max_points=max_points, seed=seed,
+                        prior_mm=prior_mm, prior_deg=prior_deg,
+                        degenerate_ratio=pair_degenerate_ratio)
     if refine and n_sweeps > 1:
         _refine_guarded(result, pts_in, nrm_in, origins, profiles, silhouettes,
                         voxel_size=voxel_size, max_corr_dist=max_corr_dist,
@@ -487,7 +572,8 @@ def align_sweeps(
                         prior_mm=prior_mm, prior_deg=prior_deg,
                         max_iterations=refine_iterations, seed=seed,
                         extra=dict(rim_weight=rim_weight, normal_k=normal_k,
-                                   normal_max_spacing=normal_max_spacing))
+                                   normal_max_spacing=normal_max_spacing,
+                                   degenerate_ratio=degenerate_ratio))
     return result
 
 
@@ -505,7 +591,29 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
     origins = [np.asarray(o, dtype=np.float64) for o in origins]
     active = [s for s in range(n_s) if not result.per_sweep[s]["flagged"]]
     pairs = [(p["i"], p["j"]) for p in result.pairs if p["accepted"]]
-    if not active:  # every sweep flagged by the pose graph: nothing to refine
+    saved: dict[int, str] = {}
+    pg = (list(active), list(pairs))
+    if silhouettes is not None:
+        # with an absolute reference a sweep does not need an accepted pair: one whose
+        # pairs ICP could not settle (sparse profiles cycle between correspondence
+        # sets) is refined against the views, and those pairs take part with the
+        # refinement's robust weights and held directions; only grossly inconsistent
+        # pairs stay out. Without enough contour points this falls back below.
+        rescued = [s for s in range(n_s) if result.per_sweep[s]["flagged"]
+                   and result.per_sweep[s]["n_used"] >= _MIN_POINTS
+                   and result.per_sweep[s]["reason"].startswith(("no accepted pair",
+                                                                  "not connected"))]
+        saved = {s: result.per_sweep[s]["reason"] for s in rescued}
+        if rescued:
+            log.info("refinement: sweeps %s have no accepted pair; refined against the "
+                     "silhouettes", rescued)
+            for s in rescued:
+                result.per_sweep[s].update(flagged=False, reason="")
+            active = sorted(active + rescued)
+            pairs = [(p["i"], p["j"]) for p in result.pairs
+                     if p["accepted"] or (p["overlap"] >= min_overlap and not str(
+                         p["reason"]).startswith("relative correction"))]
+    def keep_all() -> None:
         result.rotations = np.tile(np.eye(3), (n_s, 1, 1))
         result.translations = np.zeros((n_s, 3))
         result.refinement = {"converged": False, "iterations": 0, "gauge": "none",
@@ -513,6 +621,9 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
                                         "(no accepted pair): all kept at the robot's poses"}
         result.pairs = [_jsonable(p) for p in result.pairs]
         result.per_sweep = [_jsonable(p) for p in result.per_sweep]
+
+    if not active:  # every sweep flagged by the pose graph: nothing to refine
+        keep_all()
         return
     while True:
         gauge_fix = [result.reference] if result.reference in active else active[:1]
@@ -524,9 +635,20 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
         if silhouettes is not None:
             ref = refine_sweeps(pts, nrms, origins, pairs, silhouettes=silhouettes, **kw)
             if ref.gauge != "silhouettes":  # too few contour points: no absolute reference
-                log.warning("refinement: only %d silhouette residuals, the gauge is the "
-                            "reference sweep %d", ref.silhouettes["n_rim"], gauge_fix[0])
                 ref = None
+                if saved:  # the rescued sweeps go back to the pose graph's verdict
+                    for s_, why in saved.items():
+                        result.per_sweep[s_].update(flagged=True, reason=why)
+                    active = [s_ for s_ in pg[0] if s_ in active]
+                    pairs, saved = pg[1], {}
+                    if not active:
+                        keep_all()
+                        return
+                    gauge_fix = ([result.reference] if result.reference in active
+                                 else active[:1])
+                    kw["active"] = active
+                log.warning("refinement: too few silhouette residuals, the gauge is the "
+                            "reference sweep %d", gauge_fix[0])
         if ref is None:
             ref = refine_sweeps(pts, nrms, origins, pairs, fixed=gauge_fix, **kw)
         worst, worst_ratio, motion = -1, 1.0, {}
@@ -566,6 +688,9 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
                                        reason="no other sweep left to align with")
         result.per_sweep[s].update(
             n_rim=ref.per_sweep[s]["n_rim"], rim_rms_px=ref.per_sweep[s]["rim_rms_px"])
+        for key in ("constrained", "unconstrained", "information"):
+            if key in ref.per_sweep[s]:
+                result.per_sweep[s][key] = ref.per_sweep[s][key]
         if not ref.converged and s in active:
             result.per_sweep[s]["reason"] = (
                 f"refinement did not converge in {ref.iterations} iterations")
@@ -607,8 +732,11 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
 
 def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterations,
            max_correction_mm, max_correction_deg, min_overlap, method, gauge, max_points,
-           seed) -> AlignmentResult:
+           seed, prior_mm=0.5, prior_deg=0.3, degenerate_ratio=10.0) -> AlignmentResult:
     import open3d as o3d
+
+    # the relative pose of two sweeps: the difference of two robot errors
+    prior_sd = np.sqrt(2.0) * np.r_[np.full(3, np.radians(prior_deg)), np.full(3, prior_mm * 1e-3)]
 
     reg = o3d.pipelines.registration
     rng = np.random.default_rng(seed)
@@ -663,13 +791,32 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
             res, d_fine, step = _icp(clouds[i], clouds[j], max_corr_dist, fine_dist, eye,
                                      max_iterations)
             t = np.asarray(res.transformation).copy()  # maps sweep i onto sweep j
+            # directions the pair's overlap does not constrain (a flat face: the slide
+            # in its plane and the turn about its normal; a sphere: every turn about its
+            # centre), from its whitened point-to-plane information at ICP's result
+            # (none left there: it slid off the overlap, as on a sphere): ICP slides
+            # along them, so
+            # such a pair is registered by :func:`_held_icp`, which holds them there.
+            # (Open3D's get_information_matrix_from_point_clouds is point-to-point, of
+            # full rank on a plane: it hides the slide.)
+            got = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
+                             voxel_size)
+            n_held = int(np.count_nonzero(got[0] < degenerate_ratio)) if got else 6
+            if n_held:
+                t, step = _held_icp(red[i], red[j], trees[j], max_corr_dist, fine_dist,
+                                    cents[i], prior_sd, degenerate_ratio, voxel_size,
+                                    max_iterations)
+            fin = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
+                             voxel_size)
+            held = {"held_directions": n_held,
+                    "min_information": float(fin[0][0]) if fin else None}
             info = np.asarray(reg.get_information_matrix_from_point_clouds(
                 clouds[i], clouds[j], d_fine, t)).copy()
             fit = _fit(red[i], red[j], trees[j], t, max_corr_dist)[0]
             rmse = _fit(red[i], red[j], trees[j], t, d_fine)[1]
             pair.update(fitness=fit, rmse_mm=rmse * 1e3,
                         rmse_before_mm=_fit(red[i], red[j], trees[j], eye, d_fine)[1] * 1e3,
-                        converged=_step_small(step, cents[i], voxel_size))
+                        converged=_step_small(step, cents[i], voxel_size), **held)
             rel_mm, rel_deg = _motion(t, cents[i])
             if not pair["converged"]:
                 pair["reason"] = "ICP did not converge"
@@ -1241,6 +1388,130 @@ def _mean_poses(history: list[tuple[np.ndarray, np.ndarray]]
     return rot, trans
 
 
+def _solve_held(H: np.ndarray, b: np.ndarray, prior_b: np.ndarray, prior_sd: np.ndarray,
+                free: np.ndarray, ratio: float) -> tuple[np.ndarray, dict[str, Any]]:
+    """One Gauss-Newton step in which the directions the data do not constrain are left
+    to the prior alone.
+
+    The data's normal equations ``H delta = -b`` are whitened by the prior (parameters
+    in units of the prior's standard deviations, ``u = delta / prior_sd``), so that an
+    eigenvalue of ``S H S`` (``S = diag(prior_sd)``) is the data's information along its
+    eigenvector in units of the prior's. Directions below ``ratio`` (the data know them
+    less than ``ratio`` times as well as the robot does) are removed from the data's
+    equations, information and gradient alike (Zhang, Kaess & Singh 2016, "solution
+    remapping"): there the step is the prior's alone, which holds the correction at the
+    robot's pose instead of letting residual noise, normal noise and the sliding of
+    correspondences drift it.
+
+    Parameters
+    ----------
+    H : (n, n) float64
+        Data information (pair and rim terms).
+    b : (n,) float64
+        Data gradient.
+    prior_b : (n,) float64
+        Prior gradient (``current / prior_sd**2``).
+    prior_sd : (n,) float64
+        Prior standard deviation of each parameter.
+    free : (n,) bool
+        Parameters to solve for (the others keep their value: step 0).
+    ratio : float
+        Least data-to-prior information ratio of a constrained direction.
+
+    Returns
+    -------
+    delta : (n,) float64
+    info : dict
+        ``eigenvalues`` (k,), ``vectors`` (k, k) (whitened, over the free parameters),
+        ``weak`` (k,) bool, ``free`` (k,) int (their indices).
+    """
+    n = len(b)
+    delta = np.zeros(n)
+    f = np.flatnonzero(free)
+    if len(f) == 0:
+        return delta, {"eigenvalues": np.zeros(0), "vectors": np.zeros((0, 0)),
+                       "weak": np.zeros(0, bool), "free": f}
+    sd = prior_sd[f]
+    hw = sd[:, None] * H[np.ix_(f, f)] * sd[None, :]
+    lam, vec = np.linalg.eigh(0.5 * (hw + hw.T))
+    weak = lam < ratio
+    gw = sd * b[f]
+    strong = vec[:, ~weak]
+    # (S H S)' = V_s diag(lam_s) V_s^T and g' = V_s V_s^T g: the data's part in the
+    # constrained subspace only; the identity is the prior's information
+    g_data = strong @ (strong.T @ gw)
+    u_strong = -(strong.T @ (g_data + sd * prior_b[f])) / (lam[~weak] + 1.0)
+    u_weak = -(vec[:, weak].T @ (sd * prior_b[f]))
+    delta[f] = sd * (strong @ u_strong + vec[:, weak] @ u_weak)
+    if not np.all(np.isfinite(delta)):
+        raise np.linalg.LinAlgError("non-finite step")
+    return delta, {"eigenvalues": lam, "vectors": vec, "weak": weak, "free": f}
+
+
+def _direction_report(info: dict[str, Any], k0: int, prior_sd: np.ndarray,
+                      points: np.ndarray, origin: np.ndarray) -> dict[str, Any]:
+    """Which directions one sweep's data fixed, from the whitened eigen-decomposition of
+    the normal equations (:func:`_solve_held`).
+
+    ``k0`` is the sweep's first parameter (6 per sweep: rotation about the sensor,
+    shift). The basic directions are the translations along, and the rotations about,
+    the principal axes of the sweep's points (through their centroid); each is
+    ``constrained`` when less than half of it (whitened) lies in the held subspace.
+    ``unconstrained`` describes, in plain words, each direction of the sweep that the
+    data left to the prior: a rotation about an axis (direction and a point on it, base,
+    mm) or a translation.
+    """
+    f = info["free"]
+    rows = np.flatnonzero((f >= k0) & (f < k0 + 6))
+    if len(rows) < 6:
+        return {"constrained": None, "unconstrained": ["held fixed (the gauge)"],
+                "information": None}
+    weakv = info["vectors"][rows][:, info["weak"]]  # this sweep's share of held directions
+    m = weakv @ weakv.T  # (6, 6): fraction of a whitened direction that is held
+    c = points.mean(axis=0) if len(points) else origin
+    if len(points) >= 3:
+        _, _, axes = np.linalg.svd(points - c, full_matrices=False)
+    else:
+        axes = np.eye(3)
+    if np.linalg.det(axes) < 0:
+        axes[2] *= -1
+    sd = prior_sd[:6]
+
+    def held(w: np.ndarray, t: np.ndarray) -> float:
+        u = np.r_[w, t] / sd
+        nu = np.linalg.norm(u)
+        return float(u @ m @ u / nu**2) if nu > 0 else 0.0
+
+    trans = [held(np.zeros(3), a) < 0.5 for a in axes]
+    # rotation about axis a through the centroid: w = a, shift t = a x (o - c)
+    rots = [held(a, np.cross(a, origin - c)) < 0.5 for a in axes]
+    lam_s, vec_s = np.linalg.eigh(0.5 * (m + m.T))
+    words = []
+    for val, u in zip(lam_s[::-1], vec_s[:, ::-1].T, strict=True):
+        if val < 0.5:
+            break
+        d = u * sd
+        w, t = d[:3], d[3:]
+        v_c = np.cross(w, c - origin) + t  # displacement of the centroid
+        nw = np.linalg.norm(w)
+        spread = float(np.sqrt(np.mean(np.sum((points - c) ** 2, axis=1)))) if len(
+            points) else 0.0
+        if nw * max(spread, 1e-3) > 0.2 * np.linalg.norm(v_c):
+            a = w / nw
+            p = c + np.cross(w, v_c) / nw**2
+            words.append(f"rotation about the axis ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}) "
+                         f"through ({p[0] * 1e3:.1f}, {p[1] * 1e3:.1f}, {p[2] * 1e3:.1f}) mm")
+        else:
+            a = v_c / np.linalg.norm(v_c)
+            words.append(f"translation along ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f})")
+    # the sweep's own block: information of its directions, others held fixed
+    blk = info["vectors"][rows] * info["eigenvalues"][None, :] @ info["vectors"][rows].T
+    return {"constrained": {"translation": trans, "rotation": rots,
+                            "axes": np.round(axes, 4).tolist()},
+            "unconstrained": words,
+            "information": np.round(np.linalg.eigvalsh(0.5 * (blk + blk.T)), 3).tolist()}
+
+
 def _huber(r: np.ndarray, k: float) -> np.ndarray:
     a = np.abs(r)
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
@@ -1275,6 +1546,7 @@ def refine_sweeps(
     normal_reach: float = 4e-3,
     normal_max_spacing: float = 1.5e-3,
     rim_weight: float = 3.0,
+    degenerate_ratio: float = 200.0,
     seed: int = 0,
 ) -> RefinementResult:
     """Joint refinement of all sweep corrections against each other and the silhouettes.
@@ -1429,6 +1701,8 @@ def refine_sweeps(
     n_par = 6 * len(act)
     sig_t = prior_mm * 1e-3
     sig_r = np.radians(prior_deg)
+    prior_sd = np.r_[np.full(3, sig_r), np.full(3, sig_t)]
+    degen: dict[str, np.ndarray] = {}
     sigma_p = max(voxel_size, 1e-6)  # robust scale of the pair residuals (metres)
     sigma_s = 0.5                    # ... of the rim residuals (px)
     converged = False
@@ -1492,24 +1766,23 @@ def refine_sweeps(
                 H[k:k + 6, k:k + 6] += js.T @ (js * w[:, None])
                 b[k:k + 6] += js.T @ (w * r)
                 rims.append((s, r))
-        # prior on each correction (rotation vector, sensor shift)
+        # prior on each correction (rotation vector, sensor shift): its information
+        # and gradient, kept apart from the data's so that the directions the data do
+        # not constrain can be left to it alone
+        prior_b = np.zeros(n_par)
         for s in act:
             k = 6 * index[s]
-            wv = _log_so3(rot[s])
-            H[k:k + 3, k:k + 3] += np.eye(3) / sig_r**2
-            H[k + 3:k + 6, k + 3:k + 6] += np.eye(3) / sig_t**2
-            b[k:k + 3] += wv / sig_r**2
-            b[k + 3:k + 6] += trans[s] / sig_t**2
+            prior_b[k:k + 3] = _log_so3(rot[s]) / sig_r**2
+            prior_b[k + 3:k + 6] = trans[s] / sig_t**2
+        free = np.ones(n_par, dtype=bool)
         for s in fixed:  # gauge: these sweeps keep their initial correction
             if s in index:
-                k = 6 * index[s]
-                H[k:k + 6, :] = 0.0
-                H[:, k:k + 6] = 0.0
-                H[k:k + 6, k:k + 6] = np.eye(6)
-                b[k:k + 6] = 0.0
-        try:  # the prior makes H positive definite; no damping (it would act as a
-            # second prior, toward the current estimate, and stall the gauge)
-            delta = -np.linalg.solve(H, b)
+                free[6 * index[s]:6 * index[s] + 6] = False
+        try:
+            delta, degen = _solve_held(H, b, prior_b, np.tile(prior_sd, len(act)), free,
+                                       degenerate_ratio)
+            log.debug("refine it %d: whitened data information %s", it,
+                      np.array2string(degen["eigenvalues"], precision=3))
         except np.linalg.LinAlgError:
             log.warning("refinement: singular normal equations at iteration %d", it)
             break
@@ -1560,9 +1833,13 @@ def refine_sweeps(
     per_sweep = []
     for s in range(n_s):
         r = rim_stats.get(s, np.zeros(0))
-        per_sweep.append({"sweep": s, "n_rim": int(len(r)),
-                          "rim_rms_px": float(np.sqrt(np.mean(r**2))) if len(r) else None,
-                          "rim_median_px": float(np.median(r)) if len(r) else None})
+        entry = {"sweep": s, "n_rim": int(len(r)),
+                 "rim_rms_px": float(np.sqrt(np.mean(r**2))) if len(r) else None,
+                 "rim_median_px": float(np.median(r)) if len(r) else None}
+        if s in index and degen:
+            o_mean = O[s].mean(axis=0) if len(O[s]) else np.zeros(3)
+            entry.update(_direction_report(degen, 6 * index[s], prior_sd, P[s], o_mean))
+        per_sweep.append(entry)
     sil = {"n_views": len(fields), "n_rim": int(len(all_rim)),
            "rms_px": float(np.sqrt(np.mean(all_rim**2))) if len(all_rim) else None,
            "median_px": float(np.median(all_rim)) if len(all_rim) else None,

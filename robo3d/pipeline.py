@@ -992,7 +992,9 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                               refine_iterations=ac["refine_iterations"],
                               rim_weight=ac["rim_weight"],
                               normal_k=ac["pair_normals_k"],
-                              normal_max_spacing=ac["pair_normals_max_spacing_m"])
+                              normal_max_spacing=ac["pair_normals_max_spacing_m"],
+                              degenerate_ratio=ac["degenerate_ratio"],
+                              pair_degenerate_ratio=ac["pair_degenerate_ratio"])
         align_report = {"method": result.method, "gauge": result.gauge,
                         "reference": result.reference, "pairs": result.pairs,
                         "per_sweep": result.per_sweep, "refinement": result.refinement,

@@ -75,6 +75,8 @@ __all__ = ["fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull", "r
 #: between the laser's observed and seen-empty space.
 SOURCES: tuple[str, ...] = ("measured", "hull", "filled")
 MEASURED, HULL, FILLED = 0, 1, 2
+#: Coarsening of the grid on which the lines of sight carve beyond ``carve_depth_m``.
+_FAR = 4
 #: What fusion does where the laser saw nothing (``fusion.close``).
 CLOSE_MODES: tuple[str, ...] = ("hull", "free_space", "none")
 
@@ -460,6 +462,7 @@ def fuse_tsdf(
     max_edge_factor: float = 2.0,
     border_ramp_m: float = 1.0e-3,
     carve_depth_m: float = 0.02,
+    carve_full_line: bool = True,
     interp_sigma_m: float = 0.0,
     interp_floor: float = 0.05,
     max_voxels: int = 64_000_000,
@@ -536,8 +539,14 @@ def fuse_tsdf(
     border_ramp_m : float, metres
         Width of the weight ramp at range-surface borders.
     carve_depth_m : float, metres
-        How far in front of the surface the lines of sight carve (deeper concavities than
-        this are left to the hull).
+        How far in front of the surface the lines of sight carve at the grid's
+        resolution.
+    carve_full_line : bool
+        Beyond ``carve_depth_m`` the lines of sight carve on to the sensor or the grid's
+        border, on a grid 4 times coarser (a cup's opening: the lines that saw its
+        inside pass through it; the hull would close it). Only where the laser observed
+        nothing is carved space used, so a coarse voxel carved beside a line moves
+        inferred surface only (by at most 1.5 fine voxels).
     interp_sigma_m, interp_floor : float
         Weight of a range-surface hit falls as ``floor + (1 - floor) exp(-(d / sigma)^2)``
         with its distance ``d`` to the nearest measured point of its triangle: between
@@ -653,6 +662,9 @@ def fuse_tsdf(
     sum_wc = np.zeros(n_vox, dtype=np.float32)  # weight x cos: the mean incidence
     n_obs = np.zeros(n_vox, dtype=np.uint16)  # scans that reached the voxel
     seen_empty = np.zeros(n_vox, dtype=bool)
+    carve_far = bool(carve_free_space and carve_full_line)
+    far_shape = tuple(-(-n // _FAR) for n in shape)
+    far_empty = np.zeros(int(np.prod(far_shape)) if carve_far else 0, dtype=bool)
     shift = 0.5 * (lo + hi)  # float32 ray casting in a frame centred on the object
     scans = []
     clock["setup"] = time.perf_counter() - t_start
@@ -723,11 +735,21 @@ def fuse_tsdf(
             _carve_lines_of_sight(seen_empty, np.concatenate([p, cen]),
                                   np.concatenate([o, o_c]), origin, voxel_size, shape,
                                   start=trunc + voxel_size, depth=carve_depth_m)
+            if carve_far:  # beyond carve_depth_m, to the grid's border, on a coarse grid
+                _carve_lines_of_sight(far_empty, p, o, origin + 0.5 * (_FAR - 1) * voxel_size,
+                                      _FAR * voxel_size, far_shape, start=carve_depth_m,
+                                      depth=np.inf)
             t_carve += time.perf_counter() - ta
     clock.update(range_surfaces=t_rs, rays=t_rays, carve=t_carve)
     ta = time.perf_counter()
     if carve_free_space:
         seen_empty = ndimage.binary_dilation(seen_empty.reshape(shape)).ravel()
+        if carve_far:
+            up = far_empty.reshape(far_shape)
+            for ax in range(3):
+                up = np.repeat(up, _FAR, axis=ax)
+            seen_empty |= up[: shape[0], : shape[1], : shape[2]].ravel()
+            report["n_voxels_seen_empty_far"] = int(np.count_nonzero(up))
     observed = sum_w >= min_weight
     tsdf = np.full(n_vox, trunc, dtype=np.float32)
     tsdf[observed] = sum_wd[observed] / sum_w[observed]

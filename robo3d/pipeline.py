@@ -1181,7 +1181,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 carve_free_space=fc["carve_free_space"], min_weight=fc["min_weight"],
                 min_cos_view=fc["min_cos_view"], threads=_stage_threads(threads),
                 close=fc["close"], max_fill_distance_m=1e-3 * fc["max_fill_distance_mm"],
-                carve_depth_m=fc["carve_depth_m"], return_attributes=True)
+                carve_depth_m=fc["carve_depth_m"], carve_full_line=fc["carve_full_line"],
+                return_attributes=True)
             source = "laser (TSDF)" + {
                 "hull": ", holes closed from the hull",
                 "free_space": ", holes near measurements closed, far ones left open",

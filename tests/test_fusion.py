@@ -331,3 +331,43 @@ def test_tsdf_provenance_per_vertex_and_close_modes():
         assert common.mean() > 0.95
     with pytest.raises(ValueError, match="close"):
         fuse_tsdf(pts, nrm, org, close="everything")
+
+
+def test_tsdf_lines_of_sight_open_a_deep_cavity_the_hull_closes():
+    """A block with a 40 mm deep open pocket, seen from above: the laser measures the top
+    and the pocket's floor; the hull (the views cannot see into the pocket) is the full
+    block. The lines of sight that saw the floor pass through the opening: carved to
+    their end they keep the pocket open; carved 20 mm only, the hull's lid closes it."""
+    from robo3d.fusion import MEASURED, fuse_tsdf
+
+    rng = np.random.default_rng(1)
+    top, floor, half, pocket = 0.05, 0.01, 0.03, 0.015  # z of top and floor; half sizes
+    n = 25000
+    xy = rng.uniform(-half, half, (n, 2))
+    on_top = np.any(np.abs(xy) > pocket, axis=1)
+    p_top = np.c_[xy[on_top], np.full(on_top.sum(), top)]
+    xy2 = rng.uniform(-pocket + 1e-3, pocket - 1e-3, (n // 3, 2))
+    p_floor = np.c_[xy2, np.full(len(xy2), floor)]
+    p = np.vstack([p_top, p_floor])
+    o = np.tile([0.0, 0.0, 0.35], (len(p), 1))
+    nrm = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    vs = 2e-3
+    shape = (40, 40, 34)
+    origin = np.array([-0.039, -0.039, -0.007])
+    centres = origin + np.indices(shape).reshape(3, -1).T * vs
+    occ = (np.all(np.abs(centres[:, :2]) < half, axis=1) & (centres[:, 2] > 0)
+           & (centres[:, 2] < top)).reshape(shape)
+    hull = {"origin": origin, "voxel_size": vs, "occupancy": occ}
+    lid = {}
+    for full in (True, False):
+        v, f, rep, a = fuse_tsdf([p], [nrm], [o], voxel_size=1.5e-3, hull=hull,
+                                 carve_depth_m=0.02, carve_full_line=full,
+                                 return_attributes=True)
+        inside = np.all(np.abs(v[:, :2]) < pocket - 3e-3, axis=1)
+        lid[full] = int(np.count_nonzero(inside & (v[:, 2] > floor + 0.01)))
+        meas = a["source"] == MEASURED
+        # the measured floor and top are the laser's either way
+        assert np.abs(v[meas & inside, 2] - floor).max() < 0.2e-3
+        assert np.count_nonzero(meas & inside) > 100
+    assert lid[True] == 0  # the opening stays open: no surface above the floor
+    assert lid[False] > 100  # carved 20 mm only: the hull's lid across the opening

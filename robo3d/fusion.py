@@ -506,7 +506,8 @@ def fuse_tsdf(
     7. ``close`` chooses what is done where the laser saw nothing: ``hull`` closes every
        hole (step 5, watertight); ``free_space`` closes only what lies within
        ``max_fill_distance_m`` of a measured point and leaves the mesh open farther away
-       (an inferred patch that far is invention); ``none`` keeps only measured surface.
+       (an inferred patch that far is invention; in the other modes it is kept and
+       marked ``far_from_measured``); ``none`` keeps only measured surface.
        Inferred surface never moves measured surface: observed voxels keep their TSDF.
 
     Parameters
@@ -572,7 +573,9 @@ def fuse_tsdf(
         Counter-clockwise seen from outside.
     attributes : dict of str to (V,) array, with ``return_attributes``
         ``source`` (uint8, :data:`SOURCES`), ``n_obs`` (uint16), ``incidence``,
-        ``tsdf_weight``, ``dist_measured_m``, ``confidence`` (float32).
+        ``tsdf_weight``, ``dist_measured_m``, ``confidence`` (float32), and
+        ``far_from_measured`` (uint8: inferred and farther than ``max_fill_distance_m``
+        from every measured point).
     report : dict
         ``n_points``, ``n_points_used``, ``n_scans``, ``voxel_size``, ``trunc``,
         ``grid_shape``, ``n_voxels_observed``, ``n_voxels_seen_empty``,
@@ -805,9 +808,10 @@ def fuse_tsdf(
                                                                                    ].astype(np.float32)
     else:
         attrs["dist_measured_m"] = np.zeros(0, np.float32)
+    far = (attrs["source"] != MEASURED) & (attrs["dist_measured_m"] > max_fill_distance_m)
+    attrs["far_from_measured"] = far.astype(np.uint8)
     n_far = 0
     if filled and close == "free_space":
-        far = (attrs["source"] != MEASURED) & (attrs["dist_measured_m"] > max_fill_distance_m)
         n_far = int(far.sum())
         v, f, attrs = keep_vertices(v, f, attrs, ~far)
     attrs["confidence"] = _vertex_confidence(attrs, voxel_size)

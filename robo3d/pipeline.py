@@ -1194,7 +1194,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
             V, F, fuse_report = fuse_poisson(pts, nrm, depth=fc["poisson_depth"],
                                              density_quantile=fc["density_quantile"],
                                              hull=crop, seed=cfg["seed"])
-            attrs = _poisson_provenance(V, pts, fc["tsdf_voxel_m"])
+            attrs = _poisson_provenance(V, pts, fc["tsdf_voxel_m"],
+                                        1e-3 * fc["max_fill_distance_mm"])
             source = "laser (screened Poisson)"
             if crop is not None:
                 cut = str(fuse_report.get("hull_cut", "applied"))
@@ -1208,7 +1209,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                  "incidence": np.zeros(len(V), np.float32),
                  "tsdf_weight": np.zeros(len(V), np.float32),
                  "dist_measured_m": np.full(len(V), np.inf, np.float32),
-                 "confidence": np.zeros(len(V), np.float32)}
+                 "confidence": np.zeros(len(V), np.float32),
+                 "far_from_measured": np.ones(len(V), np.uint8)}
         source = "visual hull"
     else:
         raise StageError("fusion needs aligned clouds or a hull, got neither")
@@ -1222,6 +1224,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
               **fuse_report, "vertices": len(V), "faces": len(F),
               "source_area_fraction": fractions,
               "inferred_area_fraction": 1.0 - fractions["measured"],
+              "inferred_far_area_fraction": _area_fraction(V, F, attrs["far_from_measured"]
+                                                           > 0),
               "measured_faces": len(Fm),
               "vertex_attributes": {"source": {str(i): n for i, n in enumerate(SOURCES)},
                                     "fields": sorted(attrs)},
@@ -1242,6 +1246,16 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     return report
 
 
+def _area_fraction(V: np.ndarray, F: np.ndarray, flag: np.ndarray) -> float:
+    """Share of a mesh's area on faces with a flagged vertex."""
+    if len(F) == 0:
+        return 0.0
+    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                axis=1)
+    total = float(area.sum())
+    return float(area[np.any(flag[F], axis=1)].sum() / total) if total > 0 else 0.0
+
+
 #: Vertex colours of the provenance in fused.ply and mesh.ply (and their rerun logs):
 #: measured grey, inferred from the hull orange, filled yellow.
 _SOURCE_RGB = np.array([[190, 190, 190], [240, 120, 30], [240, 210, 40]], dtype=np.uint8)
@@ -1252,7 +1266,8 @@ def source_colors(source: np.ndarray) -> np.ndarray:
     return _SOURCE_RGB[np.clip(np.asarray(source, np.int64), 0, len(_SOURCE_RGB) - 1)]
 
 
-def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float) -> dict[str, np.ndarray]:
+def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float, far_m: float
+                        ) -> dict[str, np.ndarray]:
     """Provenance of screened-Poisson vertices: measured within ``2 * voxel`` of a laser
     point (or twice the points' median spacing, if larger), else inferred (hull)."""
     from scipy.spatial import cKDTree
@@ -1268,7 +1283,8 @@ def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float) -> dict[st
             "tsdf_weight": np.zeros(len(V), np.float32),
             "dist_measured_m": d.astype(np.float32),
             "confidence": np.where(near, np.exp(-(d / (2 * voxel)) ** 2), 0.0
-                                   ).astype(np.float32)}
+                                   ).astype(np.float32),
+            "far_from_measured": (~near & (d > far_m)).astype(np.uint8)}
 
 
 def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],

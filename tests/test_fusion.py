@@ -300,7 +300,10 @@ def test_tsdf_provenance_per_vertex_and_close_modes():
                                return_attributes=True)
     v, f, rep, a = out["hull"]
     assert set(a) == {"source", "n_obs", "incidence", "tsdf_weight", "dist_measured_m",
-                      "confidence"}
+                      "confidence", "far_from_measured"}
+    assert np.array_equal(a["far_from_measured"] > 0,
+                          (a["source"] != MEASURED) & (a["dist_measured_m"] > 3e-3))
+    assert a["far_from_measured"][v[:, 2] < C[2] - 0.5 * R].all()
     assert all(len(x) == len(v) for x in a.values())
     meas = a["source"] == MEASURED
     err = _radial_error(v)

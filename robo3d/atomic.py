@@ -16,14 +16,37 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "write_json", "save_npz", "json_default"]
+__all__ = ["atomic_path", "write_json", "save_npz", "json_default", "file_mode", "dir_mode"]
+
+
+def _process_umask() -> int:
+    """The process's umask (read once: setting it back at once is the only way to read it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _process_umask()
+
+
+def file_mode() -> int:
+    """The mode a new file gets from ``open()``: 0666 less the process's umask (0644 with
+    the usual 022), so that other users of a shared cell can read the results."""
+    return 0o666 & ~_UMASK
+
+
+def dir_mode() -> int:
+    """The mode a new folder gets from ``mkdir``: 0777 less the umask (0755 with 022)."""
+    return 0o777 & ~_UMASK
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it to ``path`` if the block succeeds,
     remove it if the block raises. The temporary name keeps the target's suffix so that
-    libraries choosing a format by extension (Open3D, pymeshlab) still do."""
+    libraries choosing a format by extension (Open3D, pymeshlab) still do. The file gets
+    the mode an ordinary ``open()`` would give it (:func:`file_mode`), not ``mkstemp``'s
+    0600."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}",
@@ -32,6 +55,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, file_mode())
         os.replace(tmp_path, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -69,7 +69,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -78,6 +77,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .atomic import atomic_path
 from .camera import CameraModel, pixel_rays, project_points
 from .errors import StageError
 from .silhouettes import _check_box, _distortion_limit_r2
@@ -235,15 +235,8 @@ class VoxelGrid:
                                  f"got {type(value).__name__}")
             arrays[key] = a
         arrays["_json_keys"] = np.array(json_keys, dtype=np.str_)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
 
     @classmethod
     def load_npz(cls, path: str | os.PathLike, *, return_extra: bool = False):

@@ -149,11 +149,12 @@ def _write_ply(
     path: Path,
     vertex_props: list[tuple[str, str, np.ndarray]],
     faces: np.ndarray | None,
+    comment: str | None = None,
 ) -> None:
     """Write a binary little-endian PLY from (name, ply_type, (N,) array) vertex properties."""
     n = vertex_props[0][2].shape[0]
     header = ["ply", "format binary_little_endian 1.0", "comment written by robo3d",
-              f"element vertex {n}"]
+              *([f"comment {comment}"] if comment else []), f"element vertex {n}"]
     header += [f"property {ptype} {name}" for name, ptype, _ in vertex_props]
     if faces is not None:
         header += [f"element face {faces.shape[0]}", "property list uchar int vertex_indices"]
@@ -194,6 +195,8 @@ def _ply_vertex_count(path: Path) -> int | None:
 
 
 # --------------------------------------------------------------------------- meshes
+#: Units a mesh file can be written in: the factor from metres.
+_UNITS = {"m": 1.0, "mm": 1000.0}
 
 
 def write_mesh(
@@ -204,6 +207,7 @@ def write_mesh(
     vertex_normals: np.ndarray | None = None,
     vertex_colors: np.ndarray | None = None,
     attributes: dict[str, np.ndarray] | None = None,
+    unit: str = "m",
 ) -> None:
     """Write a triangle mesh, atomically, in the format its suffix names.
 
@@ -224,6 +228,10 @@ def write_mesh(
         ``confidence``), stored with their type (bool and uint8 as ``uchar``, other
         integers as ``int``, floats as ``float``/``double``); read back with
         :func:`read_vertex_attributes`.
+    unit : {"m", "mm"}
+        Unit of the coordinates in the file (``vertices`` are in metres): ``mm`` scales
+        them by 1000 (STL has no unit field; slicers and CAD tools read millimetres). A
+        PLY in mm says so in a header comment.
 
     Raises
     ------
@@ -234,7 +242,9 @@ def write_mesh(
     suffix = path.suffix.lower()
     if suffix not in _MESH_SUFFIXES:
         raise ValueError(f"mesh path must end in one of {_MESH_SUFFIXES}, got {str(path)!r}")
-    v = _as_points("vertices", vertices).astype(np.float64)
+    if unit not in _UNITS:
+        raise ValueError(f"unit must be one of {tuple(_UNITS)}, got {unit!r}")
+    v = _as_points("vertices", vertices).astype(np.float64) * _UNITS[unit]
     f = _as_faces(faces, v.shape[0])
     n = None if vertex_normals is None else _as_points("vertex_normals", vertex_normals, len(v))
     c = None if vertex_colors is None else _as_colors_uint8(vertex_colors, len(v))
@@ -251,18 +261,18 @@ def write_mesh(
                 if name in {p[0] for p in props} or not name.isidentifier():
                     raise ValueError(f"attribute name {name!r} is reserved or not a name")
                 props.append((name, *_ply_scalar(name, arr, len(v))))
-            _write_ply(tmp, props, f)
+            _write_ply(tmp, props, f, comment=f"unit {unit}" if unit != "m" else None)
         elif suffix == ".obj":
-            _write_obj(tmp, v, f, n, c)
+            _write_obj(tmp, v, f, n, c, unit=unit)
         else:  # .stl
             _write_stl(tmp, v, f)
     log.debug("wrote mesh %s: %d vertices, %d faces", path, len(v), len(f))
 
 
 def _write_obj(path: Path, v: np.ndarray, f: np.ndarray, n: np.ndarray | None,
-               c: np.ndarray | None) -> None:
+               c: np.ndarray | None, unit: str = "m") -> None:
     with open(path, "w", encoding="ascii") as fh:
-        fh.write("# written by robo3d\n")
+        fh.write(f"# written by robo3d; unit {unit}\n")
         if c is not None:
             np.savetxt(fh, np.hstack([v, c / 255.0]), fmt="v %.17g %.17g %.17g %.6g %.6g %.6g")
         else:

@@ -15,6 +15,7 @@ after ICP), and ``reports/<stage>.json``.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -24,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import save_npz, write_json
+from .atomic import dir_mode, save_npz, write_json
 from .camera import CameraModel
 from .errors import Robo3dError, StageError
 
@@ -329,6 +330,7 @@ def _write_mask_pngs(directory: str, masks: list[np.ndarray]) -> None:
     target = Path(directory)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    os.chmod(tmp, dir_mode())  # mkdtemp makes 0700: others of the cell must read the masks
     try:
         for i, m in enumerate(masks):
             if not cv2.imwrite(str(tmp / f"view_{i:03d}.png"), m.astype(np.uint8) * 255):
@@ -1319,6 +1321,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "hausdorff_tolerance_m": sc["hausdorff_tolerance_m"],
               "within_tolerance": bool(within),
               "exports": [k for k in ("ply", "stl", "obj") if outputs.get(k)],
+              "export_unit": {"ply": "m", "stl": sc["export_unit"], "obj": sc["export_unit"]},
               "seconds": round(time.perf_counter() - t0, 3)}
     attrs = transfer_vertex_attributes(V0, attrs_in, V2)
     if "source" in attrs:
@@ -1329,7 +1332,8 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     for key in ("ply", "stl", "obj"):
         if outputs.get(key):
             write_mesh(outputs[key], V2, F2, vertex_colors=colours if key == "ply" else None,
-                       attributes=attrs if key == "ply" else None)
+                       attributes=attrs if key == "ply" else None,
+                       unit="m" if key == "ply" else sc["export_unit"])
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         if colours is not None:
             log_mesh(rr_stream, "base/mesh", V2, F2, vertex_colors=colours)

@@ -198,3 +198,22 @@ def test_vertex_attributes_round_trip_and_errors(tmp_path):
     bad.write_bytes(b"solid x\n")
     with pytest.raises(ValueError, match="not a PLY"):
         read_vertex_attributes(bad)
+
+
+def test_stl_and_obj_in_millimetres_and_files_readable_by_others(tmp_path):
+    import os
+
+    from robo3d.atomic import file_mode
+    from robo3d.meshio import read_mesh, write_mesh
+
+    v = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.05, 0.02]])
+    f = np.array([[0, 1, 2]])
+    for suffix in (".stl", ".obj", ".ply"):
+        p = tmp_path / f"m_mm{suffix}"
+        write_mesh(p, v, f, unit="mm")
+        V, _ = read_mesh(p)
+        np.testing.assert_allclose(V, v * 1000.0, rtol=1e-6)  # 100 mm long, as CAD reads it
+        assert os.stat(p).st_mode & 0o777 == file_mode()  # not mkstemp's 0600
+    assert "unit mm" in (tmp_path / "m_mm.obj").read_text().splitlines()[0]
+    with pytest.raises(ValueError, match="unit"):
+        write_mesh(tmp_path / "x.stl", v, f, unit="inch")

@@ -47,6 +47,7 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from ..atomic import file_mode
 from ..camera import CameraModel
 from ..transforms import matrix_to_quat
 from .images import COMPRESSED_ENCODINGS, RAW_ENCODINGS, encode_image, normalize_encoding
@@ -203,7 +204,7 @@ class RecordingWriter:
             raise FileNotFoundError(f"directory of {str(self.path)!r} does not exist")
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=directory)
         self._tmp_path = Path(tmp)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; a recording is an ordinary data file
+        os.chmod(tmp, file_mode())  # mkstemp makes 0600; a recording is an ordinary file
         self._file = os.fdopen(fd, "wb")
         self._writer = McapWriter(self._file, chunk_size=int(chunk_size),
                                   compression=_COMPRESSION[compression])

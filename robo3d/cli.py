@@ -25,6 +25,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from . import __version__
 from .errors import Robo3dError
 
 __all__ = ["main", "build_parser", "Command", "COMMANDS"]
@@ -281,6 +282,11 @@ def _run_status(args: argparse.Namespace) -> int:
     from .info import _dumps, batch_status, format_batch_status
 
     status = batch_status(args.results, args.logs)
+    if not status["recordings"]:
+        _log.error("no results: neither %s nor %s holds a recording's results (run the "
+                   "workflow first, or point --results/--logs at its folders)",
+                   args.results, args.logs)
+        return 1
     sys.stdout.write((_dumps(status) if args.json else format_batch_status(status)) + "\n")
     return 1 if status["failed"] else 0
 
@@ -302,6 +308,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="robo3d", description="Measured 3D models from a robot-carried camera and "
                                    "line laser.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version",
+                        version=f"robo3d {__version__} (python {sys.version.split()[0]})")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for cmd in COMMANDS:
         p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)

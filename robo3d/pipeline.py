@@ -94,6 +94,10 @@ def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = No
             paths.append(p)
         else:
             raise ConfigError(f"config key recordings: {item} does not exist")
+    if not paths:
+        raise ConfigError(f"config key recordings: no recording in {', '.join(map(str, items))}"
+                          f" ({_what_is_there(items)}); robo3d reads MCAP files (*.mcap) "
+                          "and rosbag2 folders holding them")
     out: dict[str, RecordingEntry] = {}
     for p in paths:
         name = p.stem if p.is_file() else p.name
@@ -102,6 +106,25 @@ def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = No
                               f"({out[name].path} and {p}); results/<name>/ must be unique")
         out[name] = RecordingEntry(name, str(p), None, dict(topics or {}))
     return out
+
+
+def _what_is_there(items: list[str]) -> str:
+    """What the folders of a recordings list hold instead of recordings, in words."""
+    from collections import Counter
+
+    files = [f for it in items if Path(it).is_dir() for f in Path(it).rglob("*")
+             if f.is_file()][:10000]
+    if not files:
+        return "it is empty" if len(items) == 1 else "they are empty"
+    kinds = Counter(f.suffix.lower() or "(no suffix)" for f in files)
+    found = ", ".join(f"{n} {k}" for k, n in kinds.most_common(5))
+    hint = ""
+    if ".db3" in kinds:
+        hint = ("; .db3 files are ROS 2 bags in SQLite: convert them to MCAP with "
+                "`ros2 bag convert` (storage_id mcap)")
+    elif ".bag" in kinds:
+        hint = "; .bag files are ROS 1 bags: convert them with `mcap convert`"
+    return f"found {found}{hint}"
 
 
 def _is_bag_dir(d: Path) -> bool:
@@ -1464,7 +1487,15 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
             ev_out["measured"] = _measured_evaluation(inputs["measured"], truth, ev, cfg,
                                                       scored, region)
         if inputs.get("aligned") and "ground_truth/tf.json" in rec.attachments:
-            ev_out["poses"] = _pose_errors(rec, inputs)
+            try:
+                ev_out["poses"] = _pose_errors(rec, inputs)
+            except (Robo3dError, ValueError, KeyError, TypeError) as exc:
+                # a damaged or unknown form of the truth costs only the pose figures
+                metrics["skipped"]["poses"] = (f"ground_truth/tf.json cannot be used: "
+                                               f"{type(exc).__name__}: {exc}")
+                log.warning("%s: %s", rec_path, metrics["skipped"]["poses"])
+        elif inputs.get("aligned"):
+            metrics["skipped"]["poses"] = "the recording carries no ground_truth/tf.json"
         vertex_error_mm = truth.distance(V_final) * 1e3
     _mask_evaluation(inputs, rec, has_true_masks, metrics, ev_out)
     if ev_out:

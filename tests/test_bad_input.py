@@ -627,3 +627,28 @@ def test_random_damage_reads_or_raises_robo3d_errors(seeds: dict, tmp_path: Path
 def test_error_types_are_robo3d_errors() -> None:
     for cls in (RecordingError, TransformError, CalibrationError, ImageDecodeError, StageError):
         assert issubclass(cls, Robo3dError)
+
+
+def test_a_recordings_folder_without_recordings_fails_early_and_says_what_is_there(tmp_path):
+    from robo3d.errors import ConfigError
+    from robo3d.pipeline import find_recordings
+
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ConfigError, match=r"no recording in .*empty \(it is empty\)"):
+        find_recordings(str(tmp_path / "empty"))
+    bag = tmp_path / "bags" / "scan_0"
+    bag.mkdir(parents=True)
+    (bag / "scan_0.db3").write_bytes(b"SQLite format 3\x00")
+    with pytest.raises(ConfigError, match=r"1 \.db3.*ROS 2 bags in SQLite.*ros2 bag convert"):
+        find_recordings([str(tmp_path / "bags")])
+
+
+def test_status_without_results_and_version(tmp_path, monkeypatch, capsys):
+    from robo3d import __version__
+    from robo3d.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["status"]) == 1
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and __version__ in capsys.readouterr().out

@@ -1,0 +1,191 @@
+"""Property test of the alignment (issue 11): on many small random scans of the simulator's
+objects (shapes, 2-5 sweeps, 0/4/8 silhouette views, seeds) ``align_sweeps`` never raises
+anything but robo3d's own errors, and the aligned sweeps are never worse than the robot's
+poses by more than a small margin against the truth.
+
+The scans are made directly from the simulator's ray caster (no images of the laser, no
+front end, so that the whole test runs in well under a minute): per laser frame the true
+lit points (:func:`robo3d.sim.render.visible_stripe_points`) at 320 x 240 with the
+simulated lens distortion, their true normals from the mesh, placed in ``base`` by a
+robot pose carrying a constant per-sweep error (0.2-0.4 mm and 0.1-0.3 degrees at the
+camera, as ``robo3d simulate`` draws it), and, for views, the rendered grey images and
+their true silhouettes at the views' (exact) poses.
+
+Scoring: each sweep's RMS displacement of its points from the truth, before (the robot's
+poses) and after alignment. With views the figure is absolute; without, the common motion
+is free (the gauge), so both figures are taken after the rigid motion that best puts the
+reference sweep on its truth.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from robo3d.errors import Robo3dError
+from robo3d.registration import SilhouetteViews, align_sweeps
+
+sim_render = pytest.importorskip("robo3d.sim.render")
+from robo3d.sim import rig, shapes  # noqa: E402
+
+WIDTH, HEIGHT = 320, 240
+MARGIN_MM = 0.05  # an aligned sweep may be this much worse than at the robot's pose
+
+
+@functools.cache
+def _scene(name: str):
+    mesh = shapes.make_object(name, voxel=0.0012, faces=8000)
+    return sim_render.SimScene(mesh)
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rigid (4, 4) that best maps points a onto b."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    r = vt.T @ d @ u.T
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = r, cb - r @ ca
+    return out
+
+
+def _scan(name: str, n_sweeps: int, n_views: int, frames: int, seed: int):
+    """Sweeps (placed points, normals, origins, profiles, true points) and views."""
+    import open3d as o3d
+
+    rng = np.random.default_rng(seed)
+    scene = _scene(name)
+    cam = rig.default_camera(WIDTH, HEIGHT)
+    t_cl = rig.default_laser_mount()
+    v = scene.mesh.vertices
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    target = 0.5 * (lo + hi)
+    closest = o3d.t.geometry.RaycastingScene()
+    closest.add_triangles(o3d.core.Tensor(np.ascontiguousarray(v, np.float32)),
+                          o3d.core.Tensor(np.ascontiguousarray(scene.mesh.faces, np.uint32)))
+    az0 = rng.uniform(0, 360)
+    out = []
+    for s in range(n_sweeps):
+        top = n_sweeps > 2 and s == n_sweeps - 1
+        az = az0 + 360.0 * s / max(n_sweeps - (1 if n_sweeps > 2 else 0), 1)
+        el = 90.0 if top else rng.uniform(30, 55)
+        t0, direction, length = rig.sweep_poses(az, el, target, 0.27, t_cl, lo, hi, 1e-3)
+        steps = np.linspace(0.0, length, frames)
+        # the robot's constant error of this sweep, in the camera frame
+        axis = rng.normal(size=3)
+        ang = np.radians(rng.uniform(0.1, 0.3))
+        shift = rng.normal(size=3)
+        err = np.eye(4)
+        err[:3, :3] = _rot(axis, ang)
+        err[:3, 3] = rng.uniform(0.2e-3, 0.4e-3) * shift / np.linalg.norm(shift)
+        pts, tru, org, prof = [], [], [], []
+        for f, d in enumerate(steps):
+            t_true = t0.copy()
+            t_true[:3, 3] += d * direction
+            st = sim_render.visible_stripe_points(scene, cam, t_true, t_true @ t_cl,
+                                                  n_rays=4 * WIDTH)
+            x = st.points_base[st.on_object]
+            if not len(x):
+                continue
+            t_rep = t_true @ err
+            placed = x @ (t_rep @ np.linalg.inv(t_true))[:3, :3].T + (
+                t_rep @ np.linalg.inv(t_true))[:3, 3]
+            pts.append(placed)
+            tru.append(x)
+            org.append(np.broadcast_to(t_rep[:3, 3], x.shape))
+            prof.append(np.full(len(x), f))
+        if pts:
+            p, x = np.concatenate(pts), np.concatenate(tru)
+            o, g = np.concatenate(org), np.concatenate(prof)
+        else:
+            p = x = o = np.zeros((0, 3))
+            g = np.zeros(0, np.int64)
+        n = np.zeros((0, 3))
+        if len(x):
+            ans = closest.compute_closest_points(o3d.core.Tensor(x.astype(np.float32)))
+            n = ans["primitive_normals"].numpy().astype(np.float64).reshape(-1, 3)
+        n = n @ err_rot(err, t0).T  # normals as placed
+        n *= np.where(np.einsum("ij,ij->i", n, o - p) < 0, -1.0, 1.0)[:, None]
+        out.append((p, n, o, g, x))
+    views = None
+    if n_views:
+        poses = rig.view_poses(n_views, target, 0.3, (25.0, 55.0), rng)
+        imgs, masks = [], []
+        for t in poses:
+            img, sil = sim_render.render_view(scene, cam, t, return_silhouette=True)
+            imgs.append(np.asarray(img).mean(axis=2))
+            masks.append(sil)
+        views = SilhouetteViews(imgs, masks, [cam] * n_views, np.asarray(poses))
+    return out, views
+
+
+def err_rot(err: np.ndarray, t0: np.ndarray) -> np.ndarray:
+    """The base-frame rotation of a camera-frame error (the sweep does not turn)."""
+    return t0[:3, :3] @ err[:3, :3] @ t0[:3, :3].T
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    a = axis / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _cases(n: int = 10):
+    rng = np.random.default_rng(11)
+    names = list(shapes.OBJECTS)
+    out = [("sphere", 3, 8, 30, 1), ("sphere", 4, 0, 20, 2), ("dimple_block", 3, 8, 30, 1)]
+    while len(out) < n:
+        out.append((names[int(rng.integers(len(names)))], int(rng.integers(2, 6)),
+                    int(rng.choice([0, 4, 8])), int(rng.integers(20, 31)),
+                    int(rng.integers(100))))
+    return out
+
+
+# found by this test and not fixed yet (issue 11): on the cup without views one pair whose
+# ICP slid off its overlap is registered by the held ICP to a result 2.1 mm inconsistent
+# with the others, accepted, and pulls sweep 0 from 1.17 to 2.6 mm (gauge-fixed)
+KNOWN = {("cup", 5, 0, 29, 13): "a pair slid off its overlap poisons the pose graph "
+                                "(no views to hold the sweeps): sweep 0 1.17 -> 2.6 mm"}
+
+
+def _params():
+    return [pytest.param(*c, marks=pytest.mark.xfail(reason=KNOWN[c], strict=True))
+            if c in KNOWN else c for c in _cases()]
+
+
+@pytest.mark.parametrize("name,n_sweeps,n_views,frames,seed", _params())
+def test_alignment_never_crashes_and_never_makes_poses_worse(name, n_sweeps, n_views,
+                                                             frames, seed):
+    sweeps, views = _scan(name, n_sweeps, n_views, frames, seed)
+    pts = [s[0] for s in sweeps]
+    try:
+        res = align_sweeps(pts, [s[1] for s in sweeps], origins=[s[2] for s in sweeps],
+                           profiles=[s[3] for s in sweeps], refine=True, silhouettes=views,
+                           seed=seed)
+    except Robo3dError:
+        return  # robo3d's own, named error: allowed
+    aligned = [res.apply(k, s[0], s[2])[0] for k, s in enumerate(sweeps)]
+    truth = [s[4] for s in sweeps]
+    fix_b = fix_a = np.eye(4)
+    absolute = res.gauge == "silhouettes"
+    if not absolute:  # the gauge is free: compare after putting the reference on its truth
+        g = res.reference
+        if len(truth[g]) >= 3:
+            fix_b = _kabsch(pts[g], truth[g])
+            fix_a = _kabsch(aligned[g], truth[g])
+
+    def rms(p, fix, x):
+        q = p @ fix[:3, :3].T + fix[:3, 3]
+        return float(np.sqrt(np.mean(np.sum((q - x) ** 2, axis=1)))) * 1e3 if len(x) else 0.0
+
+    before = [rms(p, fix_b, x) for p, x in zip(pts, truth, strict=True)]
+    after = [rms(a, fix_a, x) for a, x in zip(aligned, truth, strict=True)]
+    for e in res.per_sweep:  # every sweep's report says what its data fixed
+        assert e["flagged"] or "unconstrained" in e or res.refinement is None, e
+    worse = [(s, round(b, 3), round(a, 3)) for s, (b, a) in enumerate(zip(before, after,
+                                                                         strict=True))
+             if a > b + MARGIN_MM]
+    assert not worse, f"sweeps worse than at the robot's poses (sweep, before, after mm): " \
+                      f"{worse}; gauge {res.gauge}"

@@ -356,3 +356,24 @@ def test_settled_estimate_is_the_centre_of_the_cycle():
     assert pose_error(make_transform(rot[0], trans[0]), make_transform(want, [1e-3, 0, 0]))[1] \
         < 1e-6
     np.testing.assert_allclose(trans[0], [1e-3, 0, 0], atol=1e-12)
+
+
+def test_held_step_leaves_unconstrained_directions_to_the_prior():
+    """_solve_held (issue 11): along a direction with no data information the step is the
+    prior's (back to the robot's pose), elsewhere the data's; the report says which."""
+    from robo3d.registration import _solve_held
+
+    rng = np.random.default_rng(0)
+    sd = np.r_[np.full(3, np.radians(0.3)), np.full(3, 0.5e-3)]
+    jac = rng.normal(size=(500, 6)) / sd
+    jac[:, 2] = 0.0  # the data do not see the third rotation at all
+    H = jac.T @ jac
+    current = np.r_[0.001, -0.002, 0.003, 1e-4, 2e-4, -1e-4]
+    target = np.r_[0.0005, 0.0005, 0.0, 0.0, 1e-4, 0.0]
+    b = H @ (current - target)  # data gradient at `current` of a quadratic with minimum `target`
+    delta, info = _solve_held(H, b, current / sd**2, sd, np.ones(6, bool), 200.0)
+    assert info["weak"].sum() == 1
+    new = current + delta
+    assert abs(new[2]) < 1e-9            # held: back at the robot's pose
+    np.testing.assert_allclose(np.delete(new, 2), np.delete(target, 2), atol=2e-5 * np.abs(
+        np.delete(target, 2)).max() + 1e-7, rtol=0.02)

@@ -983,24 +983,13 @@ def _probe(img: np.ndarray, k: int, step: int, thr: float,
     sep = _RIDGE_A2 + 1
     clo, chi, rlo, rhi = spans
     out = []
-    fast = _fast8(img, k)
-    h, w, nch = img.shape
-    ch = k if nch == 3 else 0
+    if _fast8(img, k):
+        s_rows, s_cols = _probe8(img, k, step, float(thr), clo, chi, rlo, rhi)
+        return float(s_rows), float(s_cols)
     for along_u in (True, False):
         lo, hi = (rlo, rhi) if along_u else (clo, chi)
-        if fast and along_u:  # the sampled rows, read in place
-            lines = np.arange(step // 2, h, step)
-            m1, p1, m2, p2 = _lines8(img, img.reshape(h, w * nch), nch, k, lines, lines,
-                                     _RIDGE_A1, _RIDGE_A2, sep, float(np.float32(thr)), sat,
-                                     lo, hi, True)
-        elif fast:  # the sampled columns, gathered in one pass over the rows
-            lines = np.arange(step // 2, w, step)
-            m1, p1, m2, p2 = _lines8(img, _gather_cols8(img, ch, lines), 1, k, lines,
-                                     np.arange(lines.size), _RIDGE_A1, _RIDGE_A2, sep,
-                                     float(np.float32(thr)), sat, lo, hi, False)
-        else:
-            m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2,
-                                          np.float32(thr), sep, sat, along_u, lo, hi)
+        m1, p1, m2, p2 = _probe_image(img, k, step, _RIDGE_A1, _RIDGE_A2,
+                                      np.float32(thr), sep, sat, along_u, lo, hi)
         *_, strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3, False)
         out.append(float(strong.max()) if strong.size else 0.0)
     return out[0], out[1]
@@ -1446,6 +1435,120 @@ def _ridge_scan_cols8(img, k, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, A
                 p2[c] = rc
             tb[c] = np.uint8(min(max(np.int32(m2[c]), 0), 255))
     return m1, p1, m2, p2
+
+
+@njit(**_JIT)
+def _probe8(img, k, step, thr, clo, chi, rlo, rhi):  # noqa: ANN001, ANN202
+    """:func:`_probe` on a uint8 image for a laser colour (or a mono image), in one
+    compiled call: the sampled rows read in place, the sampled columns gathered in one
+    pass over the rows (:func:`_gather_cols8`), both by :func:`_lines8`."""
+    h, w, nch = img.shape
+    sep = _RIDGE_A2 + 1
+    ch = k if nch == 3 else 0
+    sat = np.float32(250.0)  # _saturation(uint8)
+    thr32 = float(np.float32(thr))
+    rows = np.arange(step // 2, h, step)
+    m1, p1, m2, p2 = _lines8(img, img.reshape(h, w * nch), nch, k, rows, rows, _RIDGE_A1,
+                             _RIDGE_A2, sep, thr32, sat, rlo, rhi, True)
+    strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3, False)[5]
+    s_rows = strong.max() if strong.size else 0.0
+    cols = np.arange(step // 2, w, step)
+    m1, p1, m2, p2 = _lines8(img, _gather_cols8(img, ch, cols), 1, k, cols,
+                             np.arange(cols.size), _RIDGE_A1, _RIDGE_A2, sep, thr32, sat,
+                             clo, chi, False)
+    strong = _link(m1, p1, m2, p2, sep, float(step + 2), 1, 3, False)[5]
+    s_cols = strong.max() if strong.size else 0.0
+    return s_rows, s_cols
+
+
+@njit(**_JIT)
+def _ridge_frame8(img, k, axis_mode, step, min_peak, noise_k, link_px, min_run, h,
+                  tail_fraction, max_width_px, gaussian, clo, chi, rlo, rhi):  # noqa: ANN001, ANN202
+    """Steps 2-5 of the ridge detector (and the axis of step 4 when ``axis_mode`` is 0;
+    1: rows, 2: columns) on a uint8 image for a laser colour or a mono image, in one
+    compiled call that holds no interpreter lock (frames run in parallel on threads):
+    the axis probe (:func:`_probe8`), the noise and threshold, the scan
+    (:func:`_lines8` or :func:`_ridge_scan_cols8`), the curves (:func:`_link`) and the
+    sub-pixel centres (:func:`_ridge_centres`), exactly as :func:`_extract_ridge` calls
+    them one by one for other images."""
+    h_img = img.shape[0]
+    rows_axis = axis_mode == 1
+    if axis_mode == 0:
+        s_rows, s_cols = _probe8(img, k, step, min_peak, clo, chi, rlo, rhi)
+        rows_axis = s_rows > s_cols
+    sigma_n = _noise_contrast(img, k, False)
+    thr = max(min_peak, 2.0 * noise_k * sigma_n)
+    thr_w = np.int16(np.ceil(thr))
+    sep = _RIDGE_A2 + 1
+    sat = np.int16(250)  # _saturation(uint8)
+    if rows_axis:
+        lines = np.arange(h_img)
+        m1f, p1, m2f, p2 = _lines8(img, img.reshape(h_img, img.shape[1] * img.shape[2]),
+                                   img.shape[2], k, lines, lines, _RIDGE_A1, _RIDGE_A2, sep,
+                                   float(thr_w), sat, rlo, rhi, True)
+        m1 = m1f.astype(np.int16)  # as _ridge_scan_rows stores them
+        m2 = m2f.astype(np.int16)
+    else:
+        m1, p1, m2, p2 = _ridge_scan_cols8(img, k, _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat,
+                                           clo, chi)
+    win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep, link_px,
+                                                      _LINK_GAP, min_run, True)
+    st2, centre, amp, width = _ridge_centres(img, k, False, rows_axis, win, h, _H_SMALL,
+                                             tail_fraction, noise_k * sigma_n, min_peak,
+                                             max_width_px, gaussian)
+    return (rows_axis, sigma_n, win, status, run, n_second, n_isolated, st2, centre, amp,
+            width)
+
+
+@njit(**_JIT)
+def _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, run, min_run,
+                 max_width_px):  # noqa: ANN001, ANN202
+    """The end of :func:`_extract_ridge` for the byte kernels' frames, in one compiled
+    call with numpy's arithmetic (the same values): the lines' final status and its
+    counts, the centres (u, v), their peak, width, the width, contrast and curve terms
+    of the confidence (the SNR term's exp stays with numpy), eq. 18's channel sums on
+    the centres' pixels and the median slope between neighbouring lines' centres (NaN
+    with fewer than 3 pairs) for :func:`_angle_deg`."""
+    n = status.size
+    h_img, w_img = img.shape[0], img.shape[1]
+    counts = np.zeros(len(REJECTION_REASONS) + 1, np.int64)
+    for i in range(n):
+        st = st2[i] if status[i] == _OK else status[i]
+        if st == _TOO_WEAK and lo[i] > hi[i]:
+            st = _OUTSIDE
+        status[i] = st
+        counts[st] += 1
+    ok = np.flatnonzero(status == _OK)
+    m = ok.size
+    amp_c = amp[ok]
+    width_g = width[ok]
+    c_width = np.empty(m)
+    c_peak = np.empty(m)
+    c_run = np.empty(m)
+    med = np.median(amp_c) if m else 1.0
+    med = max(med, 1e-12)
+    for j in range(m):
+        c_width[j] = min(max(2.0 - 2.0 * width_g[j] / max_width_px, 0.0), 1.0)
+        c_peak[j] = min(max(amp_c[j] / med, 0.0), 1.0)
+        c_run[j] = min(max(run[ok[j]] / (2.0 * min_run), 0.0), 1.0)
+    line = ok.astype(np.int64)
+    along = line.astype(np.float64)
+    across = centre[ok]
+    sums = np.zeros(img.shape[2])
+    for j in range(m):  # eq. 18 on the centres' pixels
+        a = min(max(np.rint(along[j]), 0), (h_img if rows_axis else w_img) - 1)
+        b = min(max(np.rint(across[j]), 0), (w_img if rows_axis else h_img) - 1)
+        r, c = (int(a), int(b)) if rows_axis else (int(b), int(a))
+        for ch in range(img.shape[2]):
+            sums[ch] += img[r, c, ch]
+    d = np.empty(m)
+    nd = 0
+    for j in range(m - 1):
+        if line[j + 1] - line[j] == 1:
+            d[nd] = across[j + 1] - across[j]
+            nd += 1
+    slope = np.median(d[:nd]) if nd >= 3 else np.nan
+    return status, counts, line, across, amp_c, width_g, c_width, c_peak, c_run, sums, slope
 
 
 @njit(**_JIT)
@@ -2014,21 +2117,22 @@ def extract_stripe_centres(
 
 
 def _angle_deg(u: np.ndarray, v: np.ndarray, line: np.ndarray | None = None,
-               rows: bool = False) -> float:
+               rows: bool = False, slope: float | None = None) -> float:
     """Direction of the stripe, degrees from u towards v, in (-90, 90]: the median slope
     between centres of neighbouring lines (robust to a second piece of stripe elsewhere
-    in the frame), else the principal axis of the points."""
+    in the frame; ``slope``: that median when already known), else the principal axis
+    of the points."""
     if u.size < 2:
         return float("nan")
-    if line is not None:
+    if line is not None and slope is None:
         along, across = (v, u) if rows else (u, v)
         nb = np.flatnonzero(np.diff(line) == 1)
         if nb.size >= 3:
             slope = float(np.median(across[nb + 1] - across[nb]))
-            du, dv = (slope, 1.0) if rows else (1.0, slope)
-            ang = float(np.degrees(np.arctan2(dv, du)))
-            ang = ang - 180.0 if ang > 90.0 else (ang + 180.0 if ang <= -90.0 else ang)
-            return ang
+    if line is not None and slope is not None:
+        du, dv = (slope, 1.0) if rows else (1.0, slope)
+        ang = float(np.degrees(np.arctan2(dv, du)))
+        return ang - 180.0 if ang > 90.0 else (ang + 180.0 if ang <= -90.0 else ang)
     du, dv = u - u.mean(), v - v.mean()
     suu, svv, suv = float(du @ du), float(dv @ dv), float(du @ dv)
     ang = 0.5 * np.degrees(np.arctan2(2.0 * suv, suu - svv))
@@ -2099,48 +2203,72 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
     else:
         ks = (CONTRASTS.index(colour),)
     k = ks[0]
-    if len(ks) > 1 or axis == "auto":
+    if len(ks) > 1:
         k, axis, _ = _choose_contrast(img, ks, axis, min_peak, spans)
     name = CONTRASTS[k]
-    # the contrast image, in lines = columns
-    # one pass over the image: the contrast, its ridges, two candidates per line
-    two = nch == 3 and img.dtype == np.uint8 and k == _LIGHTNESS
-    scale = 2.0 if two else 1.0
-    wdt = np.int16 if img.dtype == np.uint8 else np.float32
-    sigma_n = float(_noise_contrast(img, k, two))
-    thr = max(scale * min_peak, 2.0 * noise_k * sigma_n)
-    thr_w = wdt(np.ceil(thr)) if wdt is np.int16 else np.float32(thr)
-    sep = _RIDGE_A2 + 1
-    sat = wdt(_saturation(img.dtype))
     clo, chi, rlo, rhi = spans
-    fast = _fast8(img, k)
-    if axis == "rows" and fast:
-        lo, hi = rlo, rhi
-        rows = np.arange(h_img)
-        m1, p1, m2, p2 = _lines8(img, img.reshape(h_img, w_img * nch), nch, k, rows, rows,
-                                 _RIDGE_A1, _RIDGE_A2, sep, float(thr_w), sat, lo, hi, True)
-        m1, m2 = m1.astype(np.int16), m2.astype(np.int16)  # as _ridge_scan_rows stores
-    elif axis == "rows":
-        lo, hi = rlo, rhi
-        m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros(w_img, wdt),
-                                          _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat, lo, hi)
-    elif fast:
-        lo, hi = clo, chi
-        m1, p1, m2, p2 = _ridge_scan_cols8(img, k, _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat,
-                                           lo, hi)
-    else:
-        lo, hi = clo, chi
-        ring = np.zeros((2 * _RIDGE_A2 + 1, w_img), wdt)
-        m1, p1, m2, p2 = _ridge_scan_cols(img, k, two, ring, _RIDGE_A1, _RIDGE_A2, sep,
-                                          thr_w, sat, lo, hi)
-    n_lines = m1.size
-    win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep, float(link_px),
-                                                      _LINK_GAP, int(min_run), True)
     h = int(np.ceil(1.1 * max_width_px)) + 2
-    st2, centre, amp, width = _ridge_centres(img, k, two, axis == "rows", win, h, _H_SMALL,
-                                             float(tail_fraction), float(noise_k * sigma_n),
-                                             float(scale * min_peak), float(max_width_px),
-                                             method == "gaussian")
+    if _fast8(img, k):  # uint8, a laser colour or mono: one compiled call (no GIL)
+        step = max(4, int(round(min(h_img, w_img) / 48)))
+        (rows_axis, sigma_n, win, status, run, n_second, n_isolated, st2, centre, amp,
+         width) = _ridge_frame8(img, k, ("auto", "rows", "columns").index(axis), step,
+                                float(min_peak), float(noise_k), float(link_px),
+                                int(min_run), h, float(tail_fraction), float(max_width_px),
+                                method == "gaussian", clo, chi, rlo, rhi)
+        axis = "rows" if rows_axis else "columns"
+        lo, hi = (rlo, rhi) if rows_axis else (clo, chi)
+        if centre_on == "luma" and nch == 3 and k != _LIGHTNESS:
+            centre = _luma_centres(img, rows_axis, np.where(st2 == _OK, win, -1), h,
+                                   centre, float(tail_fraction), float(noise_k),
+                                   float(min_peak), float(max_width_px),
+                                   method == "gaussian")
+        (status, counts, line_idx, across, amp_c, width_g, c_width, c_peak, c_run, sums,
+         slope) = _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, run,
+                               int(min_run), float(max_width_px))
+        rejected = {nm: int(counts[i + 1]) for i, nm in enumerate(REJECTION_REASONS)}
+        rejected["isolated"] += int(n_isolated)
+        rejected["second_line"] += int(n_second)
+        c_snr = 1.0 - np.exp(-amp_c / (10.0 * max(float(sigma_n), 1e-12)))
+        conf = np.clip(c_snr * c_width * c_peak * c_run, 0.0, 1.0)
+        along = line_idx.astype(np.float64)
+        u, v = (across, along) if rows_axis else (along, across)
+        means = sums / max(line_idx.size, 1)  # eq. 18 (as _eq18)
+        s_frame = float((means.max() + means.min()) / 2.0) if line_idx.size else float("nan")
+        return StripePoints(u=u, v=v, confidence=conf, peak=amp_c, width_px=width_g,
+                            line=line_idx, axis=axis, s=s_frame, n_lines=win.size,
+                            rejected=rejected, colour=name,
+                            angle_deg=_angle_deg(u, v, line_idx, rows_axis,
+                                                 None if np.isnan(slope) else float(slope)))
+    else:
+        if axis == "auto":
+            k, axis, _ = _choose_contrast(img, ks, axis, min_peak, spans)
+        # one pass over the image: the contrast, its ridges, two candidates per line
+        two = nch == 3 and img.dtype == np.uint8 and k == _LIGHTNESS
+        scale = 2.0 if two else 1.0
+        wdt = np.int16 if img.dtype == np.uint8 else np.float32
+        sigma_n = float(_noise_contrast(img, k, two))
+        thr = max(scale * min_peak, 2.0 * noise_k * sigma_n)
+        thr_w = wdt(np.ceil(thr)) if wdt is np.int16 else np.float32(thr)
+        sep = _RIDGE_A2 + 1
+        sat = wdt(_saturation(img.dtype))
+        if axis == "rows":
+            lo, hi = rlo, rhi
+            m1, p1, m2, p2 = _ridge_scan_rows(img, k, two, np.zeros(w_img, wdt),
+                                              _RIDGE_A1, _RIDGE_A2, sep, thr_w, sat, lo, hi)
+        else:
+            lo, hi = clo, chi
+            ring = np.zeros((2 * _RIDGE_A2 + 1, w_img), wdt)
+            m1, p1, m2, p2 = _ridge_scan_cols(img, k, two, ring, _RIDGE_A1, _RIDGE_A2, sep,
+                                              thr_w, sat, lo, hi)
+        n_lines = m1.size
+        win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep,
+                                                          float(link_px), _LINK_GAP,
+                                                          int(min_run), True)
+        st2, centre, amp, width = _ridge_centres(img, k, two, axis == "rows", win, h,
+                                                 _H_SMALL, float(tail_fraction),
+                                                 float(noise_k * sigma_n),
+                                                 float(scale * min_peak),
+                                                 float(max_width_px), method == "gaussian")
     if centre_on == "luma" and nch == 3 and k != _LIGHTNESS:
         centre = _luma_centres(img, axis == "rows", np.where(st2 == _OK, win, -1), h,
                                centre, float(tail_fraction), float(noise_k),

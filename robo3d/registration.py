@@ -367,10 +367,14 @@ def _pair_info(src: tuple[np.ndarray, np.ndarray], tgt: tuple[np.ndarray, np.nda
     p = src[0] @ t[:3, :3].T + t[:3, 3]
     d, idx = tree.query(p, k=1, distance_upper_bound=max_dist)
     ok = np.isfinite(d)
+    n_src = src[1] @ t[:3, :3].T
+    # the two sides of a thin wall lie within the correspondence distance: a pair of
+    # points whose normals disagree by more than 60 degrees is not one surface
+    ok[ok] = np.einsum("ij,ij->i", n_src[ok], tgt[1][idx[ok]]) > 0.5
     if np.count_nonzero(ok) < 6:
         return None
     x, y = p[ok], tgt[0][idx[ok]]
-    n = src[1][ok] @ t[:3, :3].T + tgt[1][idx[ok]]
+    n = n_src[ok] + tgt[1][idx[ok]]
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     r = np.einsum("ij,ij->i", x - y, n)
     sigma = max(float(np.sqrt(np.mean(r**2))), 0.1 * voxel_size, 1e-6)

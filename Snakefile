@@ -23,6 +23,12 @@ rule all:
     default_target: True
 
 
+onsuccess:
+    from robo3d.info import format_run_summary
+
+    print("\n" + format_run_summary("results", "logs", RECORDINGS), file=sys.stderr)
+
+
 onerror:
     from robo3d.info import batch_status, format_batch_status
 

@@ -704,6 +704,55 @@ def format_batch_status(status: Mapping[str, Any]) -> str:
     return "\n".join(L)
 
 
+def format_run_summary(results_dir: str | os.PathLike[str] = "results",
+                       logs_dir: str | os.PathLike[str] = "logs",
+                       recordings: Iterable[str] | None = None) -> str:
+    """The end of a run, for the terminal: one row per recording (status, faces, the
+    measured share of the mesh, and against ground truth the mesh's median and p95 error
+    and the measured surface's), where its results are, and the command to inspect them.
+    Reads each recording's ``metrics.json``; a recording without one shows its status."""
+    results = Path(results_dir)
+    status = batch_status(results_dir, logs_dir, recordings)
+    rows = [("recording", "status", "faces", "measured", "mesh median / p95",
+             "measured median / p95", "time")]
+    for name, r in status["recordings"].items():
+        m: dict[str, Any] = {}
+        try:
+            m = json.loads((results / name / "metrics.json").read_text())
+        except (OSError, ValueError):
+            pass
+        ev = m.get("evaluation") or {}
+        src = m.get("surface_sources") or {}
+        faces = ((m.get("stages") or {}).get("simplify") or {}).get("faces_out")
+        inf = src.get("inferred_area_fraction")
+
+        def pair(d: Mapping[str, Any] | None) -> str:
+            d = d or {}
+            if d.get("median_mm") is None:
+                return "-"
+            return f"{d['median_mm']:.3f} / {d['p95_mm']:.3f} mm"
+
+        total = (m.get("timings") or {}).get("total_seconds")
+        rows.append((name, r["status"], "-" if faces is None else str(faces),
+                     "-" if inf is None else f"{100 * (1 - inf):.1f} %",
+                     pair(ev.get("mesh")), pair(ev.get("measured")),
+                     "-" if total is None else f"{total:.0f} s"))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
+             for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    done = status["done"]
+    lines.append("")
+    lines.append(f"{len(done)} of {len(status['recordings'])} recordings done; results in "
+                 f"{results}/<recording>/ (mesh.ply, measured.ply, metrics.json), the batch "
+                 f"table in {results}/batch.tsv")
+    if done:
+        lines.append(f"inspect: .venv/bin/rerun {results}/{done[0]}/*.rrd")
+    if status["failed"]:
+        lines.append(f"failed: {', '.join(status['failed'])} (robo3d status says why)")
+    return "\n".join(lines)
+
+
 def _dumps(obj: Any) -> str:
     def default(o: Any) -> Any:
         if isinstance(o, np.generic):

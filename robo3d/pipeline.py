@@ -48,6 +48,8 @@ __all__ = [
 ]
 
 log = logging.getLogger("robo3d.pipeline")
+#: The one-line summaries of the stages (and their progress): what the terminal shows.
+summary = logging.getLogger("robo3d.summary")
 
 
 # ---------------------------------------------------------------------------- batch
@@ -226,7 +228,7 @@ def _log_image_camera(stream, entity, msg, camera, T, **kw) -> None:
 class _Progress:
     """Logs progress of a loop over frames every few seconds (users watch long work)."""
 
-    def __init__(self, what: str, total: int, every_s: float = 2.0) -> None:
+    def __init__(self, what: str, total: int, every_s: float = 10.0) -> None:
         self.what, self.total, self.every = what, total, every_s
         self.t0 = self.last = time.perf_counter()
 
@@ -234,8 +236,13 @@ class _Progress:
         now = time.perf_counter()
         if now - self.last >= self.every or done == self.total:
             self.last = now
-            rate = done / max(now - self.t0, 1e-9)
-            log.info("%s: %d/%d (%.0f/s)", self.what, done, self.total, rate)
+            dt = max(now - self.t0, 1e-9)
+            rate = done / dt
+            eta = (self.total - done) / rate if rate > 0 else float("nan")
+            speed = f"{rate:.0f}/s" if rate >= 10 else f"{rate:.2g}/s" if rate >= 0.1 else \
+                f"{dt / max(done, 1):.0f} s each"
+            left = f", about {eta:.0f} s left" if done < self.total and eta == eta else ""
+            summary.info("%s: %d/%d (%s%s)", self.what, done, self.total, speed, left)
 
 
 # ---------------------------------------------------------------------------- stages
@@ -336,7 +343,7 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                               poses[i], mask=masks[i])
         log_report(rr_stream, "reports/silhouettes", report)
     write_json(outputs["report"], report)
-    log.info("segmented %d views in %.1f s; %d touch the image border, %d their region's",
+    summary.info("segmented %d views in %.1f s; %d touch the image border, %d their region's",
              len(views), report["seconds"], report["n_touching_image_border"],
              report["n_touching_border"])
     return report
@@ -543,7 +550,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log_mesh(rr_stream, "base/hull/mesh", vertices, faces, albedo=[120, 160, 220, 160])
         log_report(rr_stream, "reports/carve", report)
     write_json(outputs["report"], report)
-    log.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
+    summary.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
              "views (%.1f s)", cc["method"], n_occ, grid.voxel_size * 1e3,
              report["volume_m3"] * 1e6, len(faces), len(used), n_views, report["seconds"])
     return report
@@ -741,8 +748,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
             [rec.decode(frames[i]) for i in sample],
             backgrounds=[background(i) for i in sample], min_peak=kw["min_peak"],
             rois=[roi(int(i)) for i in sample])
-        log.info("stripes: laser colour %s (scores %s)", kw["colour"],
-                 {k: round(v) for k, v in colour_scores.items()})
+        log.info("stripes: laser colour %s (scores: %s)", kw["colour"],
+                 ", ".join(f"{k} {v:.0f}" for k, v in colour_scores.items()))
 
     # the centre's profile: the luma for JPEGs whose colour is stored at half resolution
     # (the laser's channel lives mostly in the blurred chroma there), else the laser's
@@ -848,7 +855,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                            points_uv=sp.pixels_uv, static=False)
         log_report(rr_stream, "reports/stripes", report)
     write_json(outputs["report"], report)
-    log.info("stripes: %d points in %d frames on %d threads (%.1f s; decoding %.1f s, "
+    summary.info("stripes: %d points in %d frames on %d threads (%.1f s; decoding %.1f s, "
              "detection %.1f s of CPU)", n_points, len(frames), n_threads,
              report["seconds"], decode_s, detect_s)
     return report
@@ -968,8 +975,10 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                            colors=color, static=False)
         log_report(rr_stream, "reports/triangulate", report)
     write_json(outputs["report"], report)
-    log.info("triangulated %d points in %d sweeps (%.1f s); dropped %s", report["n_points"],
-             len(clouds), report["seconds"], dropped)
+    from .viz import format_counts
+
+    summary.info("triangulated %d points in %d sweeps (%.1f s); dropped: %s", report["n_points"],
+             len(clouds), report["seconds"], format_counts(dropped))
     return report
 
 
@@ -1073,7 +1082,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log_report(rr_stream, "reports/align", report)
     write_json(outputs["report"], report)
     flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
-    log.info("aligned %d sweeps (gauge: %s, %.1f s)%s", len(clouds),
+    summary.info("aligned %d sweeps (gauge: %s, %.1f s)%s", len(clouds),
              align_report.get("gauge", "-"), report["seconds"],
              f"; flagged and kept at the robot's pose: {flagged}" if flagged else "")
     return report
@@ -1265,7 +1274,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log_report(rr_stream, "reports/fuse", report)
     write_json(outputs["report"], report)
     lf = report.get("laser_area_fraction")
-    log.info("fused mesh from %s: %d faces%s (%.1f s)", source, len(F),
+    summary.info("fused mesh from %s: %d faces%s (%.1f s)", source, len(F),
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
              report["seconds"])
     return report
@@ -1364,7 +1373,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
             log_mesh(rr_stream, "base/mesh", V2, F2, albedo=[230, 200, 160, 255])
         log_report(rr_stream, "reports/simplify", report)
     write_json(outputs["report"], report)
-    log.info("simplified %d -> %d faces, Hausdorff %.3f mm (%.1f s)", len(F), len(F2),
+    summary.info("simplified %d -> %d faces, Hausdorff %.3f mm (%.1f s)", len(F), len(F2),
              (haus or 0.0) * 1e3, report["seconds"])
     return report
 
@@ -1740,7 +1749,8 @@ def _displacement_mm(T_est: np.ndarray, T_true: np.ndarray, point: np.ndarray) -
 def _log_summary(metrics: Mapping[str, Any]) -> None:
     ev = metrics.get("evaluation")
     if not ev:
-        log.info("%s: no ground truth; skipped: %s", metrics["name"], metrics["skipped"])
+        summary.info("no ground truth; skipped: %s", "; ".join(
+            f"{k} ({v})" for k, v in metrics["skipped"].items()))
         return
     parts = []
     mi = ev.get("mask_iou") or {}
@@ -1770,8 +1780,8 @@ def _log_summary(metrics: Mapping[str, Any]) -> None:
     if inf is not None:
         parts.append(f"{100 * inf:.1f} % of the mesh's area inferred (not measured)")
     if metrics.get("skipped"):
-        parts.append(f"skipped: {metrics['skipped']}")
-    log.info("%s: %s", metrics["name"], "; ".join(parts))
+        parts.append("skipped: " + "; ".join(f"{k} ({v})" for k, v in metrics["skipped"].items()))
+    summary.info("%s", "; ".join(parts))
 
 
 STAGES: dict[str, Callable[..., dict[str, Any]]] = {
@@ -1786,20 +1796,67 @@ STAGES: dict[str, Callable[..., dict[str, Any]]] = {
 }
 
 
-def _setup_logging(log_path: str | None) -> None:
+class _TerminalFilter(logging.Filter):
+    """What a job shows on the terminal: its stage's summary and progress lines
+    (``robo3d.summary``) and every warning or error; the log file keeps everything."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.name == "robo3d.summary" or record.levelno >= logging.WARNING
+
+
+def _setup_logging(log_path: str | None, rec: str = "", stage: str = "") -> None:
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
+    where = " ".join(x for x in (rec, stage) if x)
+    term = logging.Formatter(f"%(asctime)s {where}: %(message)s" if where else
+                             "%(asctime)s %(message)s", "%H:%M:%S")
     root = logging.getLogger()
     root.setLevel(logging.INFO)
     for h in list(root.handlers):
         root.removeHandler(h)
     err = logging.StreamHandler(sys.stderr)
-    err.setFormatter(fmt)
+    err.setFormatter(term)
+    err.addFilter(_TerminalFilter())
     root.addHandler(err)
     if log_path:
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         fh = logging.FileHandler(log_path, mode="w", encoding="utf-8")
         fh.setFormatter(fmt)
         root.addHandler(fh)
+
+
+#: The config sections each stage reads (its rule passes them as ``params``, so that
+#: changing one re-runs exactly the stages that read it, and those after them).
+STAGE_CONFIG: dict[str, tuple[str, ...]] = {
+    "silhouettes": ("segmentation", "topics", "frames", "timing", "rerun", "seed"),
+    "carve": ("carving", "topics", "frames", "timing", "rerun", "seed"),
+    "stripes": ("stripes", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
+    "triangulate": ("triangulation", "topics", "frames", "timing", "rerun", "seed"),
+    "align": ("alignment", "topics", "frames", "timing", "rerun", "seed"),
+    "fuse": ("fusion", "carving", "rerun", "seed"),
+    "simplify": ("simplify", "rerun", "seed"),
+    "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),
+}
+
+
+def stage_config(cfg: Mapping[str, Any], stage: str) -> dict[str, Any]:
+    """The part of the (validated) config that ``stage`` reads (:data:`STAGE_CONFIG`)."""
+    return {k: cfg[k] for k in STAGE_CONFIG[stage] if k in cfg}
+
+
+def code_version() -> str:
+    """robo3d's version and a hash of its code (every ``.py`` file of the package): part of
+    every rule's params, so that an upgrade or a code change re-runs the jobs instead of
+    silently keeping results the new code would not give."""
+    import hashlib
+
+    from . import __version__
+
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:16]}"
 
 
 def run_from_snakemake(stage: str, smk: Any) -> None:
@@ -1816,17 +1873,21 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
     """
     import inspect
 
-    _setup_logging(smk.log[0] if len(smk.log) else None)
+    rec = smk.wildcards.get("rec", "recording")
+    _setup_logging(smk.log[0] if len(smk.log) else None, rec, stage)
     inputs = {k: str(v) for k, v in smk.input.items()}
     outputs = {k: str(v) for k, v in smk.output.items()}
-    rec = smk.wildcards.get("rec", "recording")
     _remove_stale_temporaries(outputs.values())
     fn = STAGES[stage]
     kwargs = {}
     if "threads" in inspect.signature(fn).parameters and getattr(smk, "threads", None):
         kwargs["threads"] = int(smk.threads)
+    # the rule's params hold the sections this stage reads (what triggers its re-runs);
+    # the stage sees only those, so a section it reads but does not declare is a bug
+    params = getattr(smk, "params", None)
+    cfg = params.cfg if params is not None and hasattr(params, "cfg") else smk.config
     try:
-        fn(inputs, outputs, smk.config, rec, **kwargs)
+        fn(inputs, outputs, cfg, rec, **kwargs)
     except Robo3dError as exc:
         log.error("%s failed for %s: %s", stage, rec, exc)
         logging.shutdown()

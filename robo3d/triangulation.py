@@ -943,7 +943,10 @@ def triangulate_sweep(
 
     geo = np.clip(sin_a[keep] / np.sin(np.radians(_CONF_REF_ANGLE_DEG)), 0.0, 1.0)
     report["normals"] = {"from_grid": n_grid, "from_knn": n_knn, "from_view": n_view}
-    log.info("sweep %d: %d points from %d frames (dropped %s)", sweep, len(P), F, dropped)
+    from .viz import format_counts
+
+    log.info("sweep %d: %d points from %d frames (dropped: %s)", sweep, len(P), F,
+             format_counts(dropped))
     return SweepCloud(
         points_base=P,
         normals_base=normals,

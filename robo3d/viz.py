@@ -29,6 +29,7 @@ __all__ = [
     "log_box",
     "log_report",
     "spaced_indices",
+    "format_counts",
 ]
 
 APPLICATION_ID = "robo3d"
@@ -158,3 +159,10 @@ def log_report(stream: Any, entity: str, report: dict[str, Any]) -> None:
 
     text = "```json\n" + json.dumps(report, indent=2, default=_plain) + "\n```"
     stream.log(entity, rr.TextDocument(text, media_type="text/markdown"), static=True)
+
+
+def format_counts(counts: dict[str, int], none: str = "none") -> str:
+    """Counts by reason as words for a log line: ``{"grazing": 0, "outside_workspace":
+    5415}`` -> ``"5415 outside workspace"`` (zeros left out; ``none`` when all are)."""
+    parts = [f"{int(n)} {k.replace('_', ' ')}" for k, n in counts.items() if int(n)]
+    return ", ".join(parts) if parts else none

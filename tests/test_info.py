@@ -281,3 +281,23 @@ def test_pairing_with_a_single_static_pose(tmp_path: Path) -> None:
     assert info["pairing"]["views"]["worst_offset_ms"] == 0.0
     assert info["pairing"]["views"]["without_pose"] == 0
     assert info["pairing"]["laser"]["images"] == 1
+
+
+def test_run_summary_table_reads_the_metrics(tmp_path):
+    import json
+
+    from robo3d.info import format_run_summary
+
+    res = tmp_path / "results" / "part"
+    (res / "reports").mkdir(parents=True)
+    metrics = {"stages": {"simplify": {"faces_out": 20000}},
+               "surface_sources": {"inferred_area_fraction": 0.25},
+               "evaluation": {"mesh": {"median_mm": 0.0123, "p95_mm": 0.0711},
+                              "measured": {"median_mm": 0.011, "p95_mm": 0.049}},
+               "timings": {"total_seconds": 61.2}}
+    (res / "metrics.json").write_text(json.dumps(metrics))
+    text = format_run_summary(tmp_path / "results", tmp_path / "logs")
+    row = next(ln for ln in text.splitlines() if ln.startswith("part"))
+    for want in ("20000", "75.0 %", "0.012 / 0.071 mm", "0.011 / 0.049 mm", "61 s"):
+        assert want in row, (want, row)
+    assert "results in" in text

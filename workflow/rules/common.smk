@@ -1,12 +1,25 @@
 # Validation and the small helpers the rules use. Logic lives in robo3d/, not here.
 from robo3d.config import validate_config
-from robo3d.pipeline import export_library_path, find_recordings, recording_stages
+from robo3d.pipeline import (
+    code_version,
+    export_library_path,
+    find_recordings,
+    recording_stages,
+    stage_config,
+)
 
 config.update(validate_config(config))
 
 export_library_path(workflow.basedir)
 
 RECORDINGS = find_recordings(config["recordings"], topics=config["topics"])
+CODE_VERSION = code_version()
+
+
+def stage_params(stage):
+    """A rule's params: the config sections its stage reads and robo3d's code version;
+    a change to either re-runs the rule (and what depends on its outputs)."""
+    return {"cfg": stage_config(config, stage), "code": CODE_VERSION}
 
 
 wildcard_constraints:

@@ -16,6 +16,8 @@ rule evaluate:
             labels={"recording": "{rec}", "figure": "final mesh, error"},
         ),
         rrd="results/{rec}/evaluate.rrd",
+    params:
+        **stage_params("evaluate"),
     log:
         "logs/evaluate/{rec}.log",
     benchmark:

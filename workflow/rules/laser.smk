@@ -9,6 +9,8 @@ rule stripes:
         npz="results/{rec}/stripes.npz",
         report="results/{rec}/reports/stripes.json",
         rrd="results/{rec}/stripes.rrd",
+    params:
+        **stage_params("stripes"),
     log:
         "logs/stripes/{rec}.log",
     benchmark:
@@ -30,6 +32,8 @@ rule triangulate:
         ply="results/{rec}/clouds.ply",
         report="results/{rec}/reports/triangulate.json",
         rrd="results/{rec}/triangulate.rrd",
+    params:
+        **stage_params("triangulate"),
     log:
         "logs/triangulate/{rec}.log",
     benchmark:

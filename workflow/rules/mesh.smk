@@ -10,6 +10,8 @@ rule align:
         ply="results/{rec}/aligned.ply",
         report="results/{rec}/reports/align.json",
         rrd="results/{rec}/align.rrd",
+    params:
+        **stage_params("align"),
     log:
         "logs/align/{rec}.log",
     benchmark:
@@ -31,6 +33,8 @@ rule fuse:
         measured="results/{rec}/measured.ply",  # the laser-measured surface only
         report="results/{rec}/reports/fuse.json",
         rrd="results/{rec}/fuse.rrd",
+    params:
+        **stage_params("fuse"),
     log:
         "logs/fuse/{rec}.log",
     benchmark:
@@ -53,6 +57,8 @@ rule simplify:
         **{ext: f"results/{{rec}}/mesh.{ext}" for ext in config["simplify"]["export"]},
         report="results/{rec}/reports/simplify.json",
         rrd="results/{rec}/simplify.rrd",
+    params:
+        **stage_params("simplify"),
     log:
         "logs/simplify/{rec}.log",
     benchmark:

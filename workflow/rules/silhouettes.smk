@@ -9,6 +9,8 @@ rule silhouettes:
         masks=directory("results/{rec}/masks"),
         report="results/{rec}/reports/silhouettes.json",
         rrd="results/{rec}/silhouettes.rrd",
+    params:
+        **stage_params("silhouettes"),
     log:
         "logs/silhouettes/{rec}.log",
     benchmark:
@@ -30,6 +32,8 @@ rule carve:
         ply="results/{rec}/hull.ply",
         report="results/{rec}/reports/carve.json",
         rrd="results/{rec}/carve.rrd",
+    params:
+        **stage_params("carve"),
     log:
         "logs/carve/{rec}.log",
     benchmark:

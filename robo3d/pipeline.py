@@ -1411,7 +1411,8 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     t0 = time.perf_counter()
     rec_path = inputs["recording"]
     results_dir = Path(outputs["metrics"]).parent
-    metrics: dict[str, Any] = {"recording": str(rec_path), "name": rec_name, "skipped": {}}
+    metrics: dict[str, Any] = {"recording": str(rec_path), "name": rec_name,
+                               "robo3d": code_version(), "skipped": {}}
     if not inputs.get("hull"):
         metrics["skipped"]["hull"] = "the recording has no silhouette views"
     if not inputs.get("aligned"):

@@ -97,6 +97,132 @@ def test_make_object_coarse_is_closed_and_rests_on_table():
     assert 0.8 * 0.1 * 0.08 * 0.06 < mesh.volume() < 0.1 * 0.08 * 0.06
 
 
+# --------------------------------------------------------------------------- issue-11 objects
+NEW_OBJECTS = ("bracket", "cup", "bumpy_blob", "near_symmetric", "thin_wall")
+
+
+def _euler_genus(mesh: TriangleMesh) -> float:
+    f = mesh.faces
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]),
+                              axis=1), axis=0)
+    return (2 - (len(mesh.vertices) - len(edges) + len(f))) / 2
+
+
+def _first_hits(mesh: TriangleMesh, origins, directions) -> np.ndarray:
+    """Distance along each unit ray to its first hit on the mesh (inf: a miss)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    rays = np.hstack([np.asarray(origins, float), np.asarray(directions, float)])
+    return scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+
+
+@pytest.mark.parametrize("name", NEW_OBJECTS)
+def test_issue11_objects_are_watertight_and_inside_their_box(name):
+    import open3d as o3d
+
+    from robo3d.sim.shapes import OBJECTS
+
+    mesh = object_mesh(name)  # the default grid and decimation, as recordings get them
+    f = mesh.faces
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    _, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    assert np.all(counts == 2)  # no boundary, no non-manifold edge
+    assert len(np.unique(directed, axis=0)) == len(directed)  # consistently oriented
+    # closed: every ray from far outside through the object's box crosses it an even
+    # number of times, i.e. a point inside is inside (Open3D's parity test)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(f.astype(np.uint32)))
+    lo, hi = mesh.bounds
+    grid = np.random.default_rng(0).uniform(lo, hi, (4000, 3)).astype(np.float32)
+    occ = scene.compute_occupancy(o3d.core.Tensor(grid), nsamples=3).numpy() > 0.5
+    sdf = OBJECTS[name].sdf(grid)
+    agree = occ == (sdf < 0)
+    assert agree[np.abs(sdf) > 3e-4].all()  # away from the surface: the SDF's inside
+    assert mesh.volume() > 0
+    spec = OBJECTS[name]
+    assert lo[2] == 0.0
+    assert np.all(lo >= np.array(spec.lo)) and np.all(hi <= np.array(spec.hi))
+    assert 0.05 <= (hi - lo).max() <= 0.11  # the demos' sizes
+
+
+def test_bracket_has_three_through_holes_and_a_groove():
+    mesh = object_mesh("bracket")
+    assert _euler_genus(mesh) == 3  # two holes in the foot, one in the upright
+    down = [0.0, 0.0, -1.0]
+    t = _first_hits(mesh, [[-0.025, 0.016, 0.1], [0.025, 0.016, 0.1], [0.0, 0.0055, 0.1],
+                           [0.0, 0.02, 0.1]], [down] * 4)
+    assert np.all(np.isinf(t[:2]))  # down the foot's holes: the table, not the bracket
+    assert 0.1 - t[2] == pytest.approx(0.0035, abs=3e-4)  # the groove's floor, 2.5 mm deep
+    assert 0.1 - t[3] == pytest.approx(0.006, abs=3e-4)  # the foot's top face
+    # along y through the upright's hole (passing over the foot): no hit
+    t = _first_hits(mesh, [[0.0, -0.1, 0.032], [0.0, -0.1, 0.045]], [[0.0, 1.0, 0.0]] * 2)
+    assert np.isinf(t[0]) and t[1] == pytest.approx(0.07, abs=3e-4)
+
+
+def test_cup_is_open_thin_walled_and_has_a_handle():
+    from robo3d.sim.shapes import _CUP_DX, _CUP_FLOOR, _CUP_R, _CUP_WALL
+
+    mesh = object_mesh("cup")
+    assert _euler_genus(mesh) == 1  # the handle's loop
+    # a ray down the opening hits the inner bottom, not the rim
+    t = _first_hits(mesh, [[_CUP_DX, 0.0, 0.2], [_CUP_DX + 0.02, 0.01, 0.2]],
+                    [[0.0, 0.0, -1.0]] * 2)
+    np.testing.assert_allclose(0.2 - t, _CUP_FLOOR, atol=3e-4)
+    # the wall, from the inside and from the outside at mid-height: 2.5 mm thick
+    inner = _first_hits(mesh, [[_CUP_DX, 0.0, 0.03]], [[0.0, -1.0, 0.0]])[0]
+    outer = 0.1 - _first_hits(mesh, [[_CUP_DX, -0.1, 0.03]], [[0.0, 1.0, 0.0]])[0]
+    assert inner == pytest.approx(_CUP_R - _CUP_WALL, abs=3e-4)
+    assert outer == pytest.approx(_CUP_R, abs=3e-4)
+    # through the handle's loop along y: no hit; through its tube: a hit
+    t = _first_hits(mesh, [[_CUP_DX + _CUP_R + 0.006, -0.1, 0.045],
+                           [_CUP_DX + _CUP_R + 0.019, -0.1, 0.045]], [[0.0, 1.0, 0.0]] * 2)
+    assert np.isinf(t[0]) and np.isfinite(t[1])
+
+
+def test_thin_wall_is_a_1_8_mm_fin():
+    mesh = object_mesh("thin_wall")
+    o = np.array([[x, -0.1, z] for x in (-0.02, 0.0, 0.025) for z in (0.02, 0.04)])
+    front = _first_hits(mesh, o, [[0.0, 1.0, 0.0]] * len(o)) - 0.1
+    back = 0.1 - _first_hits(mesh, o * [1, -1, 1], [[0.0, -1.0, 0.0]] * len(o))
+    np.testing.assert_allclose(back - front, 0.0018, atol=2.5e-4)
+
+
+def test_near_symmetric_is_almost_a_surface_of_revolution():
+    mesh = object_mesh("near_symmetric")
+    v = mesh.vertices
+    body = (v[:, 2] > 0.005) & (v[:, 2] < 0.05) & (np.abs(v[:, 1]) < 0.025)
+    lo, hi = mesh.bounds
+    assert (hi[0] - lo[0]) / (2 * 0.032) == pytest.approx(1.02, abs=0.005)
+    # at each height the radius about the axis varies by 2 % around (ellipse), not more
+    rho = np.hypot(v[body, 0], v[body, 1])
+    z = np.round(v[body, 2] / 0.005).astype(int)
+    for k in np.unique(z):
+        r = rho[z == k]
+        assert r.max() / r.min() < 1.03
+    # the one feature: a boss on +y at mid-height stands 1.5 mm proud
+    t = _first_hits(mesh, [[0.0, 0.1, 0.035], [0.0, -0.1, 0.035]],
+                    [[0.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    assert (0.1 - t[0]) - (0.1 - t[1]) == pytest.approx(0.0015, abs=4e-4)
+
+
+def test_bumpy_blob_is_bumpy():
+    mesh = object_mesh("bumpy_blob")
+    q = mesh.vertices - [0.0, 0.0, 0.036]
+    keep = mesh.vertices[:, 2] > 0.012  # above the flattened base
+    r = np.linalg.norm(q[keep], axis=1)
+    u = q[keep] / r[:, None]
+    # residual of a smooth (cubic in the direction) radius: the bumps, millimetres high
+    x, y, z = u.T
+    A = np.stack([np.ones_like(x), x, y, z, x * y, y * z, x * z, x * x, y * y, x**3, y**3,
+                  z**3, x * y * z, x * x * y, x * x * z, y * y * x, y * y * z], 1)
+    res = r - A @ np.linalg.lstsq(A, r, rcond=None)[0]
+    assert np.sqrt(np.mean(res**2)) > 4e-4 and np.abs(res).max() > 1.5e-3
+
+
 def test_ply_bytes_round_trip(tmp_path):
     import open3d as o3d
 

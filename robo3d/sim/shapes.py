@@ -17,6 +17,20 @@ Objects
     slide along), with a shallow dish in its top.
 ``blob``
     A smooth potato: a sphere perturbed by low-order harmonics, flattened where it rests.
+``bracket``
+    A flat-faced L bracket of 6 mm plate (90 x 60 mm foot, 50 mm upright) with a groove
+    across its foot and three through-holes (two in the foot, one in the upright): the
+    visual hull closes the holes, the laser sees their walls only in part.
+``cup``
+    A thin-walled cup (2.5 mm wall, 70 mm wide, 85 mm tall) with a loop handle and an
+    open top: a deep concavity that the visual hull closes across the opening.
+``bumpy_blob``
+    ``blob``'s potato with 28 bumps and dents of 1.5-3.5 mm, 5-9 mm wide.
+``near_symmetric``
+    A bottle that is almost a surface of revolution (2 % elliptic, slightly tapered)
+    with one small boss: registration has one nearly unconstrained rotation.
+``thin_wall``
+    A 1.8 mm fin, 60 mm tall, standing on a block, with a 1.5 mm gusset.
 ``sphere``
     A 40 mm radius sphere touching the table at the origin, as a subdivided icosahedron
     whose vertices lie exactly on the sphere (facet sagitta about 15 micrometres), so
@@ -62,6 +76,11 @@ __all__ = [
     "sdf_dimple_block",
     "sdf_vase",
     "sdf_blob",
+    "sdf_bracket",
+    "sdf_cup",
+    "sdf_bumpy_blob",
+    "sdf_near_symmetric",
+    "sdf_thin_wall",
 ]
 
 _log = logging.getLogger(__name__)
@@ -197,11 +216,158 @@ def sdf_blob(p: np.ndarray) -> np.ndarray:
     return _rounded_intersection(d, -p[..., 2], 0.004)
 
 
+def _box(p: np.ndarray, lo: tuple[float, float, float], hi: tuple[float, float, float],
+         radius: float = 0.0) -> np.ndarray:
+    """Rounded box given by its corners (``radius``: edge rounding, <= half the thinnest side)."""
+    c = tuple(0.5 * (a + b) for a, b in zip(lo, hi, strict=True))
+    h = tuple(0.5 * (b - a) for a, b in zip(lo, hi, strict=True))
+    return _round_box(p, c, h, radius)
+
+
+def _cylinder(p: np.ndarray, axis: int, centre: tuple[float, float, float], radius: float,
+              half_length: float) -> np.ndarray:
+    """Exact SDF of a capped cylinder along coordinate ``axis``."""
+    q = p - np.asarray(centre, dtype=p.dtype)
+    other = [i for i in range(3) if i != axis]
+    dr = np.hypot(q[..., other[0]], q[..., other[1]]) - radius
+    dz = np.abs(q[..., axis]) - half_length
+    return (np.hypot(np.maximum(dr, 0.0), np.maximum(dz, 0.0))
+            + np.minimum(np.maximum(dr, dz), 0.0))
+
+
+def sdf_bracket(p: np.ndarray) -> np.ndarray:
+    """SDF of ``bracket`` at points ``(..., 3)`` (metres); negative inside.
+
+    An L bracket of 6 mm plate: a 90 x 60 mm foot on the table and a 50 mm upright along
+    its ``-y`` edge, a 5 mm wide, 2.5 mm deep groove across the foot's top face, two
+    10 mm through-holes in the foot and one 12 mm through-hole in the upright; edges
+    rounded by 1 mm, so its faces are flat and its edges sharp at the scanner's scale.
+    """
+    t = 0.006
+    foot = _box(p, (-0.045, -0.030, 0.0), (0.045, 0.030, t), 0.001)
+    upright = _box(p, (-0.045, -0.030, 0.0), (0.045, -0.030 + t, 0.050), 0.001)
+    d = np.minimum(foot, upright)
+    k = 0.0008
+    groove = _box(p, (-0.050, 0.0035, t - 0.0025), (0.050, 0.0085, t + 0.010))
+    d = _smax(d, -groove, k)
+    for x in (-0.025, 0.025):
+        d = _smax(d, -_cylinder(p, 2, (x, 0.016, t / 2), 0.005, 0.02), k)
+    d = _smax(d, -_cylinder(p, 1, (0.0, -0.027, 0.032), 0.006, 0.02), k)
+    return d
+
+
+_CUP_R, _CUP_H, _CUP_WALL, _CUP_FLOOR = 0.035, 0.085, 0.0025, 0.005
+_CUP_DX = -0.011  # shifts the cup so that cup + handle is centred on the z axis
+
+
+def sdf_cup(p: np.ndarray) -> np.ndarray:
+    """SDF of ``cup`` at points ``(..., 3)`` (metres); negative inside.
+
+    A 70 mm wide, 85 mm tall cup with a 2.5 mm wall, a 5 mm floor, a rim rounded to a
+    half circle, an open top (a 77 mm deep concavity), and a loop handle (a 3.5 mm
+    tube on a 13 mm radius, in the ``x z`` plane on the ``+x`` side).
+    """
+    q = p - np.array([_CUP_DX, 0.0, 0.0], dtype=p.dtype)
+    rho = np.hypot(q[..., 0], q[..., 1])
+    z = q[..., 2]
+    rm = _CUP_R - _CUP_WALL / 2
+    # the wall: a 2D capsule in (rho, z) from (rm, floor) to (rm, H), radius wall / 2
+    wz = z - np.clip(z, _CUP_FLOOR, _CUP_H - _CUP_WALL / 2)
+    wall = np.hypot(rho - rm, wz) - _CUP_WALL / 2
+    # the floor: a disc rho <= R, 0 <= z <= floor, outer bottom edge rounded by 1 mm
+    floor = _cylinder(q, 2, (0.0, 0.0, _CUP_FLOOR / 2), _CUP_R - 0.001,
+                      _CUP_FLOOR / 2 - 0.001) - 0.001
+    d = np.minimum(wall, floor)
+    # the handle: a torus in the x z plane, kept outside the cup's body
+    c = np.array([_CUP_R + 0.006, 0.0, 0.045], dtype=p.dtype)
+    h = q - c
+    ring = np.hypot(np.hypot(h[..., 0], h[..., 2]) - 0.013, h[..., 1]) - 0.0035
+    handle = np.maximum(ring, (_CUP_R - 0.0008) - rho)
+    return np.minimum(d, handle)
+
+
+def _bump_directions() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(20261201)
+    n = 28
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) * 0.8  # the bumps on the upper part, which the laser sees
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    amp = rng.uniform(0.0015, 0.0035, n) * rng.choice([-1.0, 1.0], n, p=[0.3, 0.7])
+    width = rng.uniform(0.12, 0.22, n)  # radians
+    return d, amp, width
+
+
+_BUMPS = _bump_directions()
+
+
+def sdf_bumpy_blob(p: np.ndarray) -> np.ndarray:
+    """SDF (first order) of ``bumpy_blob`` at points ``(..., 3)`` (metres).
+
+    ``blob``'s potato (low-order harmonics, 42 mm mean radius) with 28 Gaussian bumps and
+    dents, 1.5-3.5 mm high and 5-9 mm wide (fixed seed), flattened where it rests.
+    """
+    c = np.array([0.0, 0.0, 0.036], dtype=p.dtype)
+    q = p - c
+    r = np.linalg.norm(q, axis=-1)
+    u = q / np.maximum(r, 1e-9)[..., None]
+    ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
+    radius = 0.042 * (1.0 + 0.12 * ux * uy + 0.10 * (uz * uz - 0.33) + 0.06 * ux
+                      - 0.05 * uy * uz)
+    d_, amp, width = (x.astype(p.dtype) for x in _BUMPS)
+    ang2 = 2.0 * (1.0 - u @ d_.T)  # (..., n): squared chord ~ squared angle
+    radius = radius + np.exp(ang2 * (-0.5 / width**2)) @ amp
+    d = (r - radius) * 0.7  # first-order: the bumps' slopes stretch distances
+    return _rounded_intersection(d, -p[..., 2], 0.004)
+
+
+def sdf_near_symmetric(p: np.ndarray) -> np.ndarray:
+    """SDF (first order) of ``near_symmetric`` at points ``(..., 3)`` (metres).
+
+    A 100 mm bottle, nearly a surface of revolution: its cross-sections are ellipses 2 %
+    wider in ``x`` than in ``y`` and its body tapers by 2 mm, with one small feature (a
+    6 mm wide, 1.5 mm high round boss at mid-height on the ``+y`` side).
+    """
+    from scipy.interpolate import PchipInterpolator
+
+    zs = np.array([0.0, 0.055, 0.072, 0.085, 0.1])
+    rs = np.array([0.032, 0.030, 0.020, 0.013, 0.013])
+    profile = PchipInterpolator(zs, rs, extrapolate=True)
+    dprofile = profile.derivative()
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    zc = np.clip(z, 0.0, 0.1)
+    rho = np.hypot(x / 1.02, y)
+    slope = dprofile(zc)
+    side = (rho - profile(zc)) / np.sqrt(1.0 + slope * slope)
+    slab = np.maximum(-z, z - 0.1)
+    d = _rounded_intersection(side, slab, 0.002)
+    boss = _sphere(p, (0.0, 0.0305 - 0.0015, 0.035), 0.003)
+    return np.minimum(d, boss)
+
+
+def sdf_thin_wall(p: np.ndarray) -> np.ndarray:
+    """SDF of ``thin_wall`` at points ``(..., 3)`` (metres); negative inside.
+
+    A 1.8 mm fin, 70 mm long and 60 mm tall with a rounded top, standing on a 80 x 40 x
+    8 mm base along ``x``, stiffened by one 1.5 mm gusset across it.
+    """
+    base = _box(p, (-0.040, -0.020, 0.0), (0.040, 0.020, 0.008), 0.001)
+    fin = _box(p, (-0.035, -0.0009, 0.0), (0.035, 0.0009, 0.060), 0.0006)
+    # the fin's top is an arc: cut by a big sphere (radius 80 mm, crest at z = 60 mm)
+    fin = np.maximum(fin, _sphere(p, (0.0, 0.0, 0.060 - 0.080), 0.080))
+    gusset = _box(p, (0.012, -0.016, 0.0), (0.0135, 0.016, 0.030), 0.0005)
+    # the gusset's outer edges slope: keep it under the plane z = 30 mm - |y| * 1.4
+    gusset = np.maximum(gusset, (p[..., 2] - 0.030 + 1.4 * np.abs(p[..., 1])) / np.sqrt(2.96))
+    return np.minimum(np.minimum(base, fin), gusset)
+
+
 @dataclass(frozen=True)
 class _Spec:
     sdf: Sdf | None
     lo: tuple[float, float, float]
     hi: tuple[float, float, float]
+    #: the decimation's planar quadrics (False for the issue-11 objects: on their 1 mm
+    #: rounded edges and thin walls they fold triangles through each other)
+    planar: bool = True
 
 
 #: Names of the objects the simulator can build, with their SDF and a bounding box.
@@ -210,6 +376,15 @@ OBJECTS: dict[str, _Spec] = {
     "vase": _Spec(sdf_vase, (-0.054, -0.054, -0.003), (0.054, 0.054, 0.113)),
     "blob": _Spec(sdf_blob, (-0.065, -0.065, -0.003), (0.065, 0.065, 0.095)),
     "sphere": _Spec(None, (-0.04, -0.04, 0.0), (0.04, 0.04, 0.08)),
+    # issue 11: geometries the back half must hold on (thin walls, through-holes, a deep
+    # concavity, flat faces, a near-symmetric body)
+    "bracket": _Spec(sdf_bracket, (-0.046, -0.031, -0.003), (0.046, 0.031, 0.053), False),
+    "cup": _Spec(sdf_cup, (-0.047, -0.037, -0.003), (0.048, 0.037, 0.088), False),
+    "bumpy_blob": _Spec(sdf_bumpy_blob, (-0.044, -0.045, -0.003), (0.048, 0.045, 0.087),
+                        False),
+    "near_symmetric": _Spec(sdf_near_symmetric, (-0.036, -0.036, -0.003),
+                            (0.036, 0.036, 0.103), False),
+    "thin_wall": _Spec(sdf_thin_wall, (-0.041, -0.021, -0.003), (0.041, 0.021, 0.063), False),
 }
 
 
@@ -256,7 +431,7 @@ def mesh_sdf(sdf: Sdf, lo: np.ndarray, hi: np.ndarray, voxel: float) -> Triangle
     return mesh
 
 
-def decimate_mesh(mesh: TriangleMesh, faces: int) -> TriangleMesh:
+def decimate_mesh(mesh: TriangleMesh, faces: int, planar: bool = True) -> TriangleMesh:
     """Quadric edge-collapse decimation to about ``faces`` triangles.
 
     Parameters
@@ -264,6 +439,11 @@ def decimate_mesh(mesh: TriangleMesh, faces: int) -> TriangleMesh:
     mesh : TriangleMesh
     faces : int
         Target number of triangles (the input is returned if it has fewer).
+    planar : bool
+        pymeshlab's ``planarquadric`` (extra quadrics that keep planar regions planar).
+        On small rounded edges (1 mm at a 0.6 mm grid) and 2 mm walls it lets collapses
+        fold triangles through each other (self-intersections); the issue-11 objects
+        are decimated without it.
 
     Returns
     -------
@@ -286,7 +466,7 @@ def decimate_mesh(mesh: TriangleMesh, faces: int) -> TriangleMesh:
                                face_matrix=mesh.faces.astype(np.int32)))
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(faces), qualitythr=0.5,
                                                 preservenormal=True, preservetopology=True,
-                                                optimalplacement=True, planarquadric=True,
+                                                optimalplacement=True, planarquadric=planar,
                                                 autoclean=True)
     ms.meshing_remove_unreferenced_vertices()
     m = ms.current_mesh()
@@ -326,7 +506,8 @@ def make_object(name: str, *, voxel: float = 0.0006, faces: int = 40_000) -> Tri
     Parameters
     ----------
     name : str
-        One of :data:`OBJECTS` (``dimple_block``, ``vase``, ``blob``, ``sphere``).
+        One of :data:`OBJECTS` (``dimple_block``, ``vase``, ``blob``, ``sphere``,
+        ``bracket``, ``cup``, ``bumpy_blob``, ``near_symmetric``, ``thin_wall``).
     voxel : float, metres
         Marching-cubes grid spacing (SDF objects).
     faces : int
@@ -345,7 +526,7 @@ def make_object(name: str, *, voxel: float = 0.0006, faces: int = 40_000) -> Tri
     else:
         raw = mesh_sdf(spec.sdf, np.array(spec.lo), np.array(spec.hi), voxel)
         _log.debug("%s: marching cubes gave %d faces", name, len(raw.faces))
-        mesh = decimate_mesh(raw, faces)
+        mesh = decimate_mesh(raw, faces, planar=spec.planar)
         v = mesh.vertices.copy()
         v[:, 2] -= v[:, 2].min()
         mesh = TriangleMesh(v, mesh.faces)

@@ -1478,7 +1478,8 @@ def _solve_held(H: np.ndarray, b: np.ndarray, prior_b: np.ndarray, prior_sd: np.
     delta[f] = sd * (strong @ u_strong + vec[:, weak] @ u_weak)
     if not np.all(np.isfinite(delta)):
         raise np.linalg.LinAlgError("non-finite step")
-    return delta, {"eigenvalues": lam, "vectors": vec, "weak": weak, "free": f}
+    return delta, {"eigenvalues": lam, "vectors": vec, "weak": weak, "free": f,
+                   "ratio": ratio}
 
 
 def _direction_report(info: dict[str, Any], k0: int, prior_sd: np.ndarray,
@@ -1488,11 +1489,14 @@ def _direction_report(info: dict[str, Any], k0: int, prior_sd: np.ndarray,
 
     ``k0`` is the sweep's first parameter (6 per sweep: rotation about the sensor,
     shift). The basic directions are the translations along, and the rotations about,
-    the principal axes of the sweep's points (through their centroid); each is
-    ``constrained`` when less than half of it (whitened) lies in the held subspace.
-    ``unconstrained`` describes, in plain words, each direction of the sweep that the
-    data left to the prior: a rotation about an axis (direction and a point on it, base,
-    mm) or a translation.
+    the principal axes of the sweep's points; from the sweep's block of the data
+    information that was used (held directions removed), a translation is
+    ``constrained`` when the data see it at least ``ratio`` times as well as the prior
+    does, a rotation when they tell it apart from every accompanying translation that
+    well (the Schur complement: a flat face fixes neither its in-plane shifts nor the
+    turn about its normal, a sphere no turn at all). ``unconstrained`` describes, in
+    plain words, each direction of the sweep that the data left to the prior: a
+    rotation about an axis (direction and a point on it, base, mm) or a translation.
     """
     f = info["free"]
     rows = np.flatnonzero((f >= k0) & (f < k0 + 6))
@@ -1510,14 +1514,27 @@ def _direction_report(info: dict[str, Any], k0: int, prior_sd: np.ndarray,
         axes[2] *= -1
     sd = prior_sd[:6]
 
-    def held(w: np.ndarray, t: np.ndarray) -> float:
-        u = np.r_[w, t] / sd
-        nu = np.linalg.norm(u)
-        return float(u @ m @ u / nu**2) if nu > 0 else 0.0
+    # the sweep's own block of the data information that was used (held directions
+    # removed), in the twist about its centroid (rotation w, centroid shift v): the
+    # sensor model's shift is t = v + [c - o]x w
+    lam, vec, weak = info["eigenvalues"], info["vectors"], info["weak"]
+    hw = (vec[rows][:, ~weak] * lam[~weak]) @ vec[rows][:, ~weak].T
+    h_d = hw / np.outer(sd, sd)
+    h_p = np.diag(1.0 / sd**2)
+    mm = np.eye(6)
+    mm[3:, :3] = _skew(c - origin)
+    h_d, h_p = mm.T @ h_d @ mm, mm.T @ h_p @ mm
 
-    trans = [held(np.zeros(3), a) < 0.5 for a in axes]
-    # rotation about axis a through the centroid: w = a, shift t = a x (o - c)
-    rots = [held(a, np.cross(a, origin - c)) < 0.5 for a in axes]
+    def marginal(h: np.ndarray, a: np.ndarray) -> float:
+        # information of a turn about a when any shift may accompany it (Schur)
+        return float(a @ (h[:3, :3] - h[:3, 3:] @ np.linalg.pinv(h[3:, 3:]) @ h[3:, :3]) @ a)
+
+    ratio = info.get("ratio", 1.0)
+    # a shift along a: seen by the data (turns held); a turn about a: told apart from
+    # every shift. A flat face: shifts in its plane and the turn about its normal are
+    # not fixed; a sphere: no turn is
+    trans = [bool(a @ h_d[3:, 3:] @ a >= ratio * (a @ h_p[3:, 3:] @ a)) for a in axes]
+    rots = [bool(marginal(h_d, a) >= ratio * marginal(h_p, a)) for a in axes]
     lam_s, vec_s = np.linalg.eigh(0.5 * (m + m.T))
     words = []
     for val, u in zip(lam_s[::-1], vec_s[:, ::-1].T, strict=True):

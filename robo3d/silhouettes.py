@@ -1424,11 +1424,11 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     import time
 
     from .config import load_config
-    from .pipeline import _reader_options
     from .recording.reader import read_recording
+    from .stages.common import reader_options
 
     cfg = load_config() if cfg is None else cfg
-    rec = read_recording(path, roles=("views",), **_reader_options(cfg))
+    rec = read_recording(path, roles=("views",), **reader_options(cfg))
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
     poses = rec.camera_poses(views)
     ious: dict[int, float] = {}

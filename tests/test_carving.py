@@ -522,12 +522,12 @@ def test_surface_is_the_shell():
 # ---------------------------------------------------------------------- the pipeline stage
 def _silhouettes_npz(path, cam, Ts, masks):
     from robo3d.atomic import save_npz
-    from robo3d.pipeline import _camera_arrays
+    from robo3d.stages.common import camera_arrays
 
     stack = np.stack(masks)
     save_npz(path, masks=np.packbits(stack, axis=-1), mask_shape=np.array(stack.shape),
              T_base_camera=Ts, stamps_ns=np.arange(len(Ts), dtype=np.int64),
-             **_camera_arrays([cam] * len(Ts)))
+             **camera_arrays([cam] * len(Ts)))
 
 
 @pytest.mark.parametrize("method", ["octree", "dense"])

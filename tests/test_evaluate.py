@@ -367,10 +367,10 @@ def test_stage_evaluate_reports_mask_iou_and_skips_damaged_attachments(tmp_path)
     scored = [v for v in mi["per_view"] if v["iou"] is not None]
     assert all(v["iou"] > 0.9 for v in scored)  # matched in time order
     from robo3d.evaluate import silhouette_iou
-    from robo3d.pipeline import _load_silhouettes
     from robo3d.recording.reader import read_recording
+    from robo3d.stages.common import load_silhouettes
 
-    masks = list(_load_silhouettes(str(res / "silhouettes.npz"))["masks"])
+    masks = list(load_silhouettes(str(res / "silhouettes.npz"))["masks"])
     off_by_one = silhouette_iou(masks[1:] + masks[:1], read_recording(rec, roles=()).attachments)
     assert off_by_one["mean"] < 0.8  # the test can tell a wrong order
     assert mi["min"] == min(v["iou"] for v in scored) and mi["mean"] >= mi["min"]

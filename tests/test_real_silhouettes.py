@@ -47,7 +47,8 @@ def test_dtu_scan24_masks_match_the_published_ones():
 @_need(TEMPLE)
 def test_temple_default_segmentation_and_qa_flags_in_the_outputs(tmp_path):
     from robo3d.config import load_config
-    from robo3d.pipeline import _load_silhouettes, stage_silhouettes
+    from robo3d.pipeline import stage_silhouettes
+    from robo3d.stages.common import load_silhouettes
 
     out = {"npz": str(tmp_path / "s.npz"), "report": str(tmp_path / "s.json"),
            "rrd": str(tmp_path / "s.rrd")}
@@ -59,7 +60,7 @@ def test_temple_default_segmentation_and_qa_flags_in_the_outputs(tmp_path):
         assert v["polarity"] == "auto" and v["background_sample"] == "outside roi"
         assert v["refined"] is True and v["qa"]["flags"] == []
         assert not v["touches_image_border"]
-    sil = _load_silhouettes(out["npz"])
+    sil = load_silhouettes(out["npz"])
     masks = sil["masks"]
     assert not sil["qa_flagged"].any()
     # the seed's grey threshold suits a dark backdrop: the colour segmentation agrees
@@ -69,7 +70,7 @@ def test_temple_default_segmentation_and_qa_flags_in_the_outputs(tmp_path):
     grey_out = {k: str(tmp_path / f"g.{k}") for k in ("npz", "report", "rrd")}
     cfg = load_config(overrides={"segmentation": {"polarity": "brighter", "grabcut": False}})
     stage_silhouettes({"recording": str(TEMPLE)}, grey_out, cfg, "temple")
-    grey = _load_silhouettes(grey_out["npz"])["masks"]
+    grey = load_silhouettes(grey_out["npz"])["masks"]
     ious = [_iou(a, b) for a, b in zip(masks, grey, strict=True)]
     assert np.mean(ious) >= 0.94 and min(ious) >= 0.88, ious
     # the columns leave see-through gaps: background enclosed by the temple's silhouette
@@ -89,4 +90,4 @@ def test_temple_default_segmentation_and_qa_flags_in_the_outputs(tmp_path):
     bad = stage_silhouettes({"recording": str(TEMPLE)}, bad_out, cfg, "temple")
     assert bad["n_qa_flagged"] == 16 and bad["qa_flagged_views"] == list(range(16))
     assert all("touches_all_sides" in v["qa"]["flags"] for v in bad["views"])
-    assert _load_silhouettes(bad_out["npz"])["qa_flagged"].all()
+    assert load_silhouettes(bad_out["npz"])["qa_flagged"].all()

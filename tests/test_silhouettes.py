@@ -369,7 +369,8 @@ def test_stage_silhouettes_background_topic_and_mask_pngs(tmp_path, caplog):
     taken elsewhere is segmented without it (and says so); every mask is written as a
     PNG beside the NPZ."""
     from robo3d.config import load_config
-    from robo3d.pipeline import _load_silhouettes, stage_silhouettes
+    from robo3d.pipeline import stage_silhouettes
+    from robo3d.stages.common import load_silhouettes
 
     rng = np.random.default_rng(9)
     v, u = np.mgrid[0:H, 0:W]
@@ -395,7 +396,7 @@ def test_stage_silhouettes_background_topic_and_mask_pngs(tmp_path, caplog):
     assert [v["background_subtracted"] for v in views] == [True, True, False]
     assert report["n_background_subtracted"] == 2
     assert "no empty-scene image on /camera/background within 1.00 mm" in caplog.text
-    masks = _load_silhouettes(out["npz"])["masks"]
+    masks = load_silhouettes(out["npz"])["masks"]
     assert _iou(masks[0], disc) >= 0.99 and _iou(masks[1], disc) >= 0.99
     assert _iou(masks[2], disc) < 0.9  # thresholding alone cannot separate them
     assert all(v["roi_source"] == "automatic" for v in views)  # no workspace box

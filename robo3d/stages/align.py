@@ -1,0 +1,180 @@
+"""The ``align`` stage: sweep poses refined by ICP, a pose graph and a joint refinement against
+the silhouettes (:mod:`robo3d.registration`), then the aligned points tested against the
+silhouettes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ..atomic import write_json
+from .common import log, silhouette_views, summary, sweep_color
+
+
+def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
+                cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+    """Refine each sweep's pose (seed §2.3): pairwise ICP and a pose graph, then a joint
+    refinement against the neighbours and, when the recording has views, the
+    silhouettes as absolute reference (:func:`robo3d.registration.align_sweeps`).
+
+    Inputs: ``clouds``; optional ``silhouettes`` (silhouettes.npz) with ``recording``
+    (the views' grey images). Each aligned cloud's report keeps ``correction``: the rigid
+    ``base`` transform applied at the sweep's middle frame (what corrects the robot's
+    pose there), and ``correction_model`` (rotation, translation of
+    :func:`robo3d.registration.apply_correction`).
+    """
+    from ..meshio import write_point_cloud
+    from ..registration import align_sweeps, correction_at
+    from ..triangulation import load_clouds_npz, save_clouds_npz
+    from ..viz import log_points, log_report, rerun_log
+
+    t0 = time.perf_counter()
+    clouds = load_clouds_npz(inputs["clouds"])
+    ac = cfg["alignment"]
+    views = None
+    if ac["enabled"] and ac["refine"] and ac["silhouettes"] and inputs.get("silhouettes"):
+        views = silhouette_views(inputs, cfg)
+    if ac["enabled"] and len(clouds) > 1:
+        result = align_sweeps([c.points_base for c in clouds], [c.normals_base for c in clouds],
+                              voxel_size=ac["voxel_size_m"], max_corr_dist=ac["max_corr_dist_m"],
+                              max_iterations=ac["max_iterations"],
+                              max_correction_mm=ac["max_correction_mm"],
+                              max_correction_deg=ac["max_correction_deg"],
+                              min_overlap=ac["min_overlap"], method=ac["method"],
+                              seed=cfg["seed"],
+                              origins=[c.sensor_origin_base for c in clouds],
+                              profiles=[c.frame_index for c in clouds], refine=ac["refine"],
+                              silhouettes=views, prior_mm=ac["prior_mm"],
+                              prior_deg=ac["prior_deg"],
+                              refine_iterations=ac["refine_iterations"],
+                              rim_weight=ac["rim_weight"],
+                              normal_k=ac["pair_normals_k"],
+                              normal_max_spacing=ac["pair_normals_max_spacing_m"],
+                              degenerate_ratio=ac["degenerate_ratio"],
+                              pair_degenerate_ratio=ac["pair_degenerate_ratio"])
+        align_report = {"method": result.method, "gauge": result.gauge,
+                        "reference": result.reference, "pairs": result.pairs,
+                        "per_sweep": result.per_sweep, "refinement": result.refinement,
+                        "n_views_used": 0 if views is None else len(views.cameras)}
+    else:
+        result = None
+        align_report = {"skipped": "alignment disabled in the config" if not ac["enabled"]
+                        else "a single sweep has nothing to align to"}
+    corrections = []
+    for k, c in enumerate(clouds):
+        mid = int(np.median(c.frame_index)) if len(c.frame_index) else 0
+        o_mid = (c.sensor_origin_base[int(np.argmin(np.abs(c.frame_index - mid)))]
+                 if len(c.frame_index) else np.zeros(3))
+        if result is None:
+            rot, tr = np.eye(3), np.zeros(3)
+        elif result.rotations is not None:
+            rot, tr = result.rotations[k], result.translations[k]
+        else:  # rigid corrections (no refinement): the same at every frame
+            C = result.corrections[k]
+            rot, tr = C[:3, :3], C[:3, 3] + C[:3, :3] @ o_mid - o_mid
+        if result is not None and result.rotations is None:
+            p, o, n = result.apply(k, c.points_base, c.sensor_origin_base, c.normals_base)
+        else:
+            from ..registration import apply_correction
+
+            p, o, n = apply_correction(c.points_base, c.sensor_origin_base, rot, tr,
+                                       c.normals_base)
+        C_mid = correction_at(o_mid, rot, tr)
+        corrections.append(C_mid)
+        c.report = {**(c.report or {}), "correction": C_mid.tolist(), "correction_frame": mid,
+                    "correction_model": {"rotation": np.asarray(rot).tolist(),
+                                         "translation": np.asarray(tr).tolist()}}
+        c.points_base, c.sensor_origin_base, c.normals_base = p, o, n
+    hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)
+    report = {"n_sweeps": len(clouds), **align_report,
+              "corrections": [C.tolist() for C in corrections],
+              "outside_hull": hull_check,
+              "seconds": round(time.perf_counter() - t0, 3)}
+    save_clouds_npz(outputs["npz"], clouds)
+    write_point_cloud(outputs["ply"], np.concatenate([c.points_base for c in clouds]),
+                      normals=np.concatenate([c.normals_base for c in clouds]),
+                      attributes={"sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
+                                                           for c in clouds]).astype(np.int32)})
+    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        for c in clouds:
+            log_points(rr_stream, f"base/aligned/sweep_{c.sweep:02d}", c.points_base,
+                       colors=sweep_color(c.sweep))
+        if len(rejected):
+            log_points(rr_stream, "base/rejected/outside_hull", rejected,
+                       colors=[255, 0, 255])
+        log_report(rr_stream, "reports/align", report)
+    write_json(outputs["report"], report)
+    flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
+    summary.info("aligned %d sweeps (gauge: %s, %.1f s)%s", len(clouds),
+             align_report.get("gauge", "-"), report["seconds"],
+             f"; flagged and kept at the robot's pose: {flagged}" if flagged else "")
+    return report
+
+
+def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
+                         ac: Mapping[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
+    """Drop the aligned points that lie outside a view's silhouette (in place).
+
+    A point of the object cannot project outside a correct silhouette of it; a laser
+    point that does is light of the laser's colour that the sheet did not put on the
+    object there (the object's lit rim, a glint, a reflection) triangulated into empty
+    space (:func:`robo3d.carving.outside_silhouettes`). Views flagged by the silhouettes'
+    QA are not used; nor is a view whose silhouette alone would drop more than
+    ``outside_hull_max_view_fraction`` of the points (the laser contradicts the mask).
+
+    Returns the report (per sweep: points dropped) and the dropped points.
+    """
+    from ..carving import outside_silhouettes
+
+    if not ac["reject_outside_hull"]:
+        return {"skipped": "alignment.reject_outside_hull is false"}, np.zeros((0, 3))
+    if views is None:
+        return {"skipped": "no silhouette views"}, np.zeros((0, 3))
+    n_all = sum(len(c) for c in clouds)
+    if n_all == 0:
+        return {"skipped": "no points"}, np.zeros((0, 3))
+    with np.load(inputs["silhouettes"]) as z:
+        qa = z["qa_flagged"].astype(bool) if "qa_flagged" in z.files else None
+    idx = [i for i in range(len(views.cameras)) if qa is None or not qa[i]]
+    pts = np.concatenate([c.points_base for c in clouds])
+    tol_px, tol_m = float(ac["outside_hull_px"]), 1e-3 * float(ac["outside_hull_mm"])
+    per_view = np.zeros((len(idx), len(pts)), bool)
+    for j, i in enumerate(idx):
+        n_i, _ = outside_silhouettes(pts, [views.masks[i]], [views.cameras[i]],
+                                     views.T_base_camera[i:i + 1], tol_px=tol_px, tol_m=tol_m)
+        per_view[j] = n_i > 0
+    frac = per_view.mean(axis=1) if len(idx) else np.zeros(0)
+    distrust = frac > float(ac["outside_hull_max_view_fraction"])
+    n_out = per_view[~distrust].sum(axis=0)
+    drop = n_out >= int(ac["outside_hull_min_views"])
+    starts = np.cumsum([0] + [len(c) for c in clouds])
+    per_sweep = []
+    for k, c in enumerate(clouds):
+        d = drop[starts[k]:starts[k + 1]]
+        per_sweep.append({"sweep": c.sweep, "dropped": int(d.sum()), "points": len(c)})
+        if d.any():
+            keep = ~d
+            c.points_base, c.normals_base = c.points_base[keep], c.normals_base[keep]
+            c.frame_index, c.confidence = c.frame_index[keep], c.confidence[keep]
+            c.sensor_origin_base = c.sensor_origin_base[keep]
+            c.report = {**(c.report or {}), "dropped_outside_hull": int(d.sum())}
+    not_used = [{"view": int(idx[j]), "would_drop_fraction": round(float(frac[j]), 4)}
+                for j in np.flatnonzero(distrust)]
+    report = {"views_used": int(len(idx) - distrust.sum()),
+              "views_not_used_qa_flagged": [i for i in range(len(views.cameras))
+                                            if i not in idx],
+              "views_not_used_contradict_laser": not_used,
+              "tol_px": tol_px, "tol_mm": 1e3 * tol_m,
+              "min_views": int(ac["outside_hull_min_views"]),
+              "dropped": int(drop.sum()), "points": int(n_all),
+              "dropped_fraction": float(drop.mean()), "per_sweep": per_sweep}
+    log.info("alignment: %d of %d laser points (%.2f %%) lie outside a silhouette: dropped "
+             "(%d views used%s)", int(drop.sum()), n_all, 100 * float(drop.mean()),
+             report["views_used"],
+             f"; not used, contradict the laser: {[v['view'] for v in not_used]}"
+             if not_used else "")
+    return report, pts[drop]

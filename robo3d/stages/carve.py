@@ -1,0 +1,227 @@
+"""The ``carve`` stage: the visual hull from the silhouettes (seed §3.1-3.5;
+:mod:`robo3d.carving`, :mod:`robo3d.octree`), after each view's agreement with the others'
+hull.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import write_json
+from ..errors import StageError
+from .common import cameras_from, load_silhouettes, log, mesh_volume, summary, workspace_from
+
+
+def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
+                cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+    """Place the box, check the views agree, carve the visual hull (seed §3.1–3.5), mesh it.
+
+    Before the carve, each silhouette is scored against the hull of the other views on
+    a coarse grid (:func:`robo3d.carving.flag_disagreeing_views`, ``carving.qa_*``);
+    the views it flags are left out of the carve (``carving.qa_leave_out``) and named
+    in the report (``views_left_out``), in ``hull.npz`` (``views_used``,
+    ``views_left_out``) and in the rerun log. Views the segmentation's own checks
+    flagged (``qa_flagged`` in ``silhouettes.npz``) do not define the other views'
+    reference; they are left out only when they disagree too. The carving method
+    (``carving.method``: Szeliski's octree or dense), its policies and ``k`` of n
+    (``carving.min_views_background``) come from the config; ``hull.npz`` holds the
+    occupancy with its origin, voxel size, frame and how it was carved, ``hull.ply``
+    the smoothed watertight marching-cubes mesh, the report the box, the agreement
+    scores, the resolution check (eq. 7–8), the volume and the hull's bounding box
+    (``bbox_min``, ``bbox_max``: the outer faces of the occupied voxels, metres).
+    """
+    from ..carving import (
+        box_from_silhouettes,
+        carve_visual_hull,
+        hull_to_mesh,
+        make_grid,
+        resolution_report,
+    )
+    from ..errors import ConfigError
+    from ..meshio import write_mesh
+    from ..viz import log_box, log_camera, log_mesh, log_report, log_voxels, rerun_log
+
+    t0 = time.perf_counter()
+    sil = load_silhouettes(inputs["silhouettes"])
+    cameras = cameras_from(sil)
+    masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cameras)]
+    poses = sil["T_base_camera"]
+    cc = cfg["carving"]
+    if cc["method"] == "dense" and cc["leaf_rule"] != "centre":
+        raise ConfigError(f"config key carving.leaf_rule: {cc['leaf_rule']!r} needs "
+                          "carving.method octree (the dense method tests voxel centres)")
+    ws = workspace_from(sil)
+    if ws is not None:
+        box_min, box_max = ws
+        box_report = {"source": "workspace box of the recording"}
+    else:
+        box_min, box_max, box_report = box_from_silhouettes(None, masks, cameras, poses,
+                                                            margin=cc["box_margin"])
+        box_report = {"source": "silhouette centroid rays (seed §3.4)", **box_report}
+    box_report["size_m"] = (np.asarray(box_max) - np.asarray(box_min)).tolist()
+    log.info("carving box (%s): min %s, max %s, size %s mm", box_report["source"],
+             np.round(box_min, 4).tolist(), np.round(box_max, 4).tolist(),
+             np.round(np.asarray(box_report["size_m"]) * 1e3, 1).tolist())
+    agreement = _view_agreement_check(inputs["silhouettes"], sil, masks, cameras, poses,
+                                      box_min, box_max, cc)
+    n_views = len(cameras)
+    left_out = agreement["views_left_out"] if cc["qa_leave_out"] else []
+    used = [i for i in range(n_views) if i not in set(left_out)]
+    if ws is None and left_out:  # a bad mask also misplaces the box: place it again
+        box_min, box_max, box_report = box_from_silhouettes(
+            None, [masks[i] for i in used], [cameras[i] for i in used], poses[used],
+            margin=cc["box_margin"])
+        box_report = {"source": "silhouette centroid rays (seed §3.4) of the views used",
+                      **box_report, "size_m": (box_max - box_min).tolist()}
+    grid = make_grid(box_min, box_max, resolution=cc["resolution"])
+    grid, carve_report = carve_visual_hull(grid, [masks[i] for i in used],
+                                           [cameras[i] for i in used], poses[used],
+                                           method=cc["method"],
+                                           outside_image=cc["outside_image"],
+                                           behind_camera=cc["behind_camera"],
+                                           leaf_rule=cc["leaf_rule"], threads=cc["threads"],
+                                           min_views_background=cc["min_views_background"])
+    for v in carve_report["views"]:  # the recording's view numbers, not the subset's
+        v["view"] = used[v["view"]]
+    n_occ = grid.n_occupied
+    if n_occ == 0:
+        raise StageError(f"{inputs['silhouettes']}: carving removed every voxel: the "
+                         "silhouettes do not agree with the cameras' poses (check the "
+                         "calibration, the transform tree and the masks)")
+    vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
+    res = resolution_report(grid, [cameras[i] for i in used], poses[used])
+    if res.get("warning"):
+        log.warning("%s", res["warning"])
+    left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
+                     for i in left_out]
+    occ_ijk = np.argwhere(grid.occupancy)
+    half = 0.5 * grid.voxel_size  # outer faces of the occupied voxels
+    bbox = (grid.index_to_points(occ_ijk.min(axis=0)) - half,
+            grid.index_to_points(occ_ijk.max(axis=0)) + half)
+    report = {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
+                      **box_report},
+              "method": cc["method"], "grid_shape": list(grid.occupancy.shape),
+              "voxel_size_m": grid.voxel_size, "occupied_voxels": n_occ,
+              "volume_m3": grid.volume_m3, "bbox_min": bbox[0].tolist(),
+              "bbox_max": bbox[1].tolist(), "n_views": n_views, "views_used": used,
+              "views_left_out": left_out_rows,
+              "views_flagged": agreement["flagged"],
+              "agreement": agreement, "carving": carve_report, "resolution": res,
+              "mesh": {"vertices": len(vertices), "faces": len(faces),
+                       "volume_m3": mesh_volume(vertices, faces)},
+              "seconds": round(time.perf_counter() - t0, 3)}
+    grid.save_npz(outputs["npz"], carving={k: cc[k] for k in ("method", "leaf_rule",
+                                                              "outside_image",
+                                                              "behind_camera",
+                                                              "min_views_background")},
+                  views_used=np.array(used, dtype=np.int64),
+                  views_left_out=left_out_rows)
+    write_mesh(outputs["ply"], vertices, faces)
+    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        import rerun as rr
+
+        log_box(rr_stream, "base/carving_box", box_min, box_max, label="carving box")
+        for i in used:
+            log_camera(rr_stream, f"base/cameras/view_{i:03d}", cameras[i], poses[i])
+        for row in left_out_rows:  # left out: their cameras, masks and why, apart
+            i = row["view"]
+            entity = f"base/cameras_left_out/view_{i:03d}"
+            log_camera(rr_stream, entity, cameras[i], poses[i], mask=masks[i])
+            rr_stream.log(f"{entity}/why", rr.TextDocument(
+                f"view {i} left out of the carve: " + "; ".join(row["reasons"])), static=True)
+        shell = grid.surface()
+        log_voxels(rr_stream, "base/hull/voxels", grid.index_to_points(np.argwhere(shell)),
+                   grid.voxel_size)
+        log_mesh(rr_stream, "base/hull/mesh", vertices, faces, albedo=[120, 160, 220, 160])
+        log_report(rr_stream, "reports/carve", report)
+    write_json(outputs["report"], report)
+    summary.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
+             "views (%.1f s)", cc["method"], n_occ, grid.voxel_size * 1e3,
+             report["volume_m3"] * 1e6, len(faces), len(used), n_views, report["seconds"])
+    return report
+
+
+def _segmentation_flags(silhouettes_npz: str, sil: Mapping[str, Any], n_views: int
+                        ) -> dict[int, list[str]]:
+    """Views the segmentation's own checks flagged, with its reasons: ``qa_flagged`` in
+    ``silhouettes.npz`` and ``views[i]["qa"]["flags"]`` in ``reports/silhouettes.json``
+    beside it, read defensively (older files have neither)."""
+    import json
+
+    flags: dict[int, list[str]] = {}
+    q = sil.get("qa_flagged")
+    if q is not None and np.asarray(q).shape == (n_views,):
+        flags = {int(i): [] for i in np.flatnonzero(np.asarray(q, dtype=bool))}
+    path = Path(silhouettes_npz).parent / "reports" / "silhouettes.json"
+    try:
+        with open(path, encoding="utf-8") as f:
+            views = json.load(f).get("views", [])
+    except (OSError, ValueError, AttributeError):
+        views = []
+    for pos, v in enumerate(views if isinstance(views, list) else []):
+        qa = v.get("qa") if isinstance(v, dict) else None
+        idx = v.get("index", pos) if isinstance(v, dict) else pos
+        reasons = qa.get("flags") if isinstance(qa, dict) else qa
+        if isinstance(reasons, str):
+            reasons = [reasons]
+        if isinstance(idx, int) and 0 <= idx < n_views and isinstance(reasons, list) \
+                and reasons:
+            flags[idx] = [f"segmentation: {r}" for r in reasons]
+    return flags
+
+
+def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: list,
+                          cameras: list, poses: np.ndarray, box_min: np.ndarray,
+                          box_max: np.ndarray, cc: Mapping[str, Any]) -> dict[str, Any]:
+    """Score every view against the other views' hull and choose the views to leave out
+    (see :func:`stage_carve`); with fewer than 4 views, or ``carving.qa_resolution`` 0,
+    nothing is scored."""
+    from ..carving import flag_disagreeing_views, make_grid
+
+    n = len(cameras)
+    seg_flags = _segmentation_flags(silhouettes_npz, sil, n)
+    out: dict[str, Any] = {"enabled": False, "segmentation_flagged": sorted(seg_flags),
+                           "flagged": [], "views_left_out": [], "reasons": {}, "views": []}
+    if cc["qa_resolution"] == 0 or n < 4:
+        out["why_not"] = ("carving.qa_resolution is 0" if cc["qa_resolution"] == 0 else
+                          f"{n} views: too few for the others to outvote one")
+        return out
+    exclude = sorted(seg_flags)
+    if len(exclude) > n // 2:
+        log.warning("the segmentation flagged %d of %d views: too many to leave the "
+                    "reference; all views score each other", len(exclude), n)
+        exclude = []
+    grid = make_grid(box_min, box_max, resolution=min(cc["qa_resolution"], cc["resolution"]))
+    qa = flag_disagreeing_views(grid, masks, cameras, poses, max_missing=cc["qa_max_missing"],
+                                max_spurious=cc["qa_max_spurious"], exclude=exclude,
+                                outside_image=cc["outside_image"],
+                                behind_camera=cc["behind_camera"],
+                                # the masks are scored against the others' exact hull
+                                # whatever k the carve uses: a k > 1 hull is fatter than
+                                # any correct mask, which would then look "missing"
+                                min_views_background=1,
+                                min_observers=cc["qa_min_observers"], method=cc["method"])
+    reasons = {int(v): list(qa["views"][v]["reasons"]) + seg_flags.get(v, [])
+               for v in qa["flagged"]}
+    scores = [{k: s[k] for k in ("view", "iou", "missing_fraction", "spurious_fraction",
+                                 "mask_px", "hull_px", "unknown_px", "flagged")}
+              | {"segmentation_flags": seg_flags.get(s["view"], [])} for s in qa["views"]]
+    ious = [s["iou"] for s in scores if s["iou"] is not None]
+    out.update({"enabled": True, "resolution": int(max(grid.shape)),
+                "voxel_size_m": grid.voxel_size, "flagged": qa["flagged"],
+                "views_left_out": qa["flagged"] if cc["qa_leave_out"] else [],
+                "reasons": reasons, "passes": qa["passes"], "capped": qa["capped"],
+                "thresholds": qa["thresholds"], "min_observers": cc["qa_min_observers"],
+                "iou_min": min(ious) if ious else None,
+                "iou_median": float(np.median(ious)) if ious else None,
+                "views": scores, "seconds": round(qa["time_s"], 3)})
+    log.info("view agreement (%d^3 grid, %.1f s): IoU with the other views' hull median "
+             "%.3f, worst %.3f; flagged %s", out["resolution"], qa["time_s"],
+             out["iou_median"] or float("nan"), out["iou_min"] or float("nan"),
+             qa["flagged"] or "none")
+    return out

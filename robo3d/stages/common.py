@@ -1,0 +1,190 @@
+"""Helpers the stage modules share: reading a recording with the config's reader options,
+camera and workspace arrays of the artefacts, progress lines, thread counts.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..camera import CameraModel
+from ..errors import StageError
+
+log = logging.getLogger("robo3d.pipeline")
+#: The one-line summaries of the stages (and their progress): what the terminal shows.
+summary = logging.getLogger("robo3d.summary")
+
+
+# ---------------------------------------------------------------------------- helpers
+def open_recording(path: str, cfg: Mapping[str, Any], roles: tuple[str, ...], require: bool = True):
+    from ..recording.reader import read_recording
+
+    rec = read_recording(path, roles=roles, require=require, **reader_options(cfg))
+    return rec  # the reader has logged its warnings (rec.warnings keeps them)
+
+
+def reader_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The reader's keyword arguments from a config's topics, frames and timing sections:
+    recorded frame names are renamed to their roles, so poses are looked up in ``base``."""
+    timing = cfg.get("timing", {})
+    return {"topics": topic_map(cfg.get("topics")),
+            "frames": dict(cfg.get("frames") or {}),
+            "base_frame": "base",
+            "max_pose_gap_ns": int(round(timing.get("max_pose_gap_s", 0.05) * 1e9)),
+            "stamp_source": timing.get("stamp_source", "header"),
+            "image_offset_ns": int(round(timing.get("image_offset_s", 0.0) * 1e9))}
+
+
+def camera_arrays(cameras: list[CameraModel]) -> dict[str, np.ndarray]:
+    return {
+        "K": np.stack([c.K for c in cameras]) if cameras else np.zeros((0, 3, 3)),
+        "D": np.stack([c.D[:5] for c in cameras]) if cameras else np.zeros((0, 5)),
+        "image_size": np.array([[c.width, c.height] for c in cameras], dtype=np.int64
+                               ).reshape(-1, 2),
+        "frame_ids": np.array([c.frame_id for c in cameras], dtype=str),
+    }
+
+
+def cameras_from(npz: Mapping[str, np.ndarray]) -> list[CameraModel]:
+    return [CameraModel(str(f), int(s[0]), int(s[1]), k, d) for f, s, k, d in
+            zip(npz["frame_ids"], npz["image_size"], npz["K"], npz["D"], strict=True)]
+
+
+def workspace_arrays(rec) -> dict[str, np.ndarray]:
+    ws = rec.workspace
+    if ws is None:
+        return {}
+    return {"workspace_min": ws[0], "workspace_max": ws[1]}
+
+
+def workspace_from(npz: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+    if "workspace_min" in npz:
+        return np.asarray(npz["workspace_min"]), np.asarray(npz["workspace_max"])
+    return None
+
+
+def media_type(encoding: str) -> str | None:
+    return {"png": "image/png", "jpeg": "image/jpeg"}.get(encoding)
+
+
+def log_image_camera(stream, entity, msg, camera, T, **kw) -> None:
+    from ..viz import log_camera
+
+    mt = media_type(msg.encoding)
+    if mt is not None:
+        log_camera(stream, entity, camera, T, encoded=(msg.data, mt), **kw)
+    else:
+        log_camera(stream, entity, camera, T, image=msg.decode(), **kw)
+
+
+class Progress:
+    """Logs progress of a loop over frames every few seconds (users watch long work)."""
+
+    def __init__(self, what: str, total: int, every_s: float = 10.0) -> None:
+        self.what, self.total, self.every = what, total, every_s
+        self.t0 = self.last = time.perf_counter()
+
+    def __call__(self, done: int) -> None:
+        now = time.perf_counter()
+        if now - self.last >= self.every or done == self.total:
+            self.last = now
+            dt = max(now - self.t0, 1e-9)
+            rate = done / dt
+            eta = (self.total - done) / rate if rate > 0 else float("nan")
+            speed = f"{rate:.0f}/s" if rate >= 10 else f"{rate:.2g}/s" if rate >= 0.1 else \
+                f"{dt / max(done, 1):.0f} s each"
+            left = f", about {eta:.0f} s left" if done < self.total and eta == eta else ""
+            summary.info("%s: %d/%d (%s%s)", self.what, done, self.total, speed, left)
+
+
+def load_silhouettes(path: str) -> dict[str, Any]:
+    with np.load(path) as z:
+        d = {k: z[k] for k in z.files}
+    shape = tuple(d["mask_shape"])
+    d["masks"] = np.unpackbits(d["masks"], axis=-1, count=shape[-1]).astype(bool)
+    return d
+
+
+def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume of a closed, outward-wound triangle mesh, cubic metres."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def laser_poses(rec, frames: list, laser_frame: str = "laser") -> np.ndarray:
+    """``T_camera_laser`` (F, 4, 4) of each laser frame at its own time, looked up once per
+    camera frame_id (vectorised over the frames' stamps)."""
+    out = np.zeros((len(frames), 4, 4))
+    if not frames:
+        return out
+    ids = np.array([str(m.frame_id) for m in frames])
+    stamps = np.array([m.timestamp_ns for m in frames], dtype=np.int64)
+    for fid in np.unique(ids):
+        sel = np.nonzero(ids == fid)[0]
+        out[sel] = rec.tf.lookup(str(fid), laser_frame, stamps[sel])
+    return out
+
+
+def stage_threads(threads: int | None) -> int:
+    """Worker threads of a stage: the job's (Snakemake's ``threads``) or 1."""
+    n = 1 if threads is None else int(threads)
+    if n < 1:
+        raise StageError(f"threads must be >= 1, got {threads}")
+    return n
+
+
+def sweep_color(k: int) -> list[int]:
+    palette = [[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
+               [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212], [0, 128, 128]]
+    return palette[int(k) % len(palette)]
+
+
+def silhouette_views(inputs: Mapping[str, str], cfg: Mapping[str, Any]):
+    """The silhouette views (grey images, masks, cameras, poses) for the alignment's
+    absolute reference; None when the recording's views cannot be matched."""
+    from ..registration import SilhouetteViews
+
+    sil = load_silhouettes(inputs["silhouettes"])
+    cameras = cameras_from(sil)
+    if not cameras or not inputs.get("recording"):
+        return None
+    rec = open_recording(inputs["recording"], cfg, roles=("views",))
+    by_stamp = {m.timestamp_ns: m for m in rec.views}
+    images = []
+    for t in sil["stamps_ns"]:
+        msg = by_stamp.get(int(t))
+        if msg is None:
+            log.warning("alignment: view at t=%d ns of the silhouettes is not in %s; the "
+                        "silhouettes are not used as reference", int(t), inputs["recording"])
+            return None
+        images.append(rec.decode(msg))
+    masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cameras)]
+    return SilhouetteViews(images, masks, cameras, sil["T_base_camera"])
+
+
+def topic_map(topics: Mapping[str, str] | None):
+    """The :class:`~robo3d.recording.TopicMap` of a config's ``topics`` section."""
+    from ..recording import TopicMap
+
+    return TopicMap(**dict(topics or {}))
+
+
+def code_version() -> str:
+    """robo3d's version and a hash of its code (every ``.py`` file of the package): part of
+    every rule's params, so that an upgrade or a code change re-runs the jobs instead of
+    silently keeping results the new code would not give."""
+    import hashlib
+
+    from .. import __version__
+
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:16]}"

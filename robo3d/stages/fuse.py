@@ -1,0 +1,160 @@
+"""The ``fuse`` stage: one surface from the aligned sweeps (TSDF or screened Poisson,
+:mod:`robo3d.fusion`), with every vertex's provenance, and the measured surface alone.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ..atomic import write_json
+from ..errors import StageError
+from .common import stage_threads, summary
+
+
+def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
+               cfg: Mapping[str, Any], rec_name: str, threads: int | None = None
+               ) -> dict[str, Any]:
+    """Fuse the aligned clouds into one watertight surface (seed §2.4): each sweep as range
+    data into a TSDF (Curless & Levoy), holes closed from the visual hull (or screened
+    Poisson, ``fusion.method``); from views alone the fused mesh is the hull's.
+
+    The report says what fraction of the surface came from the laser and from the hull.
+    """
+    from ..carving import VoxelGrid, hull_to_mesh
+    from ..fusion import (
+        HULL,
+        MEASURED,
+        SOURCES,
+        fuse_poisson,
+        fuse_tsdf,
+        keep_vertices,
+        source_area_fractions,
+    )
+    from ..meshio import write_mesh
+    from ..triangulation import load_clouds_npz
+    from ..viz import log_mesh, log_report, rerun_log
+
+    t0 = time.perf_counter()
+    fc = cfg["fusion"]
+    hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
+    if inputs.get("aligned"):
+        clouds = load_clouds_npz(inputs["aligned"])
+        crop = hull if (hull is not None and fc["crop_to_hull"]) else None
+        if fc["method"] == "tsdf":
+            V, F, fuse_report, attrs = fuse_tsdf(
+                [c.points_base for c in clouds], [c.normals_base for c in clouds],
+                [c.sensor_origin_base for c in clouds],
+                confidences=[c.confidence for c in clouds], voxel_size=fc["tsdf_voxel_m"],
+                trunc_voxels=int(fc["tsdf_trunc_voxels"]), hull=crop,
+                hull_margin_voxels=fc["hull_margin_voxels"], fill_holes=fc["fill_holes"],
+                carve_free_space=fc["carve_free_space"], min_weight=fc["min_weight"],
+                min_cos_view=fc["min_cos_view"], threads=stage_threads(threads),
+                close=fc["close"], max_fill_distance_m=1e-3 * fc["max_fill_distance_mm"],
+                carve_depth_m=fc["carve_depth_m"], carve_full_line=fc["carve_full_line"],
+                return_attributes=True)
+            source = "laser (TSDF)" + {
+                "hull": ", holes closed from the hull",
+                "free_space": ", holes near measurements closed, far ones left open",
+                "none": ", holes left open"}[fc["close"]] if (
+                crop is not None and fc["fill_holes"]) else "laser (TSDF)"
+        else:
+            pts = np.concatenate([c.points_base for c in clouds])
+            nrm = np.concatenate([c.normals_base for c in clouds])
+            V, F, fuse_report = fuse_poisson(pts, nrm, depth=fc["poisson_depth"],
+                                             density_quantile=fc["density_quantile"],
+                                             hull=crop, seed=cfg["seed"])
+            attrs = _poisson_provenance(V, pts, fc["tsdf_voxel_m"],
+                                        1e-3 * fc["max_fill_distance_mm"])
+            source = "laser (screened Poisson)"
+            if crop is not None:
+                cut = str(fuse_report.get("hull_cut", "applied"))
+                source += ", cut to the hull" if cut == "applied" else f", hull cut {cut}"
+    elif hull is not None:
+        V, F = hull_to_mesh(hull, smooth_sigma_vox=cfg["carving"]["smooth_sigma_vox"])
+        fuse_report = {"note": "no laser frames: the fused mesh is the visual hull's",
+                       "laser_area_fraction": 0.0, "hull_area_fraction": 1.0}
+        attrs = {"source": np.full(len(V), HULL, np.uint8),
+                 "n_obs": np.zeros(len(V), np.uint16),
+                 "incidence": np.zeros(len(V), np.float32),
+                 "tsdf_weight": np.zeros(len(V), np.float32),
+                 "dist_measured_m": np.full(len(V), np.inf, np.float32),
+                 "confidence": np.zeros(len(V), np.float32),
+                 "far_from_measured": np.ones(len(V), np.uint8)}
+        source = "visual hull"
+    else:
+        raise StageError("fusion needs aligned clouds or a hull, got neither")
+    if len(F) == 0:
+        raise StageError(f"fusion produced an empty mesh from {source}")
+    if isinstance(fuse_report.get("source_area_fraction"), dict):
+        fuse_report.pop("source_area_fraction")
+    fractions = source_area_fractions(V, F, attrs["source"])
+    Vm, Fm, attrs_m = keep_vertices(V, F, attrs, attrs["source"] == MEASURED)
+    report = {"source": source, "method": fc["method"] if inputs.get("aligned") else "hull",
+              **fuse_report, "vertices": len(V), "faces": len(F),
+              "source_area_fraction": fractions,
+              "inferred_area_fraction": 1.0 - fractions["measured"],
+              "inferred_far_area_fraction": _area_fraction(V, F, attrs["far_from_measured"]
+                                                           > 0),
+              "measured_faces": len(Fm),
+              "vertex_attributes": {"source": {str(i): n for i, n in enumerate(SOURCES)},
+                                    "fields": sorted(attrs)},
+              "seconds": round(time.perf_counter() - t0, 3)}
+    write_mesh(outputs["ply"], V, F, vertex_colors=source_colors(attrs["source"]),
+               attributes=attrs)
+    if outputs.get("measured"):
+        write_mesh(outputs["measured"], Vm, Fm,
+                   attributes={k: a for k, a in attrs_m.items() if k != "source"})
+    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        log_mesh(rr_stream, "base/fused", V, F, vertex_colors=source_colors(attrs["source"]))
+        log_report(rr_stream, "reports/fuse", report)
+    write_json(outputs["report"], report)
+    lf = report.get("laser_area_fraction")
+    summary.info("fused mesh from %s: %d faces%s (%.1f s)", source, len(F),
+             f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
+             report["seconds"])
+    return report
+
+
+def _area_fraction(V: np.ndarray, F: np.ndarray, flag: np.ndarray) -> float:
+    """Share of a mesh's area on faces with a flagged vertex."""
+    if len(F) == 0:
+        return 0.0
+    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]),
+                                axis=1)
+    total = float(area.sum())
+    return float(area[np.any(flag[F], axis=1)].sum() / total) if total > 0 else 0.0
+
+
+#: Vertex colours of the provenance in fused.ply and mesh.ply (and their rerun logs):
+#: measured grey, inferred from the hull orange, filled yellow.
+_SOURCE_RGB = np.array([[190, 190, 190], [240, 120, 30], [240, 210, 40]], dtype=np.uint8)
+
+
+def source_colors(source: np.ndarray) -> np.ndarray:
+    """RGB per vertex for its provenance (:data:`robo3d.fusion.SOURCES`)."""
+    return _SOURCE_RGB[np.clip(np.asarray(source, np.int64), 0, len(_SOURCE_RGB) - 1)]
+
+
+def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float, far_m: float
+                        ) -> dict[str, np.ndarray]:
+    """Provenance of screened-Poisson vertices: measured within ``2 * voxel`` of a laser
+    point (or twice the points' median spacing, if larger), else inferred (hull)."""
+    from scipy.spatial import cKDTree
+
+    from ..fusion import HULL, MEASURED
+
+    tree = cKDTree(pts)
+    d, _ = tree.query(V, k=1)
+    spacing = float(np.median(tree.query(pts[:: max(1, len(pts) // 5000)], k=2)[0][:, 1]))
+    near = d <= max(2.0 * voxel, 2.0 * spacing)
+    return {"source": np.where(near, MEASURED, HULL).astype(np.uint8),
+            "n_obs": np.zeros(len(V), np.uint16), "incidence": np.zeros(len(V), np.float32),
+            "tsdf_weight": np.zeros(len(V), np.float32),
+            "dist_measured_m": d.astype(np.float32),
+            "confidence": np.where(near, np.exp(-(d / (2 * voxel)) ** 2), 0.0
+                                   ).astype(np.float32),
+            "far_from_measured": (~near & (d > far_m)).astype(np.uint8)}

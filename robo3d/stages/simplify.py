@@ -1,0 +1,70 @@
+"""The ``simplify`` stage: the fused mesh cleaned and simplified (:mod:`robo3d.simplify`), its
+vertex provenance carried along.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any
+
+from ..atomic import write_json
+from .common import log, summary
+from .fuse import source_colors
+
+
+def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
+                   cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+    """Clean the fused mesh (duplicates, zero-area faces, small floating components) and
+    simplify it by quadric edge collapse to ``simplify.target_faces`` and/or within
+    ``simplify.max_error_m``; the Hausdorff distance to the fused mesh must stay within
+    ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does). Writes
+    ``ply`` and, when given, ``stl`` / ``obj`` outputs."""
+    from ..fusion import source_area_fractions
+    from ..meshio import read_mesh, read_vertex_attributes, write_mesh
+    from ..simplify import clean_mesh, simplify_mesh, transfer_vertex_attributes
+    from ..viz import log_mesh, log_report, rerun_log
+
+    t0 = time.perf_counter()
+    sc = cfg["simplify"]
+    V, F = read_mesh(inputs["fused"])
+    attrs_in = read_vertex_attributes(inputs["fused"])
+    V0 = V
+    V, F, clean_report = clean_mesh(V, F, min_component_fraction=sc["min_component_fraction"])
+    bound = sc["hausdorff_tolerance_m"]
+    if sc["max_error_m"] is not None:
+        bound = min(bound, sc["max_error_m"])
+    V2, F2, simp_report = simplify_mesh(V, F, target_faces=sc["target_faces"], max_error=bound,
+                                        seed=cfg["seed"])
+    haus = simp_report.get("hausdorff_max_m")
+    within = haus is None or haus <= sc["hausdorff_tolerance_m"]
+    if not within:
+        log.warning("simplified mesh departs %.3f mm from the fused one, more than the "
+                    "tolerance %.3f mm", haus * 1e3, sc["hausdorff_tolerance_m"] * 1e3)
+    report = {"clean": clean_report, **simp_report, "faces_in": len(F), "faces_out": len(F2),
+              "hausdorff_tolerance_m": sc["hausdorff_tolerance_m"],
+              "within_tolerance": bool(within),
+              "exports": [k for k in ("ply", "stl", "obj") if outputs.get(k)],
+              "export_unit": {"ply": "m", "stl": sc["export_unit"], "obj": sc["export_unit"]},
+              "seconds": round(time.perf_counter() - t0, 3)}
+    attrs = transfer_vertex_attributes(V0, attrs_in, V2)
+    if "source" in attrs:
+        fractions = source_area_fractions(V2, F2, attrs["source"])
+        report["source_area_fraction"] = fractions
+        report["inferred_area_fraction"] = 1.0 - fractions["measured"]
+    colours = source_colors(attrs["source"]) if "source" in attrs else None
+    for key in ("ply", "stl", "obj"):
+        if outputs.get(key):
+            write_mesh(outputs[key], V2, F2, vertex_colors=colours if key == "ply" else None,
+                       attributes=attrs if key == "ply" else None,
+                       unit="m" if key == "ply" else sc["export_unit"])
+    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        if colours is not None:
+            log_mesh(rr_stream, "base/mesh", V2, F2, vertex_colors=colours)
+        else:
+            log_mesh(rr_stream, "base/mesh", V2, F2, albedo=[230, 200, 160, 255])
+        log_report(rr_stream, "reports/simplify", report)
+    write_json(outputs["report"], report)
+    summary.info("simplified %d -> %d faces, Hausdorff %.3f mm (%.1f s)", len(F), len(F2),
+             (haus or 0.0) * 1e3, report["seconds"])
+    return report

@@ -1216,22 +1216,20 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat, lo, hi):  # noq
 
 
 @njit(inline="always")
-def _channel8(f, stride, ch, buf):  # noqa: ANN001, ANN202
-    """Channel ``ch`` of a row of interleaved uint8 pixels (``stride`` channels each)
-    into ``buf``, at literal offsets (so that the loads vectorise as shuffles)."""
-    w = buf.size
+def _channel8(f, stride, ch, buf, c0, c1):  # noqa: ANN001, ANN202
+    """Channel ``ch`` of pixels ``c0 <= c < c1`` of a row of interleaved uint8 pixels
+    (``stride`` = 1 or 3 channels each) into ``buf``; the offsets go into the slices and
+    the loops run from 0 with a literal stride, so that the loads vectorise (shuffles)."""
+    n = c1 - c0
+    dst = buf[c0:c1]
     if stride == 1:
-        for c in range(w):
-            buf[c] = f[c]
-    elif ch == 0:
-        for c in range(w):
-            buf[c] = f[3 * c]
-    elif ch == 1:
-        for c in range(w):
-            buf[c] = f[3 * c + 1]
+        src = f[c0:c1]
+        for c in range(n):
+            dst[c] = src[c]
     else:
-        for c in range(w):
-            buf[c] = f[3 * c + 2]
+        src = f[3 * c0 + ch:3 * c1]
+        for c in range(n):
+            dst[c] = src[3 * c]
 
 
 @njit(inline="always")
@@ -1312,7 +1310,7 @@ def _lines8(img, arr, stride, k, lines, rows, a1, a2, sep, thr, sat, lo, hi,
         i1 = min(hi[ln], length - 1 - a2) + 1
         if i0 >= i1:
             continue
-        _channel8(arr[rows[q]], stride, ch, buf)
+        _channel8(arr[rows[q]], stride, ch, buf, i0 - a2, i1 + a2)  # what the heights read
         acc = _over8(xbuf[i0:i1], buf[i0:i1], buf[i0 - a1:i1 - a1], buf[i0 + a1:i1 + a1],
                      buf[i0 - a2:i1 - a2], buf[i0 + a2:i1 + a2], tb[i0:i1], i1 - i0)
         if acc == 0:
@@ -1395,7 +1393,7 @@ def _ridge_scan_cols8(img, k, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, A
     ion = 0
     ioff = 0
     for r in range(r0 - a2, r1 + a2 + 1):
-        _channel8(flat[r], nch, ch, ring[r % nr])
+        _channel8(flat[r], nch, ch, ring[r % nr], 0, w)
         rc = r - a2
         if rc < r0:
             continue

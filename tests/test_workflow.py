@@ -4,9 +4,13 @@ ground truth the simulator attaches."""
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 import shutil
+import signal
 import subprocess
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -19,32 +23,89 @@ pytestmark = pytest.mark.slow
 
 # Small but complete scans: every stage runs; a few seconds each to simulate.
 SMALL = dict(width=480, height=360, views=12, sweeps=3, sweep_spacing=0.003)
+#: A Snakemake run that takes longer than this (seconds) has hung.
+TIMEOUT = 1800
 
 
-def _snakemake(workdir: Path, *args: str, check: bool = True,
-               quiet: bool = True) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(workdir), "--cores", "2", *(["--quiet", "all"] if quiet else []), *args]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    if check and proc.returncode != 0:
+def _command(workdir: Path, *args: str, quiet: bool = True) -> list[str]:
+    return [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+            str(workdir), "--cores", "2", *(["--quiet", "all"] if quiet else []), *args]
+
+
+def _check(proc: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
+    if proc.returncode != 0:
         raise AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-4000:]}\n"
                              f"{proc.stderr[-6000:]}")
     return proc
 
 
+def _snakemake(workdir: Path, *args: str, check: bool = True,
+               quiet: bool = True) -> subprocess.CompletedProcess:
+    proc = subprocess.run(_command(workdir, *args, quiet=quiet), capture_output=True,
+                          text=True, timeout=TIMEOUT)
+    return _check(proc) if check else proc
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End a Snakemake started in its own session, and its jobs."""
+    os.killpg(proc.pid, signal.SIGTERM)
+    proc.communicate()
+
+
+#: The batch's recordings: (file, object, simulation options). The laser-only scan is
+#: simulated first: the determinism check's separate run of it starts while the others
+#: are still being simulated.
+RECORDINGS = (
+    ("laser_only.mcap", "sphere", dict(seed=5, width=480, height=360, views=0, sweeps=3,
+                                       sweep_spacing=0.003)),
+    ("block.mcap", "dimple_block", dict(seed=3, **SMALL)),
+    ("views_only.mcap", "vase", dict(seed=4, width=480, height=360, views=12, sweeps=0)),
+)
+
+
 @pytest.fixture(scope="module")
-def batch(tmp_path_factory) -> Path:
-    """A batch of three recordings: a full scan, a views-only set, a laser-only scan."""
+def runs(tmp_path_factory) -> tuple[Path, Path]:
+    """Two working directories: a batch of three recordings (a full scan, a views-only
+    set, a laser-only scan) and, for the determinism check, a separate run of the same
+    laser-only file with the same config.
+
+    The recordings are simulated in two processes, and the separate run is a second
+    Snakemake started as soon as its file exists, concurrently with the batch: the two
+    cores are kept busy instead of waiting for one run after the other (the runs share
+    nothing but the source tree and numba's cache in it)."""
     work = tmp_path_factory.mktemp("workflow")
-    recs = work / "recs"
+    again = tmp_path_factory.mktemp("workflow_again")
+    recs, again_recs = work / "recs", again / "recs"
     recs.mkdir()
-    simulate_recording(recs / "block.mcap", "dimple_block", seed=3, **SMALL)
-    simulate_recording(recs / "views_only.mcap", "vase", seed=4, width=480, height=360,
-                       views=12, sweeps=0)
-    simulate_recording(recs / "laser_only.mcap", "sphere", seed=5, width=480, height=360,
-                       views=0, sweeps=3, sweep_spacing=0.003)
-    _snakemake(work, "--config", f"recordings={recs}")
-    return work
+    again_recs.mkdir()
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        jobs = [pool.submit(simulate_recording, recs / name, obj, **kw)
+                for name, obj, kw in RECORDINGS]
+        jobs[0].result()
+        shutil.copy(recs / "laser_only.mcap", again_recs / "laser_only.mcap")
+        second = subprocess.Popen(_command(again, "--config", f"recordings={again_recs}"),
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  start_new_session=True)
+        try:
+            for job in jobs[1:]:
+                job.result()
+        except BaseException:
+            _stop(second)
+            raise
+    try:
+        _snakemake(work, "--config", f"recordings={recs}")
+        out, err = second.communicate(timeout=TIMEOUT)
+    finally:
+        if second.poll() is None:  # the batch failed: stop the other run too
+            _stop(second)
+    _check(subprocess.CompletedProcess(second.args, second.returncode, out, err))
+    return work, again
+
+
+@pytest.fixture(scope="module")
+def batch(runs) -> Path:
+    """The batch's working directory (recordings in ``recs/``, outputs in ``results/``)."""
+    return runs[0]
 
 
 def _metrics(work: Path, name: str) -> dict:
@@ -119,15 +180,15 @@ def test_bad_config_fails_before_any_job(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
-def test_deterministic_outputs(batch, tmp_path):
-    """Same recording and config give the same mesh."""
-    recs = tmp_path / "recs"
-    recs.mkdir()
-    shutil.copy(batch / "recs" / "laser_only.mcap", recs / "laser_only.mcap")
-    _snakemake(tmp_path, "--config", f"recordings={recs}")
+def test_deterministic_outputs(runs):
+    """Same recording and config give the same mesh (a separate run in its own working
+    directory, see the ``runs`` fixture)."""
+    batch, again = runs
+    assert (again / "recs" / "laser_only.mcap").read_bytes() == \
+        (batch / "recs" / "laser_only.mcap").read_bytes()
     a = (batch / "results" / "laser_only" / "mesh.ply").read_bytes()
-    b = (tmp_path / "results" / "laser_only" / "mesh.ply").read_bytes()
+    b = (again / "results" / "laser_only" / "mesh.ply").read_bytes()
     assert a == b
     ma = _metrics(batch, "laser_only")["evaluation"]["mesh"]
-    mb = _metrics(tmp_path, "laser_only")["evaluation"]["mesh"]
+    mb = _metrics(again, "laser_only")["evaluation"]["mesh"]
     assert np.isclose(ma["mean_mm"], mb["mean_mm"])

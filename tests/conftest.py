@@ -1,0 +1,95 @@
+"""Shared test session setup: numba's kernels compiled on the second core.
+
+A fresh clone (CI) has no numba cache (``robo3d/__pycache__/*.nbi, *.nbc``; an edit of a
+module invalidates its entries too), and the first call of each numba kernel with each
+image type compiles it. The stripe detector's kernels cost most: measured on this 2-core
+machine, 94 s of CPU for the first 8-bit mono frame, and tens of seconds more for each of
+float32, 16-bit and RGB images, which only some tests use (a float32 frame's kernels load
+from the cache in 0.6 s of CPU). The suite runs in one process,
+mostly on one core; so when the selected tests include the stripe tests and other tests
+run before them, a second process compiles those kernels for the image types the later
+tests use (float32, 16-bit, RGB first, the 8-bit mono frames that the first tests compile
+themselves last), plus the octree and triangulation kernels, and writes them to numba's
+on-disk cache. A test's own call then loads the compiled kernel from the cache instead
+of compiling it (numba reads the cache index at every compilation). Nothing a test
+computes or asserts changes: the cache holds the same machine code the test would
+compile. The process is ended when the session ends; ``ROBO3D_TEST_NO_WARMUP=1`` turns
+it off (e.g. to time the suite without it).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+#: What the background process runs: the public entry points on tiny images of each type
+#: and both line directions, so that each kernel is compiled with the types the tests
+#: give it. Least niceness priority: it only uses a core the tests leave idle.
+WARM_UP = r"""
+import os
+os.nice(10)
+import numpy as np
+from robo3d.stripes import extract_stripe_centres
+
+h, w = 48, 64
+yy, xx = np.mgrid[0:h, 0:w]
+base = 200.0 * np.exp(-0.5 * ((yy - 20.0 - 0.1 * xx) / 1.5) ** 2)
+u8 = np.clip(np.rint(base), 0, 255).astype(np.uint8)
+images = [
+    (u8.astype(np.float32) / 255.0, 0.04),
+    (u8.astype(np.uint16) * 257, 10.0 * 257),
+    (np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1), 5.0),
+    (np.repeat(u8[..., None], 3, axis=2), 5.0),
+    (u8, 5.0),
+]
+for img, min_peak in images:
+    for detector in ("ridge", "band"):
+        for axis in ("auto", "columns", "rows"):
+            for method in ("cog", "gaussian"):
+                try:
+                    extract_stripe_centres(img, detector=detector, axis=axis, method=method,
+                                           min_peak=min_peak)
+                    extract_stripe_centres(img.T.copy() if img.ndim == 2 else
+                                           np.ascontiguousarray(img.transpose(1, 0, 2)),
+                                           detector=detector, axis=axis, method=method,
+                                           min_peak=min_peak)
+                except Exception:
+                    pass  # a combination the detector refuses: nothing to compile
+try:
+    from robo3d.octree import warm_up
+    warm_up()
+except Exception:
+    pass
+"""
+
+#: Test modules that call the stripe detector with image types the first tests do not.
+_LATER_USERS = ("test_stripes.py",)
+
+_warm: subprocess.Popen | None = None
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    global _warm
+    if os.environ.get("ROBO3D_TEST_NO_WARMUP") or session.config.option.collectonly:
+        return
+    names = [item.path.name for item in session.items]
+    first = next((i for i, n in enumerate(names) if n in _LATER_USERS), None)
+    if not first:  # no stripe tests, or they come first: nothing to overlap
+        return
+    _warm = subprocess.Popen([sys.executable, "-c", WARM_UP], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    global _warm
+    if _warm is not None and _warm.poll() is None:
+        _warm.terminate()
+        try:
+            _warm.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            _warm.kill()
+            _warm.wait()
+    _warm = None

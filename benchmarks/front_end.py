@@ -471,7 +471,10 @@ def main() -> int:
         "mesh_p95_mm": get("drift", "mesh_p95_mm"),
         "completeness_0_5mm": get("drift", "completeness_0_5mm"),
         "fps_ambient_1280x960": get("speed", "fps_ambient_1280x960"),
-        "stage_over_decode_ambient": get("speed", "stage_over_decode_ambient"),
+        # the issue asks for both JPEG and PNG: the worse of the two
+        "stage_over_decode_ambient": max((x for x in (
+            get("speed", "stage_over_decode_ambient"),
+            get("speed", "stage_over_decode_ambient_jpeg")) if x is not None), default=None),
     }
     checks = {}
     for k, v in res.items():

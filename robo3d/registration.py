@@ -72,8 +72,12 @@ Method
    segmented mask: measured, the masks are eroded by 0.15-0.25 px (more on shaded
    sides), which biased the absolute position by 0.1-0.3 mm; the image edges by
    0.02-0.04 mm. The pair term's normals are principal axes over three adjacent
-   profiles (:func:`_pair_normals`), points whose grid normal disagrees left out; the
-   silhouette term weighs three times its robust scale. Measured with the true poses on
+   profiles (:func:`_pair_normals`), points whose grid normal disagrees left out; a
+   correspondence whose two normals differ by more than 60 degrees is left out too (the
+   two sides of a thin wall lie within the correspondence distance; measured on the
+   simulated 2.5 mm cup, 4 sweeps: the top sweep, seeing the inner wall, was pulled
+   onto the outer one, 4.3 mm / 0.76 degrees off, 0.43 mm / 0.06 degrees with the test);
+   the silhouette term weighs three times its robust scale. Measured with the true poses on
    the demos (laser profiles 1.1 mm apart) and two held-out scans: worst sweep
    0.013-0.017 degrees, 0.017-0.047 mm at the object. When the correspondences cycle
    near the optimum the steps are shortened and the cycle's mean taken (``settle_tol``).
@@ -1778,6 +1782,11 @@ def refine_sweeps(
                 xa = cur[a_][red_idx[a_]]
                 dist, nb = trees[b_].query(xa, k=1, distance_upper_bound=d_max)
                 ok = np.isfinite(dist)
+                # the two sides of a thin wall lie within the correspondence distance:
+                # points whose normals disagree by more than 60 degrees are not one
+                # surface (as in _pair_info)
+                ok[ok] = np.einsum("ij,ij->i", cur_n[a_][red_idx[a_][ok]],
+                                   cur_n[b_][red_idx[b_][nb[ok]]]) > 0.5
                 if not np.any(ok):
                     continue
                 ia = red_idx[a_][ok]

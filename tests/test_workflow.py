@@ -192,3 +192,88 @@ def test_deterministic_outputs(runs):
     ma = _metrics(batch, "laser_only")["evaluation"]["mesh"]
     mb = _metrics(again, "laser_only")["evaluation"]["mesh"]
     assert np.isclose(ma["mean_mm"], mb["mean_mm"])
+
+
+def test_measured_surface_is_labelled_and_scored_apart(batch):
+    """measured.ply is the laser-measured surface; every vertex of fused.ply and mesh.ply
+    says where it came from; metrics.json scores the measured surface apart."""
+    from robo3d.fusion import HULL, MEASURED
+    from robo3d.meshio import read_mesh, read_vertex_attributes
+
+    out = batch / "results" / "block"
+    Vm, Fm = read_mesh(out / "measured.ply")
+    V, F = read_mesh(out / "mesh.ply")
+    assert len(Fm) > 1000
+    a = read_vertex_attributes(out / "mesh.ply")
+    assert {"source", "confidence", "n_obs", "dist_measured_m", "far_from_measured"} <= set(a)
+    assert len(a["source"]) == len(V) and set(np.unique(a["source"])) <= {0, 1, 2}
+    assert np.all(a["confidence"][a["source"] != MEASURED] == 0)
+    assert (a["source"] == MEASURED).any() and (a["source"] == HULL).any()
+    m = _metrics(batch, "block")
+    src = m["surface_sources"]
+    assert 0.1 < src["inferred_area_fraction"] < 0.9  # 3 sweeps see part of the block
+    assert src["mesh"]["measured"] == pytest.approx(1 - src["inferred_area_fraction"])
+    me = m["evaluation"]["measured"]
+    # the measured surface is as accurate as the laser points, far better than the whole
+    assert me["median_mm"] < 0.3 and me["p95_mm"] < m["evaluation"]["mesh"]["p95_mm"]
+    assert me["outlier_area_fraction_0_5mm"] < 0.05
+    # a views-only recording measured nothing: its mesh is all inferred
+    v = _metrics(batch, "views_only")
+    assert v["surface_sources"]["inferred_area_fraction"] == pytest.approx(1.0)
+    assert len(read_mesh(batch / "results" / "views_only" / "measured.ply")[1]) == 0
+
+
+def _planned(batch: Path, tmp_path: Path, change: str) -> set[str]:
+    cfg = tmp_path / "change.yaml"
+    cfg.write_text(change)
+    proc = _snakemake(batch, "--configfile", str(cfg), "--config",
+                      f"recordings={batch / 'recs'}", "-n", quiet=False)
+    text = proc.stdout + proc.stderr
+    if "Nothing to be done" in text:
+        return set()
+    table = text.split("Job stats:", 1)[1].split("total", 1)[0]
+    return {ln.split()[0] for ln in table.splitlines()[3:] if ln.strip()}
+
+
+@pytest.mark.parametrize("change, planned", [
+    ("segmentation: {edge_refine_px: 2}",
+     {"silhouettes", "carve", "align", "fuse", "simplify", "evaluate"}),
+    ("carving: {resolution: 64}", {"carve", "fuse", "simplify", "evaluate"}),
+    ("stripes: {min_peak: 9.0}", {"stripes", "triangulate", "align", "fuse", "simplify",
+                                  "evaluate"}),
+    ("alignment: {prior_mm: 0.4}", {"align", "fuse", "simplify", "evaluate"}),
+    ("simplify: {target_faces: 15000}", {"simplify", "evaluate"}),
+    ("evaluation: {n_samples: 100000}", {"evaluate"}),
+])
+def test_a_changed_parameter_re_runs_exactly_its_stages(batch, tmp_path, change, planned):
+    """Each rule's params are the config sections its stage reads: a change plans that
+    stage and what depends on its outputs (plus the batch table), nothing else."""
+    assert _planned(batch, tmp_path, change) == planned | {"batch_table", "all"}
+
+
+def test_a_damaged_ground_truth_tf_costs_only_the_pose_figures(batch, tmp_path, monkeypatch):
+    import robo3d.stages.evaluate as ev_stage
+    from robo3d.config import default_config
+    from robo3d.stages.common import open_recording
+
+    out = batch / "results" / "block"
+    rec_path = str(batch / "recs" / "block.mcap")
+    cfg = default_config()
+
+    def damaged(path, c, roles, require=True):
+        rec = open_recording(path, c, roles, require)
+        rec.attachments["ground_truth/tf.json"] = b'{"transforms": [{"parent": 3}]}'
+        return rec
+
+    monkeypatch.setattr(ev_stage, "open_recording", damaged)
+    names = ("mesh.ply", "fused.ply", "measured.ply", "hull.npz", "silhouettes.npz",
+             "clouds.npz", "aligned.npz")
+    inputs = {"recording": rec_path, **{n.split(".")[0]: str(out / n) for n in names}}
+    res = tmp_path / "results" / "block"
+    shutil.copytree(out / "reports", res / "reports")
+    outputs = {"metrics": str(res / "metrics.json"), "rrd": str(res / "evaluate.rrd")}
+    m = ev_stage.stage_evaluate(inputs, outputs, cfg, "block")
+    assert "tf.json" in m["skipped"]["poses"]
+    assert "poses" not in m["evaluation"]
+    assert m["evaluation"]["mesh"]["median_mm"] == pytest.approx(
+        _metrics(batch, "block")["evaluation"]["mesh"]["median_mm"])

@@ -54,8 +54,10 @@ def _snakemake(work: Path, *args: str, hook: str = "", interrupt: bool = False,
     env = dict(os.environ, PYTHONPATH=str(work / "hook"), ROBO3D_TEST_HOOK=hook,
                ROBO3D_TEST_MARK=str(work / "mark"))
     (work / "mark").unlink(missing_ok=True)
+    # the rule blocks are parsed below: the default profile keeps them off the terminal
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", "--configfile", str(work / "config.yaml"), *args]
+           str(work), "--cores", "2", "--configfile", str(work / "config.yaml"),
+           "--quiet", "host", *args]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
     if interrupt:  # Ctrl-C in the terminal: SIGINT to the whole process group

@@ -181,17 +181,31 @@ def test_bad_config_fails_before_any_job(tmp_path):
 
 
 def test_deterministic_outputs(runs):
-    """Same recording and config give the same mesh (a separate run in its own working
-    directory, see the ``runs`` fixture)."""
+    """Same recording and config give the same results (a separate run in its own working
+    directory, concurrently with the batch, see the ``runs`` fixture).
+
+    Byte for byte up to the triangulated clouds. The alignment's result differs between
+    two processes that run at the same time by about 1e-16 m (measured: 1e-16 m in
+    aligned.npz; the same in two runs one after another in one process, so a library's
+    thread-timing-dependent reduction, not yet pinned down: not Open3D's OpenMP, which
+    differs with OMP_NUM_THREADS=1 too), and quadric decimation turns such a difference
+    into another triangulation of the same surface: the mesh's accuracy agrees to 1e-3
+    mm (measured 5e-5 mm), which is what is asserted past the clouds."""
     batch, again = runs
     assert (again / "recs" / "laser_only.mcap").read_bytes() == \
         (batch / "recs" / "laser_only.mcap").read_bytes()
-    a = (batch / "results" / "laser_only" / "mesh.ply").read_bytes()
-    b = (again / "results" / "laser_only" / "mesh.ply").read_bytes()
-    assert a == b
-    ma = _metrics(batch, "laser_only")["evaluation"]["mesh"]
-    mb = _metrics(again, "laser_only")["evaluation"]["mesh"]
-    assert np.isclose(ma["mean_mm"], mb["mean_mm"])
+    res_a, res_b = batch / "results" / "laser_only", again / "results" / "laser_only"
+    with np.load(res_a / "stripes.npz") as za, np.load(res_b / "stripes.npz") as zb:
+        for k in za.files:
+            assert np.array_equal(za[k], zb[k], equal_nan=za[k].dtype.kind == "f"), k
+    assert (res_a / "clouds.npz").read_bytes() == (res_b / "clouds.npz").read_bytes()
+    with np.load(res_a / "aligned.npz") as za, np.load(res_b / "aligned.npz") as zb:
+        np.testing.assert_allclose(za["points_base"], zb["points_base"], rtol=0, atol=1e-9)
+    ma = _metrics(batch, "laser_only")["evaluation"]
+    mb = _metrics(again, "laser_only")["evaluation"]
+    for key in ("aligned", "mesh"):
+        for stat in ("median_mm", "p95_mm", "mean_mm"):
+            assert abs(ma[key][stat] - mb[key][stat]) < 1e-3, (key, stat)
 
 
 def test_measured_surface_is_labelled_and_scored_apart(batch):

@@ -325,7 +325,7 @@ def sdf_near_symmetric(p: np.ndarray) -> np.ndarray:
 
     A 100 mm bottle, nearly a surface of revolution: its cross-sections are ellipses 2 %
     wider in ``x`` than in ``y`` and its body tapers by 2 mm, with one small feature (a
-    6 mm wide, 1.5 mm high round boss at mid-height on the ``+y`` side).
+    6 mm wide round boss at mid-height on the ``+y`` side, 0.7 mm proud of the tapered body).
     """
     from scipy.interpolate import PchipInterpolator
 

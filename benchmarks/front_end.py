@@ -414,10 +414,9 @@ def _print_flat(d: dict[str, Any]) -> None:
 
 
 def _check(key: str, value: Any) -> bool | None:
-    if key not in TARGETS or value is None:
-        return None
-    op, bound = TARGETS[key]
-    return bool(value >= bound if op == ">=" else value <= bound if op == "<=" else value < bound)
+    from targets import check_target
+
+    return check_target(TARGETS, key, value)
 
 
 def main() -> int:

@@ -70,7 +70,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -83,6 +82,8 @@ REPO = Path(__file__).resolve().parents[1]
 REAL = REPO.parent / "shared" / "real"
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
+
+from common import run_workflow  # noqa: E402 (after the path setup)
 
 TARGETS = {"dtu24_mask_iou_mean": (">=", 0.97), "dtu24_mask_iou_min": (">=", 0.93),
            "sim_mask_iou_min": (">=", 0.99), "stripe_median_mm": ("<=", 0.05),
@@ -104,21 +105,6 @@ CELL_SIZE = dict(width=640, height=480, views=12, sweeps=4, sweep_frames=60,
 EXACT = dict(sweep_error_mm=(0.0, 0.0), sweep_error_deg=(0.0, 0.0),
              view_error_mm=(0.0, 0.0), view_error_deg=(0.0, 0.0), view_jitter=0.0)
 DRIFT = dict(seed=1, sweep_spacing=0.0011, robot_error="drift", clock_lag_ms=4.0)
-
-
-def run_workflow(recording: Path, work: Path, targets: tuple[str, ...] = ("all",)) -> float:
-    """One Snakemake run on one recording in ``work`` with the default config."""
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", *targets, "--quiet", "all",
-           "--config", f"recordings=[{recording}]"]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    dt = time.perf_counter() - t0
-    (work / "snakemake.log").write_text(proc.stdout + proc.stderr)
-    if proc.returncode != 0:
-        raise RuntimeError(f"snakemake failed on {recording} (see {work}/snakemake.log):\n"
-                           f"{proc.stderr[-3000:]}")
-    return dt
 
 
 def _simulated(base: Path, name: str, make) -> Path:
@@ -414,7 +400,7 @@ def _print_flat(d: dict[str, Any]) -> None:
 
 
 def _check(key: str, value: Any) -> bool | None:
-    from targets import check_target
+    from common import check_target
 
     return check_target(TARGETS, key, value)
 

@@ -63,7 +63,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -75,6 +74,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
+
+from common import run_workflow  # noqa: E402 (after the path setup)
 
 #: object name -> simulator seed (the user's mesh is the bracket, turned, as an STL file)
 OBJECTS = {"bracket": 11, "cup": 12, "bumpy_blob": 13, "near_symmetric": 14,
@@ -107,21 +108,6 @@ NOTES = (
     "evaluation.floor_margin_m. end_to_end_s: wall time of the snakemake call.")
 OBSERVABLE_M = 0.0003  # a truth sample within this of a lit-and-seen point is observable
 N_MEASURED, N_TRUTH, N_MESH = 200_000, 400_000, 200_000
-
-
-def run_workflow(recording: Path, work: Path) -> float:
-    """One Snakemake run on one recording in ``work`` with the default config."""
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", "--quiet", "all", "--config",
-           f"recordings=[{recording}]"]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    dt = time.perf_counter() - t0
-    (work / "snakemake.log").write_text(proc.stdout + proc.stderr)
-    if proc.returncode != 0:
-        raise RuntimeError(f"snakemake failed on {recording} (see {work}/snakemake.log):\n"
-                           f"{proc.stderr[-3000:]}")
-    return dt
 
 
 def user_mesh_file(path: Path) -> Path:
@@ -317,7 +303,7 @@ def score(rec_path: Path, work: Path, e2e: float, cfg: dict) -> dict[str, Any]:
 
 
 def _check(key: str, value: Any) -> bool | None:
-    from targets import check_target
+    from common import check_target
 
     return check_target(TARGETS, key, value)
 

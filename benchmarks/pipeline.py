@@ -37,7 +37,6 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -47,21 +46,12 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from common import run_workflow  # noqa: E402 (after the path setup)
 
 TARGETS = {"pose_err_after_mm": 0.05, "pose_err_after_deg": 0.02, "mesh_median_mm": 0.05,
            "mesh_p95_mm": 0.2, "completeness_0_5mm": 0.99, "end_to_end_s": 60.0}
-
-
-def run_workflow(recording: Path, work: Path) -> float:
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", "--quiet", "all", "--config",
-           f"recordings=[{recording}]"]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    dt = time.perf_counter() - t0
-    if proc.returncode != 0:
-        raise RuntimeError(f"snakemake failed on {recording}:\n{proc.stderr[-3000:]}")
-    return dt
 
 
 def _frame_depth_images(work: Path, name: str):

@@ -1,0 +1,37 @@
+"""What the benchmarks share: one Snakemake run of a recording, a figure against its
+target."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_workflow(recording: Path, work: Path, targets: tuple[str, ...] = ("all",)) -> float:
+    """One Snakemake run on one recording in ``work`` with the default config, its output
+    kept in ``work/snakemake.log``; the wall time in seconds."""
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+           str(work), "--cores", "2", *targets, "--quiet", "all",
+           "--config", f"recordings=[{recording}]"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    dt = time.perf_counter() - t0
+    (work / "snakemake.log").write_text(proc.stdout + proc.stderr)
+    if proc.returncode != 0:
+        raise RuntimeError(f"snakemake failed on {recording} (see {work}/snakemake.log):\n"
+                           f"{proc.stderr[-3000:]}")
+    return dt
+
+
+def check_target(targets: dict[str, tuple[str, float]], key: str, value: Any) -> bool | None:
+    """Whether ``value`` meets ``targets[key]`` (``(">=" | "<=" | "<", bound)``); None when
+    the key has no target or the figure was not measured."""
+    if key not in targets or value is None:
+        return None
+    op, bound = targets[key]
+    return bool(value >= bound if op == ">=" else value <= bound if op == "<=" else value < bound)

@@ -13,7 +13,7 @@ import numpy as np
 from .errors import CalibrationError
 from .transforms import invert_transform
 
-__all__ = ["CameraModel", "project_points", "pixel_rays"]
+__all__ = ["CameraModel", "project_points", "pixel_rays", "distortion_limit_r2"]
 
 
 @dataclass(frozen=True)
@@ -178,3 +178,23 @@ def pixel_rays(pixels_uv: np.ndarray, camera: CameraModel,
     """Rays through pixels in the base frame: origin ``(3,)`` and unit directions ``(N, 3)``."""
     d = camera.rays(pixels_uv) @ np.asarray(T_base_camera)[:3, :3].T
     return np.asarray(T_base_camera)[:3, 3].copy(), d
+
+
+def distortion_limit_r2(camera: CameraModel) -> float:
+    """Largest squared normalised radius up to which the radial distortion is monotonic.
+
+    ``r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` folds back where its derivative
+    ``1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3`` (``s = r^2``) first reaches zero: points further
+    off-axis project to bogus pixels, possibly inside the image (the carvers and the
+    region of interest treat them as outside it). ``inf`` without such a root.
+    (Tangential terms are small and ignored here.)
+    """
+    k1, k2, _p1, _p2, k3 = camera.D[:5]
+    coeffs = np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0])
+    nz = np.flatnonzero(coeffs)
+    coeffs = coeffs[nz[0]:]
+    if coeffs.size <= 1:
+        return float("inf")
+    roots = np.roots(coeffs)
+    real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
+    return float(real.min()) if real.size else float("inf")

@@ -9,14 +9,11 @@ visual hull sampled at the voxel centres.
 
 Choices where the seed is silent (all written here so that a result can be explained):
 
-* **Grid.** :class:`VoxelGrid` is axis-aligned in ``base``: voxel ``(i, j, k)`` has its
-  centre at ``origin + voxel_size * (i, j, k)``; cubic voxels; ``occupancy`` is a dense
-  ``(nx, ny, nz)`` bool array (C order). It is the exchange type of every carver: the
-  dense carver here and a later octree carver, which reads and writes the same grid at
-  its finest level (:func:`robo3d.octree.carve_octree`; :func:`carve_visual_hull`
-  selects either). :func:`make_grid` centres the grid on the box and covers it
-  (``n = ceil(extent / voxel_size)`` per axis), so it may overhang the box by less than
-  one voxel on each axis.
+* **Grid.** :class:`~robo3d.grid.VoxelGrid` (axis-aligned in ``base``, voxel centres at
+  ``origin + voxel_size * (i, j, k)``, see :mod:`robo3d.grid`) is the exchange type of
+  every carver: the dense carver here and Szeliski's octree
+  (:func:`robo3d.octree.carve_octree`), which reads and writes the same grid at its
+  finest level; :func:`carve_visual_hull` selects either.
 * **Pixel of a voxel.** A projected point ``(u, v)`` falls in pixel
   ``(floor(u + 0.5), floor(v + 0.5))`` (pixel centres at integers, origin at the centre of
   the top-left pixel; ties round up). It is *in the image* when that pixel exists, i.e.
@@ -26,7 +23,7 @@ Choices where the seed is silent (all written here so that a result can be expla
   the view says nothing about it — right when the object may be cut off by the frame) or
   ``"carve"`` (the strict visual hull: the object is fully inside every view).
   A centre further off-axis than the radius where the lens model stays monotonic (see
-  :func:`robo3d.silhouettes._distortion_limit_r2`) would fold back to a bogus pixel,
+  :func:`robo3d.camera.distortion_limit_r2`) would fold back to a bogus pixel,
   possibly inside the image; it counts as outside the image.
 * **Behind the camera** (``behind_camera``, ``z <= 0`` in the camera frame): no ray of the
   view passes through it, so the strict visual hull excludes it: ``"carve"`` by default,
@@ -66,26 +63,23 @@ cubes", SIGGRAPH 1987.
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .atomic import atomic_path
-from .camera import CameraModel, pixel_rays, project_points
+from .camera import CameraModel, distortion_limit_r2, pixel_rays, project_points
+from .checks import check_choice, check_min_views, check_views
 from .errors import StageError
-from .silhouettes import _check_box, _distortion_limit_r2
+from .grid import VoxelGrid, make_grid, shell_voxels
+from .octree import carve_octree
 from .transforms import invert_transform
 
 __all__ = [
-    "VoxelGrid",
-    "make_grid",
+    "VoxelGrid",  # re-exported: its home is robo3d.grid
+    "make_grid",  # likewise
     "box_from_silhouettes",
     "carve_dense",
     "carve_visual_hull",
@@ -99,295 +93,8 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-_POLICIES = ("keep", "carve")
 #: Accepted values of ``method`` in :func:`carve_visual_hull`.
 CARVING_METHODS = ("octree", "dense")
-_MAX_VOXELS = 1 << 30  # 1 GiB of bool: beyond this a dense grid is a configuration mistake
-_RESERVED = ("origin", "voxel_size", "occupancy", "frame", "_json_keys")
-
-
-# ---------------------------------------------------------------------------- the grid
-@dataclass
-class VoxelGrid:
-    """A dense, axis-aligned voxel grid with binary occupancy.
-
-    Attributes
-    ----------
-    origin : (3,) float64, metres
-        Centre of voxel ``(0, 0, 0)`` in ``frame``.
-    voxel_size : float, metres
-        Edge of the (cubic) voxels.
-    occupancy : (nx, ny, nz) bool
-        True = occupied (opaque). Voxel ``(i, j, k)`` is centred at
-        ``origin + voxel_size * (i, j, k)``.
-    frame : str
-        The frame the grid lives in (``"base"``).
-    """
-
-    origin: np.ndarray
-    voxel_size: float
-    occupancy: np.ndarray
-    frame: str = "base"
-
-    def __post_init__(self) -> None:
-        o = np.asarray(self.origin, dtype=np.float64).reshape(-1)
-        if o.shape != (3,) or not np.all(np.isfinite(o)):
-            raise ValueError(f"origin must be a finite (3,) array, got {self.origin!r}")
-        s = float(self.voxel_size)
-        if not np.isfinite(s) or s <= 0:
-            raise ValueError(f"voxel_size must be a positive number of metres, got {s}")
-        occ = np.asarray(self.occupancy)
-        if occ.ndim != 3 or occ.dtype != np.bool_ or min(occ.shape) < 1:
-            raise ValueError(f"occupancy must be (nx, ny, nz) bool with every n >= 1, "
-                             f"got {tuple(occ.shape)} {occ.dtype}")
-        self.origin = o
-        self.voxel_size = s
-        self.occupancy = np.ascontiguousarray(occ)
-
-    # ------------------------------------------------------------------ geometry
-    @property
-    def shape(self) -> tuple[int, int, int]:
-        """``(nx, ny, nz)``."""
-        return tuple(int(n) for n in self.occupancy.shape)  # type: ignore[return-value]
-
-    @property
-    def n_occupied(self) -> int:
-        """Number of occupied voxels."""
-        return int(np.count_nonzero(self.occupancy))
-
-    @property
-    def volume_m3(self) -> float:
-        """Occupied volume, cubic metres (occupied voxels times voxel volume)."""
-        return self.n_occupied * self.voxel_size ** 3
-
-    @property
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Outer faces of the grid: ``(min (3,), max (3,))``, metres."""
-        half = 0.5 * self.voxel_size
-        lo = self.origin - half
-        hi = self.origin + self.voxel_size * (np.array(self.shape) - 1) + half
-        return lo, hi
-
-    @property
-    def centre(self) -> np.ndarray:
-        """Centre of the grid, (3,) metres."""
-        lo, hi = self.bounds
-        return 0.5 * (lo + hi)
-
-    def index_to_points(self, ijk: np.ndarray) -> np.ndarray:
-        """Voxel centres ``(N, 3)`` metres from integer indices ``(N, 3)``."""
-        ijk = np.asarray(ijk)
-        return self.origin + self.voxel_size * ijk.astype(np.float64)
-
-    def points_to_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices ``(N, 3)`` int64 of the voxels containing points ``(N, 3)`` metres,
-        and ``(N,)`` bool telling which points lie inside the grid."""
-        p = np.asarray(points, dtype=np.float64)
-        ijk = np.floor((p - self.origin) / self.voxel_size + 0.5).astype(np.int64)
-        inside = np.all((ijk >= 0) & (ijk < np.array(self.shape)), axis=-1)
-        return ijk, inside
-
-    def centres(self, occupied_only: bool = True) -> np.ndarray:
-        """Centres ``(N, 3)`` float64 metres of the occupied (or of all) voxels, C order."""
-        if occupied_only:
-            ijk = np.argwhere(self.occupancy)
-        else:
-            ijk = np.indices(self.shape).reshape(3, -1).T
-        return self.index_to_points(ijk)
-
-    def surface(self) -> np.ndarray:
-        """The occupied voxels with an empty 6-neighbour (outside the grid counts as
-        empty): the hull's shell, ``(nx, ny, nz)`` bool."""
-        return _shell(self.occupancy)
-
-    def copy(self) -> VoxelGrid:
-        """A deep copy."""
-        return VoxelGrid(self.origin.copy(), self.voxel_size, self.occupancy.copy(), self.frame)
-
-    # ------------------------------------------------------------------ files
-    def save_npz(self, path: str | os.PathLike, **extra) -> None:
-        """Write the grid (and ``extra`` arrays or JSON-able dicts) to ``path`` atomically.
-
-        The file is a compressed NPZ with arrays ``origin``, ``voxel_size``,
-        ``occupancy``, ``frame`` plus the extras; dicts and lists are stored as JSON
-        strings and come back as such from :meth:`load_npz`. The data is written to a
-        temporary file in the same directory and renamed, so a killed job leaves no
-        half file.
-        """
-        path = Path(path)
-        arrays: dict[str, np.ndarray] = {
-            "origin": self.origin,
-            "voxel_size": np.float64(self.voxel_size),
-            "occupancy": self.occupancy,
-            "frame": np.str_(self.frame),
-        }
-        json_keys = []
-        for key, value in extra.items():
-            if key in _RESERVED:
-                raise ValueError(f"extra key {key!r} is reserved (reserved: {_RESERVED})")
-            if isinstance(value, dict | list | tuple):
-                arrays[key] = np.str_(json.dumps(value))
-                json_keys.append(key)
-                continue
-            a = np.asarray(value)
-            if a.dtype == object:
-                raise ValueError(f"extra {key!r} must be an array or a JSON-able dict/list, "
-                                 f"got {type(value).__name__}")
-            arrays[key] = a
-        arrays["_json_keys"] = np.array(json_keys, dtype=np.str_)
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-
-    @classmethod
-    def load_npz(cls, path: str | os.PathLike, *, return_extra: bool = False):
-        """Read a grid written by :meth:`save_npz`.
-
-        Returns
-        -------
-        grid : VoxelGrid
-        extra : dict
-            Only with ``return_extra=True``: the extra arrays (JSON ones decoded).
-        """
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{path}: not a voxel-grid NPZ ({exc})") from exc
-        missing = [k for k in ("origin", "voxel_size", "occupancy") if k not in data]
-        if missing:
-            raise ValueError(f"{path}: not a voxel-grid NPZ, missing {missing}")
-        grid = cls(origin=data["origin"], voxel_size=float(data["voxel_size"]),
-                   occupancy=data["occupancy"].astype(bool),
-                   frame=str(data["frame"]) if "frame" in data else "base")
-        if not return_extra:
-            return grid
-        json_keys = {str(k) for k in data.get("_json_keys", np.array([], dtype=np.str_))}
-        extra = {}
-        for k, v in data.items():
-            if k in _RESERVED:
-                continue
-            extra[k] = json.loads(str(v)) if k in json_keys else v
-        return grid, extra
-
-
-def _shell(occ: np.ndarray) -> np.ndarray:
-    """The occupied voxels of ``occ`` (3-D bool) with an empty 6-neighbour."""
-    inner = occ.copy()
-    inner[0, :, :] = inner[-1, :, :] = False
-    inner[:, 0, :] = inner[:, -1, :] = False
-    inner[:, :, 0] = inner[:, :, -1] = False
-    core = inner[1:-1, 1:-1, 1:-1]
-    core &= occ[:-2, 1:-1, 1:-1] & occ[2:, 1:-1, 1:-1]
-    core &= occ[1:-1, :-2, 1:-1] & occ[1:-1, 2:, 1:-1]
-    core &= occ[1:-1, 1:-1, :-2] & occ[1:-1, 1:-1, 2:]
-    return occ & ~inner
-
-
-def make_grid(
-    box_min: np.ndarray,
-    box_max: np.ndarray,
-    *,
-    resolution: int | None = None,
-    voxel_size: float | None = None,
-    frame: str = "base",
-) -> VoxelGrid:
-    """A fully occupied grid covering a box (seed §3.4, fig. 12).
-
-    Parameters
-    ----------
-    box_min, box_max : (3,) float64, metres
-        The box, in ``frame``.
-    resolution : int, optional
-        Voxels along the box's longest side (``voxel_size = longest / resolution``).
-    voxel_size : float, optional, metres
-        Give this instead of ``resolution``.
-    frame : str
-
-    Returns
-    -------
-    VoxelGrid
-        ``n = max(1, ceil(extent / voxel_size))`` voxels per axis, centred on the box;
-        every voxel occupied.
-
-    Raises
-    ------
-    ValueError
-        Neither or both of ``resolution`` and ``voxel_size``, a degenerate box, or more
-        than 2**30 voxels.
-    """
-    lo, hi = _check_box(box_min, box_max)
-    if (resolution is None) == (voxel_size is None):
-        raise ValueError("give exactly one of resolution and voxel_size, got "
-                         f"resolution={resolution}, voxel_size={voxel_size}")
-    extent = hi - lo
-    if resolution is not None:
-        if int(resolution) != resolution or resolution < 1:
-            raise ValueError(f"resolution must be a positive integer, got {resolution}")
-        s = float(extent.max()) / int(resolution)
-    else:
-        s = float(voxel_size)  # type: ignore[arg-type]
-        if not np.isfinite(s) or s <= 0:
-            raise ValueError(f"voxel_size must be a positive number of metres, got {s}")
-    # a relative tolerance keeps e.g. 0.3 / 0.01 from becoming 31 voxels
-    n = np.maximum(1, np.ceil(extent / s - 1e-9)).astype(np.int64)
-    total = int(np.prod(n))
-    if total > _MAX_VOXELS:
-        raise ValueError(f"grid of {n.tolist()} = {total} voxels exceeds the dense limit of "
-                         f"{_MAX_VOXELS}; use a coarser resolution")
-    origin = 0.5 * (lo + hi) - 0.5 * s * (n - 1)
-    return VoxelGrid(origin=origin, voxel_size=s,
-                     occupancy=np.ones(tuple(int(x) for x in n), dtype=bool), frame=frame)
-
-
-# ---------------------------------------------------------------------- inputs
-def _as_views(masks, cameras, T_base_cameras, *, need_masks: bool = True):
-    """Normalise the per-view inputs: lists of masks, cameras and (N, 4, 4) poses."""
-    T = np.asarray(T_base_cameras, dtype=np.float64)
-    if T.ndim == 2:
-        T = T[None]
-    if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise ValueError(f"T_base_cameras must be (N, 4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError("T_base_cameras has non-finite values")
-    R = T[:, :3, :3]
-    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) if len(T) else []
-    bad = np.flatnonzero(np.asarray(err) > 1e-6)
-    if bad.size:
-        raise ValueError(f"T_base_cameras[{bad[0]}] is not a rigid transform (its rotation "
-                         f"is off orthonormal by {err[bad[0]]:.2g})")
-    n = T.shape[0]
-    if isinstance(cameras, CameraModel):
-        cams = [cameras] * n
-    else:
-        cams = list(cameras)
-        if len(cams) != n:
-            raise ValueError(f"got {len(cams)} cameras for {n} poses")
-        for c in cams:
-            if not isinstance(c, CameraModel):
-                raise ValueError(f"cameras must be CameraModel, got {type(c).__name__}")
-    ms: list[np.ndarray] = []
-    if need_masks:
-        if isinstance(masks, np.ndarray) and masks.ndim == 2:
-            masks = [masks]
-        ms = [np.asarray(m) for m in masks]
-        if len(ms) != n:
-            raise ValueError(f"got {len(ms)} masks for {n} poses")
-        for i, (m, c) in enumerate(zip(ms, cams, strict=True)):
-            if m.dtype != np.bool_ or m.shape != (c.height, c.width):
-                raise ValueError(f"mask {i} must be ({c.height}, {c.width}) bool (camera "
-                                 f"{c.frame_id!r}), got {tuple(m.shape)} {m.dtype}")
-    return ms, cams, T
-
-
-def _check_policy(name: str, value: str) -> None:
-    if value not in _POLICIES:
-        raise ValueError(f"{name} must be one of {_POLICIES}, got {value!r}")
-
-
-def _check_min_views(k: int) -> int:
-    if isinstance(k, bool) or int(k) != k or k < 1:
-        raise ValueError(f"min_views_background must be an integer >= 1, got {k!r}")
-    return int(k)
 
 
 # ---------------------------------------------------------------------- the box
@@ -439,7 +146,7 @@ def box_from_silhouettes(
     """
     if not np.isfinite(margin) or margin < 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
-    ms, cams, T = _as_views(masks, cameras, T_base_cameras)
+    ms, cams, T = check_views(masks, cameras, T_base_cameras)
     n = T.shape[0]
     for i, m in enumerate(ms):
         if not m.any():
@@ -603,20 +310,20 @@ def carve_dense(
     R. Szeliski, CVGIP: Image Understanding 58(1), 1993; A. Laurentini, IEEE PAMI 16(2),
     1994.
     """
-    _check_policy("outside_image", outside_image)
-    _check_policy("behind_camera", behind_camera)
+    check_choice("outside_image", outside_image)
+    check_choice("behind_camera", behind_camera)
     if not isinstance(grid, VoxelGrid):
         raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
     if int(chunk_voxels) < 1:
         raise ValueError(f"chunk_voxels must be >= 1, got {chunk_voxels}")
-    k_bg = _check_min_views(min_views_background)
-    ms, cams, T = _as_views(masks, cameras, T_base_cameras)
+    k_bg = check_min_views(min_views_background)
+    ms, cams, T = check_views(masks, cameras, T_base_cameras)
     n_views = T.shape[0]
     if n_views == 0:
         raise StageError("carving needs at least one view, got none")
     t0 = time.perf_counter()
     T_cb = invert_transform(T)
-    limits = [_distortion_limit_r2(c) for c in cams]
+    limits = [distortion_limit_r2(c) for c in cams]
     flat_masks = [np.ascontiguousarray(m).reshape(-1) for m in ms]
     keep_out = outside_image == "keep"
     keep_behind = behind_camera == "keep"
@@ -759,8 +466,6 @@ def carve_visual_hull(
                                   outside_image=outside_image, behind_camera=behind_camera,
                                   min_views_background=min_views_background)
         return out, {"method": "dense", **report}
-    from .octree import carve_octree
-
     return carve_octree(grid, masks, cameras, T_base_cameras, outside_image=outside_image,
                         behind_camera=behind_camera, leaf_rule=leaf_rule, threads=threads,
                         min_views_background=min_views_background)
@@ -887,10 +592,10 @@ def view_agreement(
     each leave-one-out hull is then the candidates whose vote count without view ``i``
     stays below ``k``, so the cost is one carve plus one projection per view.
     """
-    _check_policy("outside_image", outside_image)
-    _check_policy("behind_camera", behind_camera)
-    k = _check_min_views(min_views_background)
-    ms, cams, T = _as_views(masks, cameras, T_base_cameras)
+    check_choice("outside_image", outside_image)
+    check_choice("behind_camera", behind_camera)
+    k = check_min_views(min_views_background)
+    ms, cams, T = check_views(masks, cameras, T_base_cameras)
     n = T.shape[0]
     ref = np.zeros(n, dtype=bool)
     ref[list(range(n)) if reference is None else [int(r) for r in reference]] = True
@@ -902,7 +607,7 @@ def view_agreement(
                                 behind_camera=behind_camera, min_views_background=k + 1)
     ijk = np.argwhere(cand.occupancy)
     T_cb = invert_transform(T)
-    limits = [_distortion_limit_r2(c) for c in cams]
+    limits = [distortion_limit_r2(c) for c in cams]
     n_c = len(ijk)
     votes = np.zeros((n, n_c), dtype=bool)
     seen = np.zeros((n, n_c), dtype=bool)
@@ -934,9 +639,9 @@ def view_agreement(
         # shell, unknown ones those of the shell of all kept voxels not covered by hull
         flat_vol[:] = False
         flat_vol[flat_ijk[hull]] = True
-        hull_shell = hull & _shell(vol).reshape(-1)[flat_ijk]
+        hull_shell = hull & shell_voxels(vol).reshape(-1)[flat_ijk]
         flat_vol[flat_ijk[kept]] = True
-        unknown = kept & ~hull & _shell(vol).reshape(-1)[flat_ijk]
+        unknown = kept & ~hull & shell_voxels(vol).reshape(-1)[flat_ijk]
         hull = hull_shell
         sel = np.flatnonzero(hull | unknown)
         u, vv, z, valid = _voxel_uv(ijk[sel], cand, cam, T_cb[i], limits[i])
@@ -1133,7 +838,7 @@ def outside_silhouettes(points: np.ndarray, masks, cameras, T_base_cameras, *,
     worst_m : (N,) float64
         The largest distance outside a silhouette, in metres at the point (0 inside all).
     """
-    ms, cams, T = _as_views(masks, cameras, T_base_cameras)
+    ms, cams, T = check_views(masks, cameras, T_base_cameras)
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n_out = np.zeros(len(p), np.int32)
     worst = np.zeros(len(p))
@@ -1266,7 +971,7 @@ def resolution_report(
     """
     if not isinstance(grid, VoxelGrid):
         raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
-    _ms, cams, T = _as_views(None, cameras, T_base_cameras, need_masks=False)
+    _ms, cams, T = check_views(None, cameras, T_base_cameras, need_masks=False)
     centre = grid.centre
     T_cb = invert_transform(T)
     depth = np.einsum("nj,j->n", T_cb[:, 2, :3], centre) + T_cb[:, 2, 3]

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from .checks import check_points, check_region
 from .meshio import check_mesh as _check_mesh
 from .transforms import rotation_angle_deg
 
@@ -63,23 +64,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-def _check_points(points: object, name: str = "points") -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must be (N, 3), got {p.shape}")
-    return p
-
-
-def _check_box(region: object) -> tuple[np.ndarray, np.ndarray] | None:
-    if region is None:
-        return None
-    lo, hi = (np.asarray(r, dtype=np.float64) for r in region)
-    if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo):
-        raise ValueError(f"region must be (box_min (3,), box_max (3,)) with max > min, got "
-                         f"{lo} and {hi}")
-    return lo, hi
 
 
 def _in_box(p: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
@@ -171,7 +155,7 @@ class TruthSurface:
         -------
         (N,) float64, metres
         """
-        p = _check_points(points)
+        p = check_points(points)
         if len(p) == 0:
             return np.zeros(0)
         return self._scene.compute_distance(self._q(p)).numpy().astype(np.float64)
@@ -188,7 +172,7 @@ class TruthSurface:
         (N,) bool
             Majority vote of three ray-parity tests (robust to rays grazing an edge).
         """
-        p = _check_points(points)
+        p = check_points(points)
         if len(p) == 0:
             return np.zeros(0, dtype=bool)
         occ = self._scene.compute_occupancy(self._q(p), nsamples=3)
@@ -289,7 +273,7 @@ def mesh_accuracy(vertices: np.ndarray, faces: np.ndarray, truth: TruthSurface, 
         :func:`distance_stats` keys (``n == 0`` for an empty mesh), ``within_mm`` and
         ``fraction_scored`` (of the samples, those in the region).
     """
-    box = _check_box(region)
+    box = check_region(region)
     p = sample_surface(vertices, faces, n_samples, seed=seed)
     inb = _in_box(p, box)
     d = truth.distance(p[inb])
@@ -330,7 +314,7 @@ def completeness(vertices: np.ndarray, faces: np.ndarray, truth: TruthSurface, *
         region); ``distance``: :func:`distance_stats` of truth -> reconstruction (None
         values when the reconstruction is empty).
     """
-    box = _check_box(region)
+    box = check_region(region)
     v, f = _check_mesh(vertices, faces)
     samples = truth.sample(n_samples, seed=seed)
     samples = samples[_in_box(samples, box)]
@@ -376,7 +360,7 @@ def volume_iou(occupancy: np.ndarray, origin: np.ndarray, voxel_size: float,
         raise ValueError(f"origin must be (3,), got {origin.shape}")
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
-    box = _check_box(region)
+    box = check_region(region)
     # Only voxels inside the truth's bounding box can be inside the truth.
     tmin, tmax = truth.bounds
     lo = np.maximum(np.floor((tmin - origin) / voxel_size).astype(int), 0)
@@ -546,7 +530,7 @@ def frame_displacement(points_base: np.ndarray, frame_index: np.ndarray,
     rotation_deg : (F,) float64
         Rotation angle of the frame's pose error.
     """
-    p = _check_points(points_base, "points_base")
+    p = check_points(points_base, "points_base")
     f = np.asarray(frame_index, dtype=np.int64).reshape(-1)
     a = np.asarray(T_used, dtype=np.float64)
     b = np.asarray(T_true, dtype=np.float64)

@@ -16,7 +16,7 @@ its volume.
 
 Exactness (the dense carver's occupancy, to the voxel)
 ------------------------------------------------------
-The grid's exchange type is :class:`robo3d.carving.VoxelGrid`, and the dense carver
+The grid's exchange type is :class:`robo3d.grid.VoxelGrid`, and the dense carver
 (:func:`robo3d.carving.carve_dense`) defines a voxel by its centre. The octree therefore
 tests the box spanned by the *centres* of the voxels an octant holds (half a voxel
 smaller than the octant on each side), and at the finest level (one voxel, a point) it
@@ -90,10 +90,10 @@ import numba
 import numpy as np
 from numba import njit
 
-from .camera import CameraModel
-from .carving import VoxelGrid, _as_views, _check_min_views, _check_policy
+from .camera import CameraModel, distortion_limit_r2
+from .checks import check_choice, check_min_views, check_views
 from .errors import StageError
-from .silhouettes import _distortion_limit_r2
+from .grid import VoxelGrid
 from .transforms import invert_transform
 
 __all__ = ["carve_octree", "warm_up", "LEAF_RULES"]
@@ -442,7 +442,7 @@ def _view_table(grid: VoxelGrid, cams: list[CameraModel], T_cb: np.ndarray) -> n
         R = t[:3, :3]
         a = R * grid.voxel_size  # exactly as robo3d.carving._project_indices
         b = R @ grid.origin + t[:3, 3]
-        lim = _distortion_limit_r2(cam)
+        lim = distortion_limit_r2(cam)
         P[w, 0:9] = a.reshape(-1)
         P[w, 9:12] = b
         P[w, 12] = cam.fx
@@ -593,16 +593,16 @@ def carve_octree(
     R. Szeliski, "Rapid octree construction from image sequences", CVGIP: Image
     Understanding 58(1), 1993.
     """
-    _check_policy("outside_image", outside_image)
-    _check_policy("behind_camera", behind_camera)
+    check_choice("outside_image", outside_image)
+    check_choice("behind_camera", behind_camera)
     if leaf_rule not in LEAF_RULES:
         raise ValueError(f"leaf_rule must be one of {LEAF_RULES}, got {leaf_rule!r}")
     if not isinstance(grid, VoxelGrid):
         raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
     if int(threads) != threads or threads < 0:
         raise ValueError(f"threads must be an integer >= 0, got {threads}")
-    k_bg = _check_min_views(min_views_background)
-    ms, cams, T = _as_views(masks, cameras, T_base_cameras)
+    k_bg = check_min_views(min_views_background)
+    ms, cams, T = check_views(masks, cameras, T_base_cameras)
     n_views = T.shape[0]
     if n_views == 0:
         raise StageError("carving needs at least one view, got none")

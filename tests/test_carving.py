@@ -16,18 +16,16 @@ import cv2
 import numpy as np
 import pytest
 
-from robo3d.camera import CameraModel, pixel_rays
+from robo3d.camera import CameraModel, distortion_limit_r2, pixel_rays
 from robo3d.carving import (
-    VoxelGrid,
     box_from_silhouettes,
     carve_dense,
     hull_to_mesh,
-    make_grid,
     outside_silhouettes,
     resolution_report,
 )
 from robo3d.errors import StageError
-from robo3d.silhouettes import _distortion_limit_r2
+from robo3d.grid import VoxelGrid, make_grid
 from robo3d.sim.rig import look_at
 from robo3d.transforms import invert_transform
 
@@ -268,7 +266,7 @@ def test_folded_distortion_counts_as_outside_image():
     """Far off-axis, a strong barrel model folds back into the image; such voxels are
     outside the view and must not be carved when the policy keeps them."""
     cam = _camera([-0.4, 0.0, 0.0, 0.0, 0.0])
-    assert _distortion_limit_r2(cam) == pytest.approx(1.0 / 1.2)
+    assert distortion_limit_r2(cam) == pytest.approx(1.0 / 1.2)
     T = np.eye(4)
     # a slab of voxels at normalised x = 1.5 (56 deg off-axis), z = 0.2 m
     grid = VoxelGrid(origin=np.array([0.3, -0.01, 0.2]), voxel_size=0.002,

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from robo3d.camera import CameraModel, pixel_rays
-from robo3d.carving import VoxelGrid, carve_dense, carve_visual_hull, make_grid
+from robo3d.carving import carve_dense, carve_visual_hull
 from robo3d.errors import StageError
+from robo3d.grid import VoxelGrid, make_grid
 from robo3d.octree import (
     _BLACK,
     _WHITE,

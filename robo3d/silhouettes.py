@@ -173,7 +173,9 @@ import cv2
 import numpy as np
 
 from .camera import CameraModel, project_points
+from .camera import distortion_limit_r2 as _distortion_limit_r2
 from .errors import StageError
+from .grid import check_box as _check_box
 from .transforms import invert_transform
 
 __all__ = ["Silhouette", "segment_silhouette", "roi_from_box", "find_roi", "to_grey", "to_lab",
@@ -1251,25 +1253,6 @@ def find_roi(
 
 
 # ---------------------------------------------------------------------- projection helpers
-def _distortion_limit_r2(camera: CameraModel) -> float:
-    """Largest squared normalised radius up to which the radial distortion is monotonic.
-
-    ``r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` folds back where its derivative
-    ``1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3`` (``s = r^2``) first reaches zero: points further
-    off-axis project to bogus pixels, possibly inside the image. ``inf`` without such a
-    root. (Tangential terms are small and ignored here.)
-    """
-    k1, k2, _p1, _p2, k3 = camera.D[:5]
-    coeffs = np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0])
-    nz = np.flatnonzero(coeffs)
-    coeffs = coeffs[nz[0]:]
-    if coeffs.size <= 1:
-        return float("inf")
-    roots = np.roots(coeffs)
-    real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
-    return float(real.min()) if real.size else float("inf")
-
-
 def _edge_samples(box_min: np.ndarray, box_max: np.ndarray, n: int = 9) -> np.ndarray:
     """Points along the 12 edges of an axis-aligned box, (12 n, 3)."""
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
@@ -1278,18 +1261,6 @@ def _edge_samples(box_min: np.ndarray, box_max: np.ndarray, n: int = 9) -> np.nd
     t = np.linspace(0.0, 1.0, n)[:, None]
     unit = np.concatenate([corners[a] + t * (corners[b] - corners[a]) for a, b in edges])
     return box_min + unit * (box_max - box_min)
-
-
-def _check_box(box_min: object, box_max: object) -> tuple[np.ndarray, np.ndarray]:
-    """An axis-aligned box's corners as finite (3,) float64 arrays, ``max > min`` on every
-    axis; ``ValueError`` otherwise."""
-    lo = np.asarray(box_min, dtype=np.float64).reshape(-1)
-    hi = np.asarray(box_max, dtype=np.float64).reshape(-1)
-    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo) & np.isfinite(hi)):
-        raise ValueError(f"box_min and box_max must be finite (3,) arrays, got {lo} and {hi}")
-    if np.any(hi <= lo):
-        raise ValueError(f"box_max must exceed box_min on every axis, got {lo} and {hi}")
-    return lo, hi
 
 
 def roi_from_box(

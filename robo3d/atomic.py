@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "write_json", "save_npz", "json_default", "file_mode", "dir_mode"]
+__all__ = ["atomic_path", "write_json", "save_npz", "json_default", "dumps_json", "file_mode",
+           "dir_mode"]
 
 
 def _process_umask() -> int:
@@ -64,21 +65,32 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 
 def json_default(obj: Any) -> Any:
-    """``json.dump``'s ``default``: numpy scalars and arrays, paths."""
+    """``json.dump``'s ``default``, the one every robo3d JSON writer uses: numpy scalars
+    and arrays become Python numbers and lists, paths strings, sets sorted lists.
+    Anything else is a ``TypeError``: a report that holds some other object is a bug to
+    see, not a ``repr`` to write."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
         return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, set | frozenset):
+        return sorted(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def dumps_json(data: Any) -> str:
+    """``data`` as indented JSON text (:func:`json_default` converts numpy and paths;
+    NaN stays NaN as Python's ``json`` writes it)."""
+    return json.dumps(data, indent=2, sort_keys=False, default=json_default, allow_nan=True)
+
+
 def write_json(path: str | os.PathLike[str], data: Any) -> None:
-    """Write ``data`` as indented JSON, atomically (numpy scalars and arrays converted)."""
+    """Write ``data`` as indented JSON (:func:`dumps_json`), atomically."""
+    text = dumps_json(data)
     with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2, sort_keys=False, default=json_default, allow_nan=True)
-        f.write("\n")
+        f.write(text + "\n")
 
 
 def save_npz(path: str | os.PathLike[str], **arrays: Any) -> None:

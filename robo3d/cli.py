@@ -258,8 +258,9 @@ def _add_info(p: argparse.ArgumentParser) -> None:
 
 
 def _run_info(args: argparse.Namespace) -> int:
+    from .atomic import dumps_json
     from .config import load_config
-    from .info import _dumps, format_info, inspect_with_config
+    from .info import format_info, inspect_with_config
     from .recording.model import FRAME_ROLES
 
     cfg = load_config(args.config) if args.config else load_config()
@@ -267,7 +268,7 @@ def _run_info(args: argparse.Namespace) -> int:
                                                       "views", "laser", "joint_states")))
     cfg["frames"].update(_pairs(args.frame, "frame", FRAME_ROLES))
     info = inspect_with_config(args.recording, cfg)
-    sys.stdout.write((_dumps(info) if args.json else format_info(info)) + "\n")
+    sys.stdout.write((dumps_json(info) if args.json else format_info(info)) + "\n")
     return 0 if info["fit"] else 1
 
 
@@ -279,7 +280,8 @@ def _add_status(p: argparse.ArgumentParser) -> None:
 
 
 def _run_status(args: argparse.Namespace) -> int:
-    from .info import _dumps, batch_status, format_batch_status
+    from .atomic import dumps_json
+    from .info import batch_status, format_batch_status
 
     status = batch_status(args.results, args.logs)
     if not status["recordings"]:
@@ -287,7 +289,7 @@ def _run_status(args: argparse.Namespace) -> int:
                    "workflow first, or point --results/--logs at its folders)",
                    args.results, args.logs)
         return 1
-    sys.stdout.write((_dumps(status) if args.json else format_batch_status(status)) + "\n")
+    sys.stdout.write((dumps_json(status) if args.json else format_batch_status(status)) + "\n")
     return 1 if status["failed"] else 0
 
 

@@ -751,14 +751,3 @@ def format_run_summary(results_dir: str | os.PathLike[str] = "results",
     if status["failed"]:
         lines.append(f"failed: {', '.join(status['failed'])} (robo3d status says why)")
     return "\n".join(lines)
-
-
-def _dumps(obj: Any) -> str:
-    def default(o: Any) -> Any:
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-        return str(o)
-
-    return json.dumps(obj, indent=2, default=default)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import atomic_path, json_default
+from .atomic import atomic_path, dumps_json
 from .camera import CameraModel
 
 __all__ = [
@@ -144,20 +144,11 @@ def log_box(stream: Any, entity: str, box_min: np.ndarray, box_max: np.ndarray, 
                static=static)
 
 
-def _plain(obj: Any) -> Any:
-    try:
-        return json_default(obj)
-    except TypeError:
-        return str(obj)
-
-
 def log_report(stream: Any, entity: str, report: dict[str, Any]) -> None:
     """Log a stage's report (what it measured) as a markdown document."""
-    import json
-
     import rerun as rr
 
-    text = "```json\n" + json.dumps(report, indent=2, default=_plain) + "\n```"
+    text = "```json\n" + dumps_json(report) + "\n```"
     stream.log(entity, rr.TextDocument(text, media_type="text/markdown"), static=True)
 
 

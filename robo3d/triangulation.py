@@ -90,25 +90,25 @@ References
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
-from .atomic import save_npz
+# SweepCloud and its file live in robo3d.artefacts; importable from here too
+from .artefacts import SweepCloud, load_clouds_npz, save_clouds_npz
 from .camera import CameraModel
 from .errors import StageError
+from .options import Options
 from .stripes import StripePoints
 from .transforms import euler_to_matrix
 
 __all__ = [
     "DROP_REASONS",
     "SweepCloud",
+    "TriangulateOptions",
     "laser_transform_from_params",
     "laser_params_from_transform",
     "laser_plane_in_camera",
@@ -128,8 +128,41 @@ log = logging.getLogger(__name__)
 #: (each pixel counted once, under the first reason that applies).
 DROP_REASONS: tuple[str, ...] = ("non_finite", "grazing", "behind", "out_of_range")
 
-_NPZ_FORMAT = "robo3d.sweep_clouds/1"
 _CONF_REF_ANGLE_DEG = 15.0
+
+
+@dataclass(frozen=True)
+class TriangulateOptions(Options):
+    """The parameters of :func:`triangulate_sweep` (config section ``triangulation``;
+    ``crop_to_workspace`` and ``laser_params`` are the stage's: they choose its inputs).
+
+    Attributes
+    ----------
+    min_angle_deg : float, degrees
+        Rays meeting the sheet at a smaller angle are dropped (``grazing``).
+    min_range_m, max_range_m : float, metres
+        Accepted distance of a point from the camera centre.
+    normal_span : int
+        Lines between the neighbours of the along-profile tangent (central difference
+        over ``±normal_span`` lines, falling back to ``±1``).
+    normal_smooth : int
+        The grid normals are averaged over ``(2 normal_smooth + 1)^2`` neighbouring
+        grid cells (frames x lines), 0 for none.
+    normal_jump : float
+        A neighbour further than ``normal_jump`` times the sweep's median spacing is a
+        depth jump, not a neighbour.
+    normal_knn : int
+        Neighbours of the PCA fallback normal.
+    """
+
+    section = "triangulation"
+    min_angle_deg: float = 2.0
+    min_range_m: float = 0.02
+    max_range_m: float = 2.0
+    normal_span: int = 2
+    normal_smooth: int = 2
+    normal_jump: float = 5.0
+    normal_knn: int = 12
 
 
 # ---------------------------------------------------------------------------- eq. 11
@@ -607,53 +640,6 @@ def split_sweeps(stamps_ns: np.ndarray, gap_ns: int) -> np.ndarray:
     return out
 
 
-@dataclass
-class SweepCloud:
-    """The points triangulated from one sweep, in ``base``.
-
-    Attributes
-    ----------
-    points_base : (N, 3) float64, metres
-    normals_base : (N, 3) float64
-        Unit normals, oriented toward ``sensor_origin_base``.
-    frame_index : (N,) int64
-        Index of the laser frame each point came from (as given to
-        :func:`triangulate_sweep`).
-    confidence : (N,) float64 in [0, 1]
-    sweep : int
-        The sweep's index in the recording.
-    sensor_origin_base : (N, 3) float64, metres
-        Camera centre at the point's frame (its line of sight ends at the point).
-    report : dict
-        What the triangulation measured (JSON-serialisable).
-    """
-
-    points_base: np.ndarray
-    normals_base: np.ndarray
-    frame_index: np.ndarray
-    confidence: np.ndarray
-    sweep: int
-    sensor_origin_base: np.ndarray
-    report: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.points_base = np.asarray(self.points_base, dtype=np.float64).reshape(-1, 3)
-        n = len(self.points_base)
-        self.normals_base = np.asarray(self.normals_base, dtype=np.float64).reshape(-1, 3)
-        self.sensor_origin_base = np.asarray(self.sensor_origin_base,
-                                             dtype=np.float64).reshape(-1, 3)
-        self.frame_index = np.asarray(self.frame_index, dtype=np.int64).reshape(-1)
-        self.confidence = np.asarray(self.confidence, dtype=np.float64).reshape(-1)
-        for name in ("normals_base", "sensor_origin_base", "frame_index", "confidence"):
-            if len(getattr(self, name)) != n:
-                raise ValueError(f"SweepCloud.{name} must have {n} rows like points_base, "
-                                 f"got {len(getattr(self, name))}")
-        self.sweep = int(self.sweep)
-
-    def __len__(self) -> int:
-        return len(self.points_base)
-
-
 def _unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.linalg.norm(v, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -790,6 +776,81 @@ def _knn_normals(P: np.ndarray, k: int) -> np.ndarray:
     return evecs[:, :, 0]
 
 
+def _check_sweep_inputs(F: int, T_base_camera: np.ndarray, T_camera_laser: np.ndarray,
+                        frame_indices: np.ndarray | None,
+                        workspace: tuple[np.ndarray, np.ndarray] | None,
+                        options: TriangulateOptions):
+    """The sweep's poses (F, 4, 4) each, frame indices (F,) and workspace box (or None),
+    checked against its ``F`` frames."""
+    tb = _check_transform(T_base_camera, "T_base_camera", batch=True)
+    if tb.ndim == 2:
+        tb = tb[None]
+    if tb.shape[0] != F:
+        raise ValueError(f"T_base_camera must be (F, 4, 4) with F={F} frames, got "
+                         f"{tb.shape}")
+    tl = _check_transform(T_camera_laser, "T_camera_laser", batch=True)
+    if tl.ndim == 2:
+        tl = np.broadcast_to(tl, (F, 4, 4))
+    if tl.shape[0] != F:
+        raise ValueError(f"T_camera_laser must be (4, 4) or (F, 4, 4) with F={F}, got "
+                         f"{tl.shape}")
+    if frame_indices is None:
+        fidx = np.arange(F, dtype=np.int64)
+    else:
+        fidx = np.asarray(frame_indices, dtype=np.int64).reshape(-1)
+        if fidx.size != F:
+            raise ValueError(f"frame_indices must have F={F} entries, got {fidx.size}")
+    _check_ranges(options.min_angle_deg, options.min_range_m, options.max_range_m)
+    box = None
+    if workspace is not None:
+        box_min = np.asarray(workspace[0], dtype=np.float64).reshape(-1)
+        box_max = np.asarray(workspace[1], dtype=np.float64).reshape(-1)
+        if box_min.shape != (3,) or box_max.shape != (3,) or np.any(box_min >= box_max):
+            raise ValueError(f"workspace must be (box_min (3,), box_max (3,)) with "
+                             f"box_min < box_max, got {box_min} and {box_max}")
+        box = (box_min, box_max)
+    return tb, tl, fidx, box
+
+
+def _sweep_pixels(stripes: Sequence[StripePoints]):
+    """The stripe centres of a sweep's frames, concatenated: counts per frame (F,),
+    frame position (N,), pixels (N, 2), image line (N,), confidence (N,), and each
+    frame's search axis (F,: 0 columns, 1 rows)."""
+    counts = np.array([len(s) for s in stripes], dtype=np.int64)
+    frame_pos = np.repeat(np.arange(len(stripes)), counts)
+    any_pixel = bool(counts.sum())
+    uv = np.concatenate([s.pixels_uv for s in stripes]) if any_pixel else np.zeros((0, 2))
+    line = (np.concatenate([s.line for s in stripes]) if any_pixel
+            else np.zeros(0, np.int64))
+    conf = np.concatenate([s.confidence for s in stripes]) if any_pixel else np.zeros(0)
+    frame_axis = np.array([0 if s.axis == "columns" else 1 for s in stripes])
+    return counts, frame_pos, uv, line, conf, frame_axis
+
+
+def _sweep_normals(P: np.ndarray, O: np.ndarray, fpos: np.ndarray, line: np.ndarray,
+                   frame_axis: np.ndarray, options: TriangulateOptions
+                   ) -> tuple[np.ndarray, dict[str, int]]:
+    """Unit normals of a sweep's points, oriented toward their camera centres ``O``:
+    from the profile grid where it has both tangents, else PCA of the ``normal_knn``
+    nearest points, else facing the camera; and how many came from each."""
+    normals = _grid_normals(P, O, fpos, line, frame_axis, max(1, int(options.normal_span)),
+                            max(0, int(options.normal_smooth)), float(options.normal_jump))
+    need = ~np.all(np.isfinite(normals), axis=1)
+    n_grid = int((~need).sum())
+    n_knn = 0
+    if need.any() and len(P) >= 3:
+        knn = _knn_normals(P, options.normal_knn)
+        normals[need] = knn[need]
+        n_knn = int(need.sum())
+        need[:] = False
+    if need.any():  # fewer than 3 points: face the camera
+        normals[need] = _unit(O[need] - P[need])[0]
+    n_view = int(len(P) - n_grid - n_knn)
+    flip = np.einsum("ni,ni->n", normals, O - P) < 0
+    normals[flip] *= -1.0
+    return _unit(normals)[0], {"from_grid": n_grid, "from_knn": n_knn, "from_view": n_view}
+
+
 def triangulate_sweep(
     stripes: Sequence[StripePoints],
     camera: CameraModel,
@@ -799,13 +860,7 @@ def triangulate_sweep(
     workspace: tuple[np.ndarray, np.ndarray] | None = None,
     frame_indices: np.ndarray | None = None,
     sweep: int = 0,
-    min_angle_deg: float = 2.0,
-    min_range: float = 0.0,
-    max_range: float = np.inf,
-    normal_span: int = 2,
-    normal_smooth: int = 2,
-    normal_jump: float = 5.0,
-    normal_knn: int = 12,
+    options: TriangulateOptions = TriangulateOptions(),
 ) -> SweepCloud:
     """Triangulate the stripe profiles of one sweep into a cloud in ``base``.
 
@@ -825,19 +880,8 @@ def triangulate_sweep(
         Index of each frame in the recording (default ``0 .. F-1``), kept per point.
     sweep : int
         The sweep's index, stored in the cloud.
-    min_angle_deg, min_range, max_range
-        As in :func:`triangulate_pixels`.
-    normal_span : int
-        Lines between the neighbours of the along-profile tangent (central difference
-        over ``±normal_span`` lines, falling back to ``±1``).
-    normal_smooth : int
-        The grid normals are averaged over ``(2 normal_smooth + 1)^2`` neighbouring
-        grid cells (frames x lines), 0 for none.
-    normal_jump : float
-        A neighbour further than ``normal_jump`` times the sweep's median spacing is a
-        depth jump, not a neighbour.
-    normal_knn : int
-        Neighbours of the PCA fallback normal.
+    options : TriangulateOptions
+        The ``triangulation`` section's parameters (:class:`TriangulateOptions`).
 
     Returns
     -------
@@ -853,52 +897,21 @@ def triangulate_sweep(
     F = len(stripes)
     if F == 0:
         raise StageError(f"sweep {sweep}: no laser frame to triangulate")
-    tb = _check_transform(T_base_camera, "T_base_camera", batch=True)
-    if tb.ndim == 2:
-        tb = tb[None]
-    if tb.shape[0] != F:
-        raise ValueError(f"T_base_camera must be (F, 4, 4) with F={F} frames, got "
-                         f"{tb.shape}")
-    tl = _check_transform(T_camera_laser, "T_camera_laser", batch=True)
-    if tl.ndim == 2:
-        tl = np.broadcast_to(tl, (F, 4, 4))
-    if tl.shape[0] != F:
-        raise ValueError(f"T_camera_laser must be (4, 4) or (F, 4, 4) with F={F}, got "
-                         f"{tl.shape}")
-    if frame_indices is None:
-        fidx = np.arange(F, dtype=np.int64)
-    else:
-        fidx = np.asarray(frame_indices, dtype=np.int64).reshape(-1)
-        if fidx.size != F:
-            raise ValueError(f"frame_indices must have F={F} entries, got {fidx.size}")
-    _check_ranges(min_angle_deg, min_range, max_range)
-    if workspace is not None:
-        box_min = np.asarray(workspace[0], dtype=np.float64).reshape(-1)
-        box_max = np.asarray(workspace[1], dtype=np.float64).reshape(-1)
-        if box_min.shape != (3,) or box_max.shape != (3,) or np.any(box_min >= box_max):
-            raise ValueError(f"workspace must be (box_min (3,), box_max (3,)) with "
-                             f"box_min < box_max, got {box_min} and {box_max}")
-
-    counts = np.array([len(s) for s in stripes], dtype=np.int64)
-    frame_pos = np.repeat(np.arange(F), counts)
-    uv = (np.concatenate([s.pixels_uv for s in stripes]) if counts.sum()
-          else np.zeros((0, 2)))
-    line = (np.concatenate([s.line for s in stripes]) if counts.sum()
-            else np.zeros(0, np.int64))
-    conf = (np.concatenate([s.confidence for s in stripes]) if counts.sum()
-            else np.zeros(0))
-    frame_axis = np.array([0 if s.axis == "columns" else 1 for s in stripes])
+    tb, tl, fidx, box = _check_sweep_inputs(F, T_base_camera, T_camera_laser, frame_indices,
+                                            workspace, options)
+    counts, frame_pos, uv, line, conf, frame_axis = _sweep_pixels(stripes)
 
     # all frames at once: per-point plane and pose
     n_f, d_f = _planes(tl)
     pts_cam, keep, dropped, sin_a = _intersect(uv, camera, frame_pos, n_f, d_f,
-                                               min_angle_deg, min_range, max_range)
+                                               options.min_angle_deg, options.min_range_m,
+                                               options.max_range_m)
     R = tb[frame_pos, :3, :3]
     origin = tb[frame_pos, :3, 3]
     pts_base = np.einsum("nij,nj->ni", R, np.nan_to_num(pts_cam)) + origin
     outside = np.zeros_like(keep)
-    if workspace is not None:
-        inside = np.all((pts_base >= box_min) & (pts_base <= box_max), axis=1)
+    if box is not None:
+        inside = np.all((pts_base >= box[0]) & (pts_base <= box[1]), axis=1)
         outside = keep & ~inside
         keep = keep & inside
     dropped["outside_workspace"] = int(outside.sum())
@@ -924,25 +937,8 @@ def triangulate_sweep(
     P = pts_base[keep]
     O = origin[keep]
     fpos = frame_pos[keep]
-    normals = _grid_normals(P, O, fpos, line[keep], frame_axis, max(1, int(normal_span)),
-                            max(0, int(normal_smooth)), float(normal_jump))
-    need = ~np.all(np.isfinite(normals), axis=1)
-    n_grid = int((~need).sum())
-    n_knn = 0
-    if need.any() and len(P) >= 3:
-        knn = _knn_normals(P, normal_knn)
-        normals[need] = knn[need]
-        n_knn = int(need.sum())
-        need[:] = False
-    if need.any():  # fewer than 3 points: face the camera
-        normals[need] = _unit(O[need] - P[need])[0]
-    n_view = int(len(P) - n_grid - n_knn)
-    flip = np.einsum("ni,ni->n", normals, O - P) < 0
-    normals[flip] *= -1.0
-    normals = _unit(normals)[0]
-
+    normals, report["normals"] = _sweep_normals(P, O, fpos, line[keep], frame_axis, options)
     geo = np.clip(sin_a[keep] / np.sin(np.radians(_CONF_REF_ANGLE_DEG)), 0.0, 1.0)
-    report["normals"] = {"from_grid": n_grid, "from_knn": n_knn, "from_view": n_view}
     from .viz import format_counts
 
     log.info("sweep %d: %d points from %d frames (dropped: %s)", sweep, len(P), F,
@@ -956,84 +952,3 @@ def triangulate_sweep(
         sensor_origin_base=O,
         report=report,
     )
-
-
-# ---------------------------------------------------------------------------- I/O
-def save_clouds_npz(path: str | os.PathLike, clouds: Sequence[SweepCloud], *,
-                    corrections: np.ndarray | None = None) -> None:
-    """Write sweep clouds to one NPZ file, atomically.
-
-    The clouds are concatenated (``cloud`` gives each point's cloud); the reports are
-    stored as JSON text, so that the file loads without pickle.
-
-    Parameters
-    ----------
-    path : str or path-like
-        Target file; written to a temporary file in the same directory, then renamed.
-    clouds : sequence of SweepCloud
-    corrections : (K, 4, 4) float64, optional
-        One rigid correction per cloud (the alignment's), stored as ``corrections``.
-    """
-    path = Path(path)
-    clouds = list(clouds)
-    n = [len(c) for c in clouds]
-
-    def _cat(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
-        if not clouds:
-            return np.zeros(shape, dtype=dtype)
-        return np.concatenate([getattr(c, name) for c in clouds]).astype(dtype)
-
-    arrays = {
-        "format": np.array(_NPZ_FORMAT),
-        "frame": np.array("base"),
-        "points_base": _cat("points_base", (0, 3), np.float64),
-        "normals_base": _cat("normals_base", (0, 3), np.float64),
-        "frame_index": _cat("frame_index", (0,), np.int64),
-        "confidence": _cat("confidence", (0,), np.float64),
-        "sensor_origin_base": _cat("sensor_origin_base", (0, 3), np.float64),
-        "cloud": np.repeat(np.arange(len(clouds), dtype=np.int64), n),
-        "sweeps": np.array([c.sweep for c in clouds], dtype=np.int64),
-        "reports_json": np.array(json.dumps([c.report for c in clouds])),
-    }
-    if corrections is not None:
-        corr = np.asarray(corrections, dtype=np.float64)
-        if corr.shape != (len(clouds), 4, 4):
-            raise ValueError(f"corrections must be (K, 4, 4) with K={len(clouds)} clouds, "
-                             f"got shape {corr.shape}")
-        arrays["corrections"] = corr
-    save_npz(path, **arrays)
-
-
-def load_clouds_npz(path: str | os.PathLike) -> list[SweepCloud]:
-    """Read the sweep clouds written by :func:`save_clouds_npz`.
-
-    Parameters
-    ----------
-    path : str or path-like
-
-    Returns
-    -------
-    list of SweepCloud
-        In the order they were saved.
-    """
-    path = Path(path)
-    with np.load(path, allow_pickle=False) as z:
-        fmt = str(z["format"]) if "format" in z.files else ""
-        if fmt != _NPZ_FORMAT:
-            raise ValueError(f"{path}: not a robo3d sweep-cloud file (format {fmt!r}, "
-                             f"expected {_NPZ_FORMAT!r})")
-        data = {k: z[k] for k in z.files}
-    reports = json.loads(str(data["reports_json"]))
-    out = []
-    for i, sweep in enumerate(data["sweeps"]):
-        sel = data["cloud"] == i
-        out.append(SweepCloud(
-            points_base=data["points_base"][sel],
-            normals_base=data["normals_base"][sel],
-            frame_index=data["frame_index"][sel],
-            confidence=data["confidence"][sel],
-            sweep=int(sweep),
-            sensor_origin_base=data["sensor_origin_base"][sel],
-            report=reports[i],
-        ))
-    return out

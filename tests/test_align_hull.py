@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from robo3d.artefacts import SweepCloud
 from robo3d.camera import CameraModel, pixel_rays
 from robo3d.config import default_config
 from robo3d.registration import SilhouetteViews
 from robo3d.sim.rig import look_at
 from robo3d.stages.align import _reject_outside_hull
-from robo3d.triangulation import SweepCloud
 
 CENTRE, RADIUS, F = np.array([0.0, 0.0, 0.1]), 0.04, 300.0
 

@@ -326,8 +326,8 @@ def _stages(rec_path: Path, cfg: dict, out: Path) -> dict[str, Any]:
                             {"npz": str(out / "clouds.npz"), "ply": str(out / "clouds.ply"),
                              "rrd": str(out / "t.rrd"), "report": str(out / "tri.json")},
                             cfg, "x")
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.carving import VoxelGrid
-    from robo3d.triangulation import load_clouds_npz
 
     clouds = load_clouds_npz(str(out / "clouds.npz"))
     return {"carve": carve, "tri": tri,

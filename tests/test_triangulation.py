@@ -11,18 +11,17 @@ import os
 import numpy as np
 import pytest
 
+from robo3d.artefacts import SweepCloud, load_clouds_npz, save_clouds_npz
 from robo3d.camera import CameraModel
 from robo3d.errors import StageError
 from robo3d.stripes import StripePoints
 from robo3d.transforms import make_transform, rotation_angle_deg, transform_points
 from robo3d.triangulation import (
     DROP_REASONS,
-    SweepCloud,
+    TriangulateOptions,
     laser_params_from_transform,
     laser_plane_in_camera,
     laser_transform_from_params,
-    load_clouds_npz,
-    save_clouds_npz,
     split_sweeps,
     triangulate_pixels,
     triangulate_pixels_eq17,
@@ -246,7 +245,7 @@ def test_sweep_with_a_laser_pose_per_frame():
     # T_camera_laser given per frame (F, 4, 4), tangents over +-1 line
     stripes, poses, T_cl, n_true = _plane_sweep(n_frames=6)
     cloud = triangulate_sweep(stripes, CAM, poses, np.broadcast_to(T_cl, (6, 4, 4)),
-                              normal_span=1)
+                              options=TriangulateOptions(normal_span=1))
     assert np.degrees(np.arccos(np.clip(cloud.normals_base @ n_true, -1, 1))).max() < 1.0
 
 
@@ -271,7 +270,7 @@ def test_sweep_normals_under_stripe_noise():
     noisy = [StripePoints(u=sp.u, v=sp.v + rng.normal(0.0, 0.03, len(sp))) for sp in stripes]
 
     def err(**kw):
-        c = triangulate_sweep(noisy, CAM, poses, T_cl, **kw)
+        c = triangulate_sweep(noisy, CAM, poses, T_cl, options=TriangulateOptions(**kw))
         return np.degrees(np.arccos(np.clip(c.normals_base @ n_true, -1, 1)))
 
     smooth, raw = err(), err(normal_smooth=0)

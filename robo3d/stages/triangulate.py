@@ -47,11 +47,12 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
     """Triangulate the stripe pixels against the laser sheet (seed §4.1), one cloud per
     sweep, in ``base``."""
+    from ..artefacts import save_clouds_npz
     from ..meshio import write_point_cloud
     from ..triangulation import (
         DROP_REASONS,
+        TriangulateOptions,
         laser_transform_from_params,
-        save_clouds_npz,
         split_sweeps,
         triangulate_sweep,
     )
@@ -72,6 +73,7 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     else:
         T_camera_laser = s["T_camera_laser"]
         laser_source = "recording transforms (camera -> laser)"
+    opts = TriangulateOptions.from_config(tc)
     sweep_of = split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)))
     clouds, per_sweep = [], []
     for k in np.unique(sweep_of):
@@ -81,12 +83,7 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         try:
             cloud = triangulate_sweep(stripes, cam, s["T_base_camera"][idx],
                                       T_camera_laser[idx], workspace=ws,
-                                      frame_indices=idx, sweep=int(k),
-                                      min_angle_deg=tc["min_angle_deg"],
-                                      min_range=tc["min_range_m"], max_range=tc["max_range_m"],
-                                      normal_span=tc["normal_span"],
-                                      normal_smooth=tc["normal_smooth"],
-                                      normal_jump=tc["normal_jump"], normal_knn=tc["normal_knn"])
+                                      frame_indices=idx, sweep=int(k), options=opts)
         except StageError as exc:
             log.warning("sweep %d (frames %d..%d) skipped: %s", k, idx[0], idx[-1], exc)
             per_sweep.append({"sweep": int(k), "frames": len(idx), "points": 0,

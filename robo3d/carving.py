@@ -66,6 +66,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -75,6 +76,7 @@ from .checks import check_choice, check_min_views, check_views
 from .errors import StageError
 from .grid import VoxelGrid, make_grid, shell_voxels
 from .octree import carve_octree
+from .options import Options
 from .transforms import invert_transform
 
 __all__ = [
@@ -83,6 +85,8 @@ __all__ = [
     "box_from_silhouettes",
     "carve_dense",
     "carve_visual_hull",
+    "CarveOptions",
+    "AgreementOptions",
     "CARVING_METHODS",
     "hull_to_mesh",
     "view_agreement",
@@ -413,38 +417,85 @@ def carve_dense(
     return out, report
 
 
+@dataclass(frozen=True)
+class CarveOptions(Options):
+    """How the visual hull is carved: the config's ``carving`` keys that
+    :func:`carve_visual_hull` uses, under the same names (``CarveOptions.from_config(
+    cfg["carving"])``). The section's other keys are the stage's: the grid
+    (``resolution``), the box (``box_margin``), the mesh (``smooth_sigma_vox``) and the
+    agreement check (:class:`AgreementOptions`).
+
+    Attributes
+    ----------
+    method : {"octree", "dense"}
+        Szeliski's octree (:func:`robo3d.octree.carve_octree`, seed §3.1.1) or the dense
+        voxel-by-voxel test (:func:`carve_dense`, seed §3.1.2). With
+        ``leaf_rule="centre"`` both give the same occupancy; the octree is far faster.
+    leaf_rule : {"centre", "conservative"}
+        Octree only (see :func:`robo3d.octree.carve_octree`); the dense method accepts
+        only ``"centre"``, the rule it implements.
+    threads : int
+        Octree only: threads of the compiled kernel (0: all cores); the result does not
+        depend on it.
+    outside_image, behind_camera : {"keep", "carve"}
+        What a view does to a voxel outside its image or behind its camera
+        (:func:`carve_dense`), for both methods.
+    min_views_background : int
+        Votes to carve a voxel (k of n; 1 = the visual hull), for both methods.
+    """
+
+    section = "carving"
+
+    method: str = "octree"
+    leaf_rule: str = "centre"
+    threads: int = 1
+    outside_image: str = "keep"
+    behind_camera: str = "carve"
+    min_views_background: int = 1
+
+
+@dataclass(frozen=True)
+class AgreementOptions(Options):
+    """The check of the views against each other before the carve: the config's
+    ``carving.qa_*`` keys, under the same names (``AgreementOptions.from_config(
+    cfg["carving"])``).
+
+    Attributes
+    ----------
+    qa_resolution : int
+        Voxels along the box's longest side of the check's coarse grid (0: no check).
+    qa_max_missing, qa_max_spurious : float
+        Flag thresholds of :func:`flag_disagreeing_views`.
+    qa_min_observers : float
+        ``min_observers`` of :func:`view_agreement`.
+    qa_leave_out : bool
+        Whether the flagged views are left out of the carve (the stage's choice).
+    """
+
+    section = "carving"
+
+    qa_resolution: int = 64
+    qa_max_missing: float = 0.1
+    qa_max_spurious: float = 0.1
+    qa_min_observers: float = 0.3
+    qa_leave_out: bool = True
+
+
 def carve_visual_hull(
     grid: VoxelGrid,
     masks: Sequence[np.ndarray],
     cameras: CameraModel | Sequence[CameraModel],
     T_base_cameras: np.ndarray,
-    *,
-    method: str = "octree",
-    outside_image: str = "keep",
-    behind_camera: str = "carve",
-    leaf_rule: str = "centre",
-    threads: int = 1,
-    min_views_background: int = 1,
+    options: CarveOptions = CarveOptions(),
 ) -> tuple[VoxelGrid, dict]:
-    """Carve the visual hull with the method the configuration selects.
+    """Carve the visual hull with the method the options select.
 
     Parameters
     ----------
     grid, masks, cameras, T_base_cameras
         As :func:`carve_dense`.
-    method : {"octree", "dense"}
-        Szeliski's octree (:func:`robo3d.octree.carve_octree`, seed §3.1.1) or the dense
-        voxel-by-voxel test (:func:`carve_dense`, seed §3.1.2). With
-        ``leaf_rule="centre"`` both give the same occupancy; the octree is far faster.
-    outside_image, behind_camera : {"keep", "carve"}
-        As :func:`carve_dense`, for both methods.
-    leaf_rule : {"centre", "conservative"}
-        Octree only (see :func:`robo3d.octree.carve_octree`); the dense method accepts
-        only ``"centre"``, the rule it implements.
-    threads : int
-        Octree only: threads of the compiled kernel (0: all cores).
-    min_views_background : int
-        Votes to carve a voxel (k of n; 1 = the visual hull), for both methods.
+    options : CarveOptions
+        The method and its policies.
 
     Returns
     -------
@@ -456,19 +507,19 @@ def carve_visual_hull(
     ----------
     R. Szeliski, CVGIP: Image Understanding 58(1), 1993.
     """
-    if method not in CARVING_METHODS:
-        raise ValueError(f"method must be one of {CARVING_METHODS}, got {method!r}")
-    if method == "dense":
-        if leaf_rule != "centre":
+    o = options
+    check_choice("method", o.method, CARVING_METHODS)
+    if o.method == "dense":
+        if o.leaf_rule != "centre":
             raise ValueError(f"the dense method tests voxel centres only (leaf_rule "
-                             f"'centre'), got leaf_rule={leaf_rule!r}")
+                             f"'centre'), got leaf_rule={o.leaf_rule!r}")
         out, report = carve_dense(grid, masks, cameras, T_base_cameras,
-                                  outside_image=outside_image, behind_camera=behind_camera,
-                                  min_views_background=min_views_background)
+                                  outside_image=o.outside_image, behind_camera=o.behind_camera,
+                                  min_views_background=o.min_views_background)
         return out, {"method": "dense", **report}
-    return carve_octree(grid, masks, cameras, T_base_cameras, outside_image=outside_image,
-                        behind_camera=behind_camera, leaf_rule=leaf_rule, threads=threads,
-                        min_views_background=min_views_background)
+    return carve_octree(grid, masks, cameras, T_base_cameras, outside_image=o.outside_image,
+                        behind_camera=o.behind_camera, leaf_rule=o.leaf_rule, threads=o.threads,
+                        min_views_background=o.min_views_background)
 
 
 # ---------------------------------------------------------------------- view agreement
@@ -529,11 +580,8 @@ def view_agreement(
     T_base_cameras: np.ndarray,
     *,
     reference: Sequence[int] | None = None,
-    outside_image: str = "keep",
-    behind_camera: str = "carve",
-    min_views_background: int = 1,
+    carve: CarveOptions = CarveOptions(),
     min_observers: float = 0.3,
-    method: str = "octree",
 ) -> list[dict]:
     """How well each view's silhouette agrees with the hull of the other views.
 
@@ -560,8 +608,9 @@ def view_agreement(
     reference : sequence of int, optional
         Views that make the reference hulls (default: all). A view outside it is scored
         against the hull of all the reference views.
-    outside_image, behind_camera, min_views_background
-        The carve's policies and ``k``.
+    carve : CarveOptions
+        The carve's method, policies and ``k`` (the carver of the candidate voxels,
+        those with at most ``k`` votes).
     min_observers : float
         Fraction of the other reference views (at least 2 views) that must see a voxel
         in their image for it to count as hull rather than unknown. Where few views see
@@ -570,8 +619,6 @@ def view_agreement(
         against it would call a correct mask "missing". 0.3 was measured on DTU scan 24
         with its published masks (64^3 grid): the worst view then misses 6 % of the
         others' hull, 15 % with 0.15, 27 % when any 2 views suffice.
-    method : {"octree", "dense"}
-        Carver of the candidate voxels (those with at most ``k`` votes).
 
     Returns
     -------
@@ -592,9 +639,9 @@ def view_agreement(
     each leave-one-out hull is then the candidates whose vote count without view ``i``
     stays below ``k``, so the cost is one carve plus one projection per view.
     """
-    check_choice("outside_image", outside_image)
-    check_choice("behind_camera", behind_camera)
-    k = check_min_views(min_views_background)
+    outside_image = check_choice("outside_image", carve.outside_image)
+    behind_camera = check_choice("behind_camera", carve.behind_camera)
+    k = check_min_views(carve.min_views_background)
     ms, cams, T = check_views(masks, cameras, T_base_cameras)
     n = T.shape[0]
     ref = np.zeros(n, dtype=bool)
@@ -603,8 +650,10 @@ def view_agreement(
         raise StageError("the agreement check needs at least one reference view")
     ref_idx = np.flatnonzero(ref)
     cand, _ = carve_visual_hull(grid, [ms[r] for r in ref_idx], [cams[r] for r in ref_idx],
-                                T[ref_idx], method=method, outside_image=outside_image,
-                                behind_camera=behind_camera, min_views_background=k + 1)
+                                T[ref_idx], CarveOptions(method=carve.method,
+                                                         outside_image=outside_image,
+                                                         behind_camera=behind_camera,
+                                                         min_views_background=k + 1))
     ijk = np.argwhere(cand.occupancy)
     T_cb = invert_transform(T)
     limits = [distortion_limit_r2(c) for c in cams]
@@ -683,25 +732,20 @@ def flag_disagreeing_views(
     cameras: CameraModel | Sequence[CameraModel],
     T_base_cameras: np.ndarray,
     *,
-    max_missing: float = 0.1,
-    max_spurious: float = 0.1,
+    options: AgreementOptions = AgreementOptions(),
+    carve: CarveOptions = CarveOptions(),
     exclude: Sequence[int] = (),
-    outside_image: str = "keep",
-    behind_camera: str = "carve",
-    min_views_background: int = 1,
-    min_observers: float = 0.3,
-    method: str = "octree",
     max_passes: int = 6,
 ) -> dict:
     """Flag the views whose silhouettes disagree with the other views' hull.
 
     Every pass scores the views against the hull of the views not flagged so far
-    (:func:`view_agreement`). First, masks that miss more than ``max_missing`` of the
+    (:func:`view_agreement`). First, masks that miss more than ``qa_max_missing`` of the
     others' hull are flagged: they would carve true object away (inverted, shifted, a
     part lost). Such a mask also shrinks the reference of every other view, so a pass
     flags only the clearly worst of them (a missing fraction at least half the
     largest), and the next pass scores again without them. When no more are found,
-    masks with more than ``max_spurious`` of their foreground outside the others' hull
+    masks with more than ``qa_max_spurious`` of their foreground outside the others' hull
     (a blob, a shadow, the table) are flagged too, until a pass finds nothing new. The
     order matters: a spurious mask harms no other view's score (the others carve its
     excess away), a mask that loses a part makes its neighbours' masks look spurious
@@ -715,13 +759,15 @@ def flag_disagreeing_views(
     ----------
     grid, masks, cameras, T_base_cameras
         As :func:`view_agreement`.
-    max_missing, max_spurious : float
-        Flag thresholds on ``missing_fraction`` and ``spurious_fraction``.
+    options : AgreementOptions
+        The flag thresholds ``qa_max_missing``, ``qa_max_spurious`` (on
+        ``missing_fraction`` and ``spurious_fraction``) and ``qa_min_observers``
+        (``min_observers`` of :func:`view_agreement`).
+    carve : CarveOptions
+        As :func:`view_agreement`.
     exclude : sequence of int
         Views already suspect (e.g. flagged by the segmentation's own checks): never in
         the reference, scored and flagged like the others when they disagree.
-    outside_image, behind_camera, min_views_background, min_observers, method
-        As :func:`view_agreement`.
     max_passes : int
         Scoring passes at most.
 
@@ -734,7 +780,8 @@ def flag_disagreeing_views(
         views disagreed than may be flagged); ``time_s``.
     """
     t0 = time.perf_counter()
-    for name, val in (("max_missing", max_missing), ("max_spurious", max_spurious)):
+    max_missing, max_spurious = options.qa_max_missing, options.qa_max_spurious
+    for name, val in (("qa_max_missing", max_missing), ("qa_max_spurious", max_spurious)):
         if not 0.0 <= val <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {val}")
     n = len(masks)
@@ -754,10 +801,8 @@ def flag_disagreeing_views(
             if passes >= max(1, int(max_passes)):
                 break
             scores = view_agreement(grid, masks, cameras, T_base_cameras,
-                                    reference=reference, outside_image=outside_image,
-                                    behind_camera=behind_camera,
-                                    min_views_background=min_views_background,
-                                    min_observers=min_observers, method=method)
+                                    reference=reference, carve=carve,
+                                    min_observers=options.qa_min_observers)
             reference_done = reference
             passes += 1
         new: dict[int, tuple[float, list[str]]] = {}

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from robo3d.camera import CameraModel, pixel_rays
-from robo3d.carving import carve_dense, carve_visual_hull
+from robo3d.carving import CarveOptions, carve_dense, carve_visual_hull
 from robo3d.errors import StageError
 from robo3d.grid import VoxelGrid, make_grid
 from robo3d.octree import (
@@ -278,14 +278,15 @@ def test_white_and_black_boxes_hold_no_contrary_point():
 def test_carve_visual_hull_selects_the_method(sphere):
     cam, Ts, masks = sphere
     grid = make_grid(CENTRE - 0.06, CENTRE + 0.06, resolution=24)
-    a, ra = carve_visual_hull(grid, masks, cam, Ts, method="octree")
-    b, rb = carve_visual_hull(grid, masks, cam, Ts, method="dense")
+    a, ra = carve_visual_hull(grid, masks, cam, Ts, CarveOptions(method="octree"))
+    b, rb = carve_visual_hull(grid, masks, cam, Ts, CarveOptions(method="dense"))
     assert ra["method"] == "octree" and rb["method"] == "dense"
     assert np.array_equal(a.occupancy, b.occupancy)
     with pytest.raises(ValueError, match="method must be one of"):
-        carve_visual_hull(grid, masks, cam, Ts, method="fast")
+        carve_visual_hull(grid, masks, cam, Ts, CarveOptions(method="fast"))
     with pytest.raises(ValueError, match="dense method tests voxel centres only"):
-        carve_visual_hull(grid, masks, cam, Ts, method="dense", leaf_rule="conservative")
+        carve_visual_hull(grid, masks, cam, Ts, CarveOptions(method="dense",
+                                                             leaf_rule="conservative"))
 
 
 def test_octree_input_errors(sphere):

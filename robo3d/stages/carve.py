@@ -29,22 +29,16 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     flagged (``qa_flagged`` in ``silhouettes.npz``) do not define the other views'
     reference; they are left out only when they disagree too. The carving method
     (``carving.method``: Szeliski's octree or dense), its policies and ``k`` of n
-    (``carving.min_views_background``) come from the config; ``hull.npz`` holds the
-    occupancy with its origin, voxel size, frame and how it was carved, ``hull.ply``
-    the smoothed watertight marching-cubes mesh, the report the box, the agreement
-    scores, the resolution check (eq. 7–8), the volume and the hull's bounding box
-    (``bbox_min``, ``bbox_max``: the outer faces of the occupied voxels, metres).
+    (``carving.min_views_background``) come from the config
+    (:class:`~robo3d.carving.CarveOptions`); ``hull.npz`` holds the occupancy with its
+    origin, voxel size, frame and how it was carved, ``hull.ply`` the smoothed
+    watertight marching-cubes mesh, the report the box, the agreement scores, the
+    resolution check (eq. 7–8), the volume and the hull's bounding box (``bbox_min``,
+    ``bbox_max``: the outer faces of the occupied voxels, metres).
     """
-    from ..carving import (
-        box_from_silhouettes,
-        carve_visual_hull,
-        hull_to_mesh,
-        make_grid,
-        resolution_report,
-    )
+    from ..carving import CarveOptions, carve_visual_hull, hull_to_mesh, make_grid
     from ..errors import ConfigError
     from ..meshio import write_mesh
-    from ..viz import log_box, log_camera, log_mesh, log_report, log_voxels, rerun_log
 
     t0 = time.perf_counter()
     sil = load_silhouettes(inputs["silhouettes"])
@@ -52,77 +46,116 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cameras)]
     poses = sil["T_base_camera"]
     cc = cfg["carving"]
-    if cc["method"] == "dense" and cc["leaf_rule"] != "centre":
-        raise ConfigError(f"config key carving.leaf_rule: {cc['leaf_rule']!r} needs "
+    opts = CarveOptions.from_config(cc)
+    if opts.method == "dense" and opts.leaf_rule != "centre":
+        raise ConfigError(f"config key carving.leaf_rule: {opts.leaf_rule!r} needs "
                           "carving.method octree (the dense method tests voxel centres)")
     ws = workspace_from(sil)
-    if ws is not None:
-        box_min, box_max = ws
-        box_report = {"source": "workspace box of the recording"}
-    else:
-        box_min, box_max, box_report = box_from_silhouettes(None, masks, cameras, poses,
-                                                            margin=cc["box_margin"])
-        box_report = {"source": "silhouette centroid rays (seed §3.4)", **box_report}
-    box_report["size_m"] = (np.asarray(box_max) - np.asarray(box_min)).tolist()
-    log.info("carving box (%s): min %s, max %s, size %s mm", box_report["source"],
-             np.round(box_min, 4).tolist(), np.round(box_max, 4).tolist(),
-             np.round(np.asarray(box_report["size_m"]) * 1e3, 1).tolist())
+    box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc)
     agreement = _view_agreement_check(inputs["silhouettes"], sil, masks, cameras, poses,
                                       box_min, box_max, cc)
     n_views = len(cameras)
     left_out = agreement["views_left_out"] if cc["qa_leave_out"] else []
     used = [i for i in range(n_views) if i not in set(left_out)]
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
-        box_min, box_max, box_report = box_from_silhouettes(
-            None, [masks[i] for i in used], [cameras[i] for i in used], poses[used],
-            margin=cc["box_margin"])
-        box_report = {"source": "silhouette centroid rays (seed §3.4) of the views used",
-                      **box_report, "size_m": (box_max - box_min).tolist()}
+        box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
     grid, carve_report = carve_visual_hull(grid, [masks[i] for i in used],
-                                           [cameras[i] for i in used], poses[used],
-                                           method=cc["method"],
-                                           outside_image=cc["outside_image"],
-                                           behind_camera=cc["behind_camera"],
-                                           leaf_rule=cc["leaf_rule"], threads=cc["threads"],
-                                           min_views_background=cc["min_views_background"])
+                                           [cameras[i] for i in used], poses[used], opts)
     for v in carve_report["views"]:  # the recording's view numbers, not the subset's
         v["view"] = used[v["view"]]
-    n_occ = grid.n_occupied
-    if n_occ == 0:
+    if grid.n_occupied == 0:
         raise StageError(f"{inputs['silhouettes']}: carving removed every voxel: the "
                          "silhouettes do not agree with the cameras' poses (check the "
                          "calibration, the transform tree and the masks)")
     vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
-    res = resolution_report(grid, [cameras[i] for i in used], poses[used])
-    if res.get("warning"):
-        log.warning("%s", res["warning"])
     left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
                      for i in left_out]
+    report = _hull_report(grid, vertices, faces, [cameras[i] for i in used], poses[used],
+                          box=(box_min, box_max, box_report), method=opts.method,
+                          n_views=n_views, used=used, left_out_rows=left_out_rows,
+                          agreement=agreement, carve_report=carve_report)
+    report["seconds"] = round(time.perf_counter() - t0, 3)
+    grid.save_npz(outputs["npz"], carving={k: getattr(opts, k) for k in (
+                      "method", "leaf_rule", "outside_image", "behind_camera",
+                      "min_views_background")},
+                  views_used=np.array(used, dtype=np.int64),
+                  views_left_out=left_out_rows)
+    write_mesh(outputs["ply"], vertices, faces)
+    _log_hull(outputs["rrd"], rec_name, grid, vertices, faces, report, box_min, box_max,
+              cameras, poses, masks, used, left_out_rows)
+    write_json(outputs["report"], report)
+    summary.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
+             "views (%.1f s)", opts.method, grid.n_occupied, grid.voxel_size * 1e3,
+             report["volume_m3"] * 1e6, len(faces), len(used), n_views, report["seconds"])
+    return report
+
+
+def _carving_box(workspace: tuple[np.ndarray, np.ndarray] | None, masks: list,
+                 cameras: list, poses: np.ndarray, cc: Mapping[str, Any],
+                 views: list[int] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """The carving box: the recording's workspace box, else the box of the silhouette
+    centroid rays (seed §3.4; of ``views`` only, when given), with its report."""
+    from ..carving import box_from_silhouettes
+
+    if workspace is not None:
+        box_min, box_max = workspace
+        box_report: dict[str, Any] = {"source": "workspace box of the recording"}
+    else:
+        source = "silhouette centroid rays (seed §3.4)"
+        if views is not None:
+            masks, cameras, poses = ([masks[i] for i in views], [cameras[i] for i in views],
+                                     poses[views])
+            source += " of the views used"
+        box_min, box_max, box_report = box_from_silhouettes(None, masks, cameras, poses,
+                                                            margin=cc["box_margin"])
+        box_report = {"source": source, **box_report}
+    box_report["size_m"] = (np.asarray(box_max) - np.asarray(box_min)).tolist()
+    log.info("carving box (%s): min %s, max %s, size %s mm", box_report["source"],
+             np.round(box_min, 4).tolist(), np.round(box_max, 4).tolist(),
+             np.round(np.asarray(box_report["size_m"]) * 1e3, 1).tolist())
+    return box_min, box_max, box_report
+
+
+def _hull_report(grid: Any, vertices: np.ndarray, faces: np.ndarray, cameras: list,
+                 poses: np.ndarray, *, box: tuple, method: str, n_views: int,
+                 used: list[int], left_out_rows: list[dict], agreement: dict[str, Any],
+                 carve_report: dict[str, Any]) -> dict[str, Any]:
+    """The carve stage's report (see :func:`stage_carve`), without ``seconds``; the
+    resolution check (eq. 7–8) is made here, on the cameras of the views used."""
+    from ..carving import resolution_report
+
+    res = resolution_report(grid, cameras, poses)
+    if res.get("warning"):
+        log.warning("%s", res["warning"])
+    box_min, box_max, box_report = box
     occ_ijk = np.argwhere(grid.occupancy)
     half = 0.5 * grid.voxel_size  # outer faces of the occupied voxels
     bbox = (grid.index_to_points(occ_ijk.min(axis=0)) - half,
             grid.index_to_points(occ_ijk.max(axis=0)) + half)
-    report = {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
-                      **box_report},
-              "method": cc["method"], "grid_shape": list(grid.occupancy.shape),
-              "voxel_size_m": grid.voxel_size, "occupied_voxels": n_occ,
-              "volume_m3": grid.volume_m3, "bbox_min": bbox[0].tolist(),
-              "bbox_max": bbox[1].tolist(), "n_views": n_views, "views_used": used,
-              "views_left_out": left_out_rows,
-              "views_flagged": agreement["flagged"],
-              "agreement": agreement, "carving": carve_report, "resolution": res,
-              "mesh": {"vertices": len(vertices), "faces": len(faces),
-                       "volume_m3": mesh_volume(vertices, faces)},
-              "seconds": round(time.perf_counter() - t0, 3)}
-    grid.save_npz(outputs["npz"], carving={k: cc[k] for k in ("method", "leaf_rule",
-                                                              "outside_image",
-                                                              "behind_camera",
-                                                              "min_views_background")},
-                  views_used=np.array(used, dtype=np.int64),
-                  views_left_out=left_out_rows)
-    write_mesh(outputs["ply"], vertices, faces)
-    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+    return {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
+                    **box_report},
+            "method": method, "grid_shape": list(grid.occupancy.shape),
+            "voxel_size_m": grid.voxel_size, "occupied_voxels": grid.n_occupied,
+            "volume_m3": grid.volume_m3, "bbox_min": bbox[0].tolist(),
+            "bbox_max": bbox[1].tolist(), "n_views": n_views, "views_used": used,
+            "views_left_out": left_out_rows,
+            "views_flagged": agreement["flagged"],
+            "agreement": agreement, "carving": carve_report, "resolution": res,
+            "mesh": {"vertices": len(vertices), "faces": len(faces),
+                     "volume_m3": mesh_volume(vertices, faces)}}
+
+
+def _log_hull(rrd: str, rec_name: str, grid: Any, vertices: np.ndarray, faces: np.ndarray,
+              report: dict[str, Any], box_min: np.ndarray, box_max: np.ndarray,
+              cameras: list, poses: np.ndarray, masks: list, used: list[int],
+              left_out_rows: list[dict]) -> None:
+    """The carve to rerun: the box, the cameras used, those left out (with their masks
+    and why), the hull's shell voxels and mesh, the report."""
+    from ..viz import log_box, log_camera, log_mesh, log_report, log_voxels, rerun_log
+
+    with rerun_log(rrd, rec_name) as rr_stream:
         import rerun as rr
 
         log_box(rr_stream, "base/carving_box", box_min, box_max, label="carving box")
@@ -139,11 +172,6 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    grid.voxel_size)
         log_mesh(rr_stream, "base/hull/mesh", vertices, faces, albedo=[120, 160, 220, 160])
         log_report(rr_stream, "reports/carve", report)
-    write_json(outputs["report"], report)
-    summary.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
-             "views (%.1f s)", cc["method"], n_occ, grid.voxel_size * 1e3,
-             report["volume_m3"] * 1e6, len(faces), len(used), n_views, report["seconds"])
-    return report
 
 
 def _segmentation_flags(silhouettes_npz: str, sil: Mapping[str, Any], n_views: int
@@ -181,14 +209,15 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
     """Score every view against the other views' hull and choose the views to leave out
     (see :func:`stage_carve`); with fewer than 4 views, or ``carving.qa_resolution`` 0,
     nothing is scored."""
-    from ..carving import flag_disagreeing_views, make_grid
+    from ..carving import AgreementOptions, CarveOptions, flag_disagreeing_views, make_grid
 
+    qa_opts = AgreementOptions.from_config(cc)
     n = len(cameras)
     seg_flags = _segmentation_flags(silhouettes_npz, sil, n)
     out: dict[str, Any] = {"enabled": False, "segmentation_flagged": sorted(seg_flags),
                            "flagged": [], "views_left_out": [], "reasons": {}, "views": []}
-    if cc["qa_resolution"] == 0 or n < 4:
-        out["why_not"] = ("carving.qa_resolution is 0" if cc["qa_resolution"] == 0 else
+    if qa_opts.qa_resolution == 0 or n < 4:
+        out["why_not"] = ("carving.qa_resolution is 0" if qa_opts.qa_resolution == 0 else
                           f"{n} views: too few for the others to outvote one")
         return out
     exclude = sorted(seg_flags)
@@ -196,16 +225,13 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
         log.warning("the segmentation flagged %d of %d views: too many to leave the "
                     "reference; all views score each other", len(exclude), n)
         exclude = []
-    grid = make_grid(box_min, box_max, resolution=min(cc["qa_resolution"], cc["resolution"]))
-    qa = flag_disagreeing_views(grid, masks, cameras, poses, max_missing=cc["qa_max_missing"],
-                                max_spurious=cc["qa_max_spurious"], exclude=exclude,
-                                outside_image=cc["outside_image"],
-                                behind_camera=cc["behind_camera"],
-                                # the masks are scored against the others' exact hull
-                                # whatever k the carve uses: a k > 1 hull is fatter than
-                                # any correct mask, which would then look "missing"
-                                min_views_background=1,
-                                min_observers=cc["qa_min_observers"], method=cc["method"])
+    grid = make_grid(box_min, box_max, resolution=min(qa_opts.qa_resolution,
+                                                      cc["resolution"]))
+    # the masks are scored against the others' exact hull whatever k the carve uses: a
+    # k > 1 hull is fatter than any correct mask, which would then look "missing"
+    carve = CarveOptions.from_config(cc).replace(min_views_background=1)
+    qa = flag_disagreeing_views(grid, masks, cameras, poses, options=qa_opts, carve=carve,
+                                exclude=exclude)
     reasons = {int(v): list(qa["views"][v]["reasons"]) + seg_flags.get(v, [])
                for v in qa["flagged"]}
     scores = [{k: s[k] for k in ("view", "iou", "missing_fraction", "spurious_fraction",
@@ -214,9 +240,9 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
     ious = [s["iou"] for s in scores if s["iou"] is not None]
     out.update({"enabled": True, "resolution": int(max(grid.shape)),
                 "voxel_size_m": grid.voxel_size, "flagged": qa["flagged"],
-                "views_left_out": qa["flagged"] if cc["qa_leave_out"] else [],
+                "views_left_out": qa["flagged"] if qa_opts.qa_leave_out else [],
                 "reasons": reasons, "passes": qa["passes"], "capped": qa["capped"],
-                "thresholds": qa["thresholds"], "min_observers": cc["qa_min_observers"],
+                "thresholds": qa["thresholds"], "min_observers": qa_opts.qa_min_observers,
                 "iou_min": min(ious) if ious else None,
                 "iou_median": float(np.median(ious)) if ious else None,
                 "views": scores, "seconds": round(qa["time_s"], 3)})

@@ -32,119 +32,22 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     damaged attachment skips only what needs it (``skipped`` says why). The views the
     carve's agreement check left out are listed in ``views_left_out``.
     """
-    import json
-
-    from ..carving import VoxelGrid
-    from ..evaluate import (
-        TRUE_SILHOUETTES,
-        TruthSurface,
-        cloud_accuracy,
-        completeness,
-        mesh_accuracy,
-        volume_iou,
-    )
+    from ..evaluate import TRUE_SILHOUETTES
     from ..meshio import read_mesh
-    from ..triangulation import load_clouds_npz
     from ..viz import log_mesh, log_report, rerun_log
 
     t0 = time.perf_counter()
     rec_path = inputs["recording"]
-    results_dir = Path(outputs["metrics"]).parent
-    metrics: dict[str, Any] = {"recording": str(rec_path), "name": rec_name,
-                               "robo3d": code_version(), "skipped": {}}
-    if not inputs.get("hull"):
-        metrics["skipped"]["hull"] = "the recording has no silhouette views"
-    if not inputs.get("aligned"):
-        metrics["skipped"]["laser"] = ("the recording has no laser frames: no clouds, no "
-                                       "alignment; the mesh is the visual hull's")
-    stages = {}
-    for p in sorted((results_dir / "reports").glob("*.json")):
-        with open(p, encoding="utf-8") as f:
-            stages[p.stem] = json.load(f)
-    metrics["stages"] = stages
-    metrics["timings"] = _stage_timings(rec_name, stages)
-    fuse = stages.get("fuse", {})
-    simp = stages.get("simplify", {})
-    metrics["surface_sources"] = {
-        "laser_area_fraction": fuse.get("laser_area_fraction"),
-        "hull_area_fraction": fuse.get("hull_area_fraction"),
-        # per vertex provenance (the source property of fused.ply and mesh.ply), by area
-        "fused": fuse.get("source_area_fraction"),
-        "mesh": simp.get("source_area_fraction"),
-        "inferred_area_fraction": simp.get("inferred_area_fraction",
-                                           fuse.get("inferred_area_fraction")),
-        "close": cfg["fusion"]["close"]}
-    carve = stages.get("carve", {})
-    if isinstance(carve, dict) and "views_left_out" in carve:
-        metrics["views_left_out"] = carve["views_left_out"]
+    metrics = _stage_metrics(inputs, Path(outputs["metrics"]).parent, cfg, rec_name)
     rec = open_recording(rec_path, cfg, roles=(), require=False)
-    mesh_bytes = rec.attachments.get("ground_truth/mesh.ply")
     has_true_masks = any(k.startswith(TRUE_SILHOUETTES) for k in rec.attachments)
     ev = cfg["evaluation"]
     V_final, F_final = read_mesh(inputs["mesh"])
     vertex_error_mm = None
-    truth = None
+    truth = _truth_surface(rec, rec_path, has_true_masks, metrics)
     ev_out: dict[str, Any] = {}
-    if mesh_bytes is None and not has_true_masks:
-        metrics["skipped"]["evaluation"] = "the recording carries no ground truth"
-    elif mesh_bytes is None:
-        metrics["skipped"]["surface_evaluation"] = ("the recording carries no "
-                                                    "ground_truth/mesh.ply")
-    else:
-        try:
-            Vt, Ft = read_mesh(mesh_bytes)
-            truth = TruthSurface(Vt, Ft)
-        except (Robo3dError, ValueError, RuntimeError, OSError) as exc:
-            metrics["skipped"]["surface_evaluation"] = (f"ground_truth/mesh.ply is damaged: "
-                                                        f"{exc}")
-            log.warning("%s: ground_truth/mesh.ply is damaged (%s): no surface evaluation",
-                        rec_path, exc)
     if truth is not None:
-        region = rec.workspace
-        scored = None
-        if region is not None:
-            scored = (np.asarray(region[0], dtype=np.float64).copy(),
-                      np.asarray(region[1], dtype=np.float64))
-            scored[0][2] += ev["floor_margin_m"]
-        ev_out.update({"region": None if region is None else
-                       [region[0].tolist(), region[1].tolist()],
-                       "accuracy_region": None if scored is None else
-                       [scored[0].tolist(), scored[1].tolist()]})
-        if inputs.get("hull"):
-            g = VoxelGrid.load_npz(inputs["hull"])
-            ev_out["hull_volume_iou"] = volume_iou(g.occupancy, g.origin, g.voxel_size, truth,
-                                                   region=region)
-        if inputs.get("clouds"):
-            raw = load_clouds_npz(inputs["clouds"])
-            ali = load_clouds_npz(inputs["aligned"])
-            ev_out["clouds"] = cloud_accuracy(np.concatenate([c.points_base for c in raw]), truth)
-            ev_out["aligned"] = cloud_accuracy(np.concatenate([c.points_base for c in ali]),
-                                               truth)
-        thresholds = tuple(ev["thresholds_mm"])
-        for key in ("fused", "mesh"):
-            V, F = (V_final, F_final) if key == "mesh" else read_mesh(inputs[key])
-            ev_out[key] = {
-                **mesh_accuracy(V, F, truth, n_samples=ev["n_samples"], seed=cfg["seed"],
-                                thresholds_mm=thresholds, region=scored),
-                "completeness": completeness(V, F, truth, thresholds_mm=thresholds,
-                                             n_samples=ev["n_samples"], region=region,
-                                             seed=cfg["seed"]),
-                "whole": mesh_accuracy(V, F, truth, n_samples=ev["n_samples"] // 4,
-                                       seed=cfg["seed"], thresholds_mm=thresholds),
-            }
-        if inputs.get("measured"):
-            ev_out["measured"] = _measured_evaluation(inputs["measured"], truth, ev, cfg,
-                                                      scored, region)
-        if inputs.get("aligned") and "ground_truth/tf.json" in rec.attachments:
-            try:
-                ev_out["poses"] = _pose_errors(rec, inputs)
-            except (Robo3dError, ValueError, KeyError, TypeError) as exc:
-                # a damaged or unknown form of the truth costs only the pose figures
-                metrics["skipped"]["poses"] = (f"ground_truth/tf.json cannot be used: "
-                                               f"{type(exc).__name__}: {exc}")
-                log.warning("%s: %s", rec_path, metrics["skipped"]["poses"])
-        elif inputs.get("aligned"):
-            metrics["skipped"]["poses"] = "the recording carries no ground_truth/tf.json"
+        ev_out = _surface_evaluation(inputs, rec, truth, cfg, (V_final, F_final), metrics)
         vertex_error_mm = truth.distance(V_final) * 1e3
     _mask_evaluation(inputs, rec, has_true_masks, metrics, ev_out)
     if ev_out:
@@ -174,6 +77,131 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     write_json(outputs["metrics"], metrics)
     _log_summary(metrics)
     return metrics
+
+
+def _stage_metrics(inputs: Mapping[str, str], results_dir: Path, cfg: Mapping[str, Any],
+                   rec_name: str) -> dict[str, Any]:
+    """The start of ``metrics.json``: the recording, the code's version, what the
+    recording has no data for (``skipped``), every stage's report
+    (``results/<rec>/reports/*.json``), their timings, where the surface came from and
+    the views the carve left out."""
+    import json
+
+    metrics: dict[str, Any] = {"recording": str(inputs["recording"]), "name": rec_name,
+                               "robo3d": code_version(), "skipped": {}}
+    if not inputs.get("hull"):
+        metrics["skipped"]["hull"] = "the recording has no silhouette views"
+    if not inputs.get("aligned"):
+        metrics["skipped"]["laser"] = ("the recording has no laser frames: no clouds, no "
+                                       "alignment; the mesh is the visual hull's")
+    stages = {}
+    for p in sorted((results_dir / "reports").glob("*.json")):
+        with open(p, encoding="utf-8") as f:
+            stages[p.stem] = json.load(f)
+    metrics["stages"] = stages
+    metrics["timings"] = _stage_timings(rec_name, stages)
+    fuse = stages.get("fuse", {})
+    simp = stages.get("simplify", {})
+    metrics["surface_sources"] = {
+        "laser_area_fraction": fuse.get("laser_area_fraction"),
+        "hull_area_fraction": fuse.get("hull_area_fraction"),
+        # per vertex provenance (the source property of fused.ply and mesh.ply), by area
+        "fused": fuse.get("source_area_fraction"),
+        "mesh": simp.get("source_area_fraction"),
+        "inferred_area_fraction": simp.get("inferred_area_fraction",
+                                           fuse.get("inferred_area_fraction")),
+        "close": cfg["fusion"]["close"]}
+    carve = stages.get("carve", {})
+    if isinstance(carve, dict) and "views_left_out" in carve:
+        metrics["views_left_out"] = carve["views_left_out"]
+    return metrics
+
+
+def _truth_surface(rec, rec_path: str, has_true_masks: bool, metrics: dict[str, Any]):
+    """The recording's true surface (:class:`robo3d.evaluate.TruthSurface` of
+    ``ground_truth/mesh.ply``), or None with ``metrics["skipped"]`` saying why."""
+    from ..evaluate import TruthSurface
+    from ..meshio import read_mesh
+
+    mesh_bytes = rec.attachments.get("ground_truth/mesh.ply")
+    if mesh_bytes is None and not has_true_masks:
+        metrics["skipped"]["evaluation"] = "the recording carries no ground truth"
+        return None
+    if mesh_bytes is None:
+        metrics["skipped"]["surface_evaluation"] = ("the recording carries no "
+                                                    "ground_truth/mesh.ply")
+        return None
+    try:
+        Vt, Ft = read_mesh(mesh_bytes)
+        return TruthSurface(Vt, Ft)
+    except (Robo3dError, ValueError, RuntimeError, OSError) as exc:
+        metrics["skipped"]["surface_evaluation"] = (f"ground_truth/mesh.ply is damaged: "
+                                                    f"{exc}")
+        log.warning("%s: ground_truth/mesh.ply is damaged (%s): no surface evaluation",
+                    rec_path, exc)
+        return None
+
+
+def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str, Any],
+                        final_mesh: tuple[np.ndarray, np.ndarray],
+                        metrics: dict[str, Any]) -> dict[str, Any]:
+    """The errors against the true surface: the hull's volume IoU, the clouds' accuracy
+    before and after the alignment, accuracy and completeness of the fused, final and
+    measured meshes, and the sweeps' pose errors (``metrics["skipped"]["poses"]`` when
+    ``ground_truth/tf.json`` is missing or cannot be used)."""
+    from ..evaluate import cloud_accuracy, completeness, mesh_accuracy, volume_iou
+    from ..grid import VoxelGrid
+    from ..meshio import read_mesh
+    from ..triangulation import load_clouds_npz
+
+    ev = cfg["evaluation"]
+    rec_path = inputs["recording"]
+    region = rec.workspace
+    scored = None
+    if region is not None:
+        scored = (np.asarray(region[0], dtype=np.float64).copy(),
+                  np.asarray(region[1], dtype=np.float64))
+        scored[0][2] += ev["floor_margin_m"]
+    ev_out: dict[str, Any] = {
+        "region": None if region is None else [region[0].tolist(), region[1].tolist()],
+        "accuracy_region": None if scored is None else [scored[0].tolist(),
+                                                        scored[1].tolist()]}
+    if inputs.get("hull"):
+        g = VoxelGrid.load_npz(inputs["hull"])
+        ev_out["hull_volume_iou"] = volume_iou(g.occupancy, g.origin, g.voxel_size, truth,
+                                               region=region)
+    if inputs.get("clouds"):
+        raw = load_clouds_npz(inputs["clouds"])
+        ali = load_clouds_npz(inputs["aligned"])
+        ev_out["clouds"] = cloud_accuracy(np.concatenate([c.points_base for c in raw]), truth)
+        ev_out["aligned"] = cloud_accuracy(np.concatenate([c.points_base for c in ali]),
+                                           truth)
+    thresholds = tuple(ev["thresholds_mm"])
+    for key in ("fused", "mesh"):
+        V, F = final_mesh if key == "mesh" else read_mesh(inputs[key])
+        ev_out[key] = {
+            **mesh_accuracy(V, F, truth, n_samples=ev["n_samples"], seed=cfg["seed"],
+                            thresholds_mm=thresholds, region=scored),
+            "completeness": completeness(V, F, truth, thresholds_mm=thresholds,
+                                         n_samples=ev["n_samples"], region=region,
+                                         seed=cfg["seed"]),
+            "whole": mesh_accuracy(V, F, truth, n_samples=ev["n_samples"] // 4,
+                                   seed=cfg["seed"], thresholds_mm=thresholds),
+        }
+    if inputs.get("measured"):
+        ev_out["measured"] = _measured_evaluation(inputs["measured"], truth, ev, cfg,
+                                                  scored, region)
+    if inputs.get("aligned") and "ground_truth/tf.json" in rec.attachments:
+        try:
+            ev_out["poses"] = _pose_errors(rec, inputs)
+        except (Robo3dError, ValueError, KeyError, TypeError) as exc:
+            # a damaged or unknown form of the truth costs only the pose figures
+            metrics["skipped"]["poses"] = (f"ground_truth/tf.json cannot be used: "
+                                           f"{type(exc).__name__}: {exc}")
+            log.warning("%s: %s", rec_path, metrics["skipped"]["poses"])
+    elif inputs.get("aligned"):
+        metrics["skipped"]["poses"] = "the recording carries no ground_truth/tf.json"
+    return ev_out
 
 
 def _measured_evaluation(path: str, truth, ev: Mapping[str, Any], cfg: Mapping[str, Any],

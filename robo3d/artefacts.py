@@ -16,10 +16,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .atomic import save_npz
+from .grid import VoxelGrid  # noqa: F401 - the visual hull's artefact, re-exported
 
 # --- silhouettes (silhouettes.npz) ---------------------------------------------------
 
 # --- visual hull (hull.npz) ----------------------------------------------------------
+# The hull's artefact is robo3d.grid.VoxelGrid itself (imported above): VoxelGrid.save_npz
+# writes hull.npz atomically (occupancy, origin, voxel_size, frame, and the carve's
+# extras: carving, views_used, views_left_out, dicts as JSON strings);
+# VoxelGrid.load_npz(path, return_extra=True) reads it back and names the file when it
+# is not a voxel grid. Its home is robo3d.grid, beside make_grid, so that the carvers
+# (robo3d.carving, robo3d.octree) share it without importing each other.
 
 # --- stripes (stripes.npz) -----------------------------------------------------------
 

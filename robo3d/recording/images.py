@@ -14,16 +14,21 @@ Encodings
     pixel``; padding at the end of rows is honoured and dropped). ``mono16`` is
     little-endian, as the Foxglove schema specifies. The aliases ``8UC1``, ``8UC3`` (BGR)
     and ``16UC1`` are accepted on reading.
+
+The decoders take any object with the fields of :class:`EncodedImage` (the reader's
+:class:`~.model.ImageMessage` has them), so this module does not import the model:
+``model`` imports ``images``, never the other way round.
 """
 
 from __future__ import annotations
+
+from typing import Protocol
 
 import cv2
 import numpy as np
 
 from ..camera import CameraModel
 from ..errors import ImageDecodeError
-from .model import ImageMessage
 
 __all__ = [
     "COMPRESSED_ENCODINGS",
@@ -33,12 +38,34 @@ __all__ = [
     "decode_image",
     "decode_checked",
     "chroma_subsampled",
+    "EncodedImage",
 ]
 
 #: Compressed encodings robo3d writes (``foxglove.CompressedImage.format``).
 COMPRESSED_ENCODINGS = ("png", "jpeg")
 #: Raw encodings robo3d reads and writes (``foxglove.RawImage.encoding``).
 RAW_ENCODINGS = ("mono8", "rgb8", "bgr8", "mono16")
+
+
+
+class EncodedImage(Protocol):
+    """What the decoders read of a recorded image (:class:`~.model.ImageMessage`).
+
+    ``topic``, ``timestamp_ns``, ``frame_id`` and ``path`` name the image in errors;
+    ``encoding`` and ``data`` are the recorded encoding and bytes; ``width``, ``height``
+    and ``step`` describe a raw buffer (0 for compressed images).
+    """
+
+    topic: str
+    timestamp_ns: int
+    frame_id: str
+    encoding: str
+    data: bytes
+    width: int
+    height: int
+    step: int
+    path: str
+
 
 _RAW_ALIASES = {"8uc1": "mono8", "8uc3": "bgr8", "16uc1": "mono16"}
 _BYTES_PER_PIXEL = {"mono8": 1, "rgb8": 3, "bgr8": 3, "mono16": 2}
@@ -154,12 +181,12 @@ def encode_image(image: np.ndarray, encoding: str, jpeg_quality: int = 95) -> by
     return buf.tobytes()
 
 
-def _fail(msg: ImageMessage, what: str) -> ImageDecodeError:
+def _fail(msg: EncodedImage, what: str) -> ImageDecodeError:
     return ImageDecodeError(f"image ({msg.encoding}, frame_id {msg.frame_id!r}) {what}",
                             path=msg.path or None, topic=msg.topic, time_ns=msg.timestamp_ns)
 
 
-def _decode_raw(msg: ImageMessage, enc: str) -> np.ndarray:
+def _decode_raw(msg: EncodedImage, enc: str) -> np.ndarray:
     bpp = _BYTES_PER_PIXEL[enc]
     w, h = int(msg.width), int(msg.height)
     if w <= 0 or h <= 0:
@@ -222,14 +249,15 @@ def chroma_subsampled(data: bytes) -> bool:
     return False
 
 
-def decode_image(msg: ImageMessage) -> np.ndarray:
+def decode_image(msg: EncodedImage) -> np.ndarray:
     """Decode a recorded image.
 
     Parameters
     ----------
-    msg : ImageMessage
-        A compressed (``png``/``jpeg``, or any format OpenCV sniffs from the bytes) or
-        raw (``mono8``, ``rgb8``, ``bgr8``, ``mono16``) image.
+    msg : EncodedImage
+        An :class:`~.model.ImageMessage`: a compressed (``png``/``jpeg``, or any format
+        OpenCV sniffs from the bytes) or raw (``mono8``, ``rgb8``, ``bgr8``, ``mono16``)
+        image.
 
     Returns
     -------
@@ -266,12 +294,13 @@ def decode_image(msg: ImageMessage) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def decode_checked(msg: ImageMessage, camera: CameraModel) -> np.ndarray:
+def decode_checked(msg: EncodedImage, camera: CameraModel) -> np.ndarray:
     """Decode an image and check that its size matches its camera's calibration.
 
     Parameters
     ----------
-    msg : ImageMessage
+    msg : EncodedImage
+        An :class:`~.model.ImageMessage`.
     camera : CameraModel
         The calibration of ``msg.frame_id``.
 

@@ -19,9 +19,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import CameraModel
+from ..errors import CalibrationError, RecordingError, TransformError
 from ..transforms import TransformBuffer
+from .images import decode_checked, decode_image
 
-__all__ = ["ImageMessage", "Recording", "TopicMap", "TopicStats", "JointStates", "FRAME_ROLES"]
+__all__ = ["ImageMessage", "Recording", "TopicMap", "TopicStats", "JointStates", "FRAME_ROLES",
+           "DEFAULT_TOPICS"]
 
 #: The frame roles of ``recording-format.md``.
 FRAME_ROLES: tuple[str, ...] = ("base", "flange", "camera", "laser")
@@ -37,6 +40,10 @@ class TopicMap:
     views: str = "/camera/image"
     laser: str = "/camera/laser_image"
     joint_states: str = "/robot/joint_states"
+
+
+#: The contract's default topic names (``recording-format.md``, Topics).
+DEFAULT_TOPICS = TopicMap()
 
 
 @dataclass
@@ -123,8 +130,6 @@ class ImageMessage:
 
         Raises :class:`~robo3d.errors.ImageDecodeError` naming file, topic and time.
         """
-        from .images import decode_image
-
         return decode_image(self)
 
 
@@ -166,15 +171,11 @@ class Recording:
             lo = np.array([float(x) for x in info["workspace_min"].split()])
             hi = np.array([float(x) for x in info["workspace_max"].split()])
         except ValueError as exc:
-            from ..errors import RecordingError
-
             raise RecordingError(f"metadata robo3d.recording: workspace_min/workspace_max must "
                                  f"be 'x y z' numbers, got {info['workspace_min']!r} and "
                                  f"{info['workspace_max']!r} ({exc})", path=self.path) from None
         if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo))
                                                         and np.all(np.isfinite(hi))):
-            from ..errors import RecordingError
-
             raise RecordingError(f"metadata robo3d.recording: workspace_min/workspace_max must "
                                  f"be three finite numbers each, got {info['workspace_min']!r} "
                                  f"and {info['workspace_max']!r}", path=self.path)
@@ -182,8 +183,6 @@ class Recording:
 
     def camera_for(self, msg: ImageMessage) -> CameraModel:
         """The calibration matched to an image by ``frame_id`` (error if none)."""
-        from ..errors import CalibrationError
-
         cam = self.calibrations.get(msg.frame_id)
         if cam is None:
             known = ", ".join(sorted(self.calibrations)) or "none"
@@ -199,8 +198,6 @@ class Recording:
         :meth:`camera_for`; raises :class:`~robo3d.errors.CalibrationError` (no
         calibration) or :class:`~robo3d.errors.ImageDecodeError` (bad bytes, wrong size).
         """
-        from .images import decode_checked
-
         return decode_checked(msg, self.camera_for(msg))
 
     def camera_poses(self, msgs: list[ImageMessage]) -> np.ndarray:
@@ -218,8 +215,6 @@ class Recording:
             try:
                 out[sel] = self.tf.lookup(self.base_frame, str(fid), stamps[sel])
             except Exception as exc:  # re-raise with the image topic named
-                from ..errors import TransformError
-
                 if isinstance(exc, TransformError):
                     topic = msgs[sel[0]].topic
                     raise TransformError(f"image pose: {exc.reason}", path=self.path,

@@ -145,14 +145,81 @@ from typing import Any, Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .options import Options
 from .transforms import invert_transform, rotation_angle_deg
 
-__all__ = ["AlignmentResult", "RefinementResult", "SilhouetteViews", "align_sweeps",
+__all__ = ["AlignOptions", "AlignmentResult", "RefinementResult", "SilhouetteViews",
+           "align_sweeps",
            "apply_correction", "correction_at", "refine_sweeps"]
 
 log = logging.getLogger(__name__)
 
 _MIN_POINTS = 10
+
+
+@dataclass(frozen=True)
+class AlignOptions(Options):
+    """The parameters of :func:`align_sweeps` and :func:`refine_sweeps` (config section
+    ``alignment``; ``enabled``, ``silhouettes`` and the ``outside_hull_*`` keys are the
+    stage's), and the recording's seed.
+
+    Attributes
+    ----------
+    method : {"pose_graph", "sequential"}
+        Multiway pose-graph optimisation, or one sweep after another along the
+        maximum-overlap spanning tree.
+    voxel_size_m : float, metres
+        Grid on which each sweep is thinned (one measured point per voxel) before
+        registration; also the finest ICP correspondence distance (0 disables).
+    max_corr_dist_m : float, metres
+        Largest point-to-point distance of an ICP correspondence, and of the overlap test.
+    max_iterations : int
+        ICP iterations per registration.
+    max_correction_mm, max_correction_deg : float
+        Bounds on a sweep's correction (displacement of its centroid; rotation angle).
+        Larger corrections are refused: the sweep stays at its robot pose, flagged.
+    min_overlap : float in (0, 1]
+        Smallest overlap (fraction of points with a partner) for a pair to be registered.
+    refine : bool
+        After the pose graph, refine all sweeps jointly (:func:`refine_sweeps`).
+    prior_mm, prior_deg : float
+        The robot's expected per-sweep error (the refinement's prior, and the whitening
+        of the pairs' information).
+    refine_iterations : int
+        Gauss-Newton iterations of the refinement at most.
+    rim_weight : float
+        Weight of the silhouette term relative to its residuals' robust scale.
+    pair_normals_k : int
+        Neighbours per profile of the refinement's pair-term normals (0: the
+        triangulation's normals).
+    pair_normals_max_spacing_m : float, metres
+        Those normals only for sweeps whose profiles are at most this far apart.
+    degenerate_ratio, pair_degenerate_ratio : float
+        Least whitened information of a direction the refinement / a pair's ICP takes
+        from the data (the others are held at the robot's pose).
+    seed : int
+        The recording's seed (config ``seed``): the subsamples.
+    """
+
+    section = "alignment"
+    not_in_config = ("seed",)
+    method: Literal["pose_graph", "sequential"] = "pose_graph"
+    voxel_size_m: float = 0.0005
+    max_corr_dist_m: float = 0.002
+    max_iterations: int = 50
+    max_correction_mm: float = 5.0
+    max_correction_deg: float = 3.0
+    min_overlap: float = 0.05
+    refine: bool = True
+    prior_mm: float = 0.5
+    prior_deg: float = 0.3
+    refine_iterations: int = 30
+    rim_weight: float = 3.0
+    pair_normals_k: int = 8
+    pair_normals_max_spacing_m: float = 0.0015
+    degenerate_ratio: float = 200.0
+    pair_degenerate_ratio: float = 10.0
+    seed: int = 0
 
 
 @dataclass
@@ -498,32 +565,35 @@ def _mean_transform(ts: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- main
 
 
+def _check_align_options(o: AlignOptions, gauge: str, max_points: int) -> None:
+    if o.method not in ("pose_graph", "sequential"):
+        raise ValueError(f"method must be 'pose_graph' or 'sequential', got {o.method!r}")
+    if gauge not in ("reference", "mean"):
+        raise ValueError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
+    for name, val in (("max_corr_dist_m", o.max_corr_dist_m),
+                      ("max_correction_mm", o.max_correction_mm),
+                      ("max_correction_deg", o.max_correction_deg)):
+        if not val > 0:
+            raise ValueError(f"{name} must be > 0, got {val}")
+    if o.voxel_size_m < 0:
+        raise ValueError(f"voxel_size_m must be >= 0, got {o.voxel_size_m}")
+    if not 0 < o.min_overlap <= 1:
+        raise ValueError(f"min_overlap must be in (0, 1], got {o.min_overlap}")
+    if o.max_iterations < 1 or max_points < _MIN_POINTS:
+        raise ValueError("max_iterations must be >= 1 and max_points >= 10, got "
+                         f"{o.max_iterations} and {max_points}")
+
+
 def align_sweeps(
     points: list[np.ndarray],
     normals: list[np.ndarray],
     *,
-    voxel_size: float = 0.5e-3,
-    max_corr_dist: float = 2e-3,
-    max_iterations: int = 50,
-    max_correction_mm: float = 5.0,
-    max_correction_deg: float = 3.0,
-    min_overlap: float = 0.05,
-    method: Literal["pose_graph", "sequential"] = "pose_graph",
+    options: AlignOptions = AlignOptions(),
     gauge: Literal["reference", "mean"] = "reference",
     max_points: int = 100_000,
-    seed: int = 0,
     origins: list[np.ndarray] | None = None,
     profiles: list[np.ndarray] | None = None,
-    refine: bool = False,
     silhouettes: SilhouetteViews | None = None,
-    prior_mm: float = 0.5,
-    prior_deg: float = 0.3,
-    refine_iterations: int = 30,
-    rim_weight: float = 3.0,
-    normal_k: int = 8,
-    normal_max_spacing: float = 1.5e-3,
-    degenerate_ratio: float = 200.0,
-    pair_degenerate_ratio: float = 10.0,
 ) -> AlignmentResult:
     """Align laser sweeps to each other, starting from the robot's poses.
 
@@ -534,44 +604,22 @@ def align_sweeps(
     normals : list of (N_s, 3) float64
         Unit normals of those points, oriented the same way in every sweep (toward the
         sensor, i.e. out of the object): symmetric ICP adds the two normals of a pair.
-    voxel_size : float, metres
-        Grid on which each sweep is thinned (one measured point per voxel) before
-        registration; also the finest ICP correspondence distance (0 disables).
-    max_corr_dist : float, metres
-        Largest point-to-point distance of an ICP correspondence, and of the overlap test.
-    max_iterations : int
-        ICP iterations per registration.
-    max_correction_mm, max_correction_deg : float
-        Bounds on a sweep's correction (displacement of its centroid; rotation angle).
-        Larger corrections are refused: the sweep stays at its robot pose, flagged.
-    min_overlap : float in (0, 1]
-        Smallest overlap (fraction of points with a partner) for a pair to be registered.
-    method : {"pose_graph", "sequential"}
-        Multiway pose-graph optimisation, or one sweep after another along the
-        maximum-overlap spanning tree.
+    options : AlignOptions
+        The ``alignment`` section's parameters and the seed (:class:`AlignOptions`):
+        the thinning voxel, ICP's distances and iterations, the bounds, the minimum
+        overlap, the method, and whether (and how) to refine.
     gauge : {"reference", "mean"}
         What stays fixed: the reference sweep (most overlap), or the mean correction.
     max_points : int
-        Cap on the points per sweep used for registration (random subsample with ``seed``).
-    seed : int
-        Seed of that subsample.
+        Cap on the points per sweep used for registration (random subsample with
+        ``options.seed``).
     origins : list of (N_s, 3) float64, metres, optional
         Sensor position at each point's frame (needed by the refinement's motion model;
         without it each sweep turns about its centroid).
     profiles : list of (N_s,) int, optional
         Laser frame of each point (the silhouette term groups points by it).
-    refine : bool
-        After the pose graph, refine all sweeps jointly (:func:`refine_sweeps`) with the
-        sensor motion model, the silhouettes as absolute reference and the robot's
-        expected error as prior; the bounds are then checked on the refined corrections.
     silhouettes : SilhouetteViews, optional
         Views for the absolute reference (refinement only).
-    prior_mm, prior_deg : float
-        The robot's expected per-sweep error (refinement prior).
-    refine_iterations : int
-        Gauss-Newton iterations of the refinement at most.
-    rim_weight, normal_k, normal_max_spacing : float, int, float
-        Passed to the refinement (:func:`refine_sweeps`).
 
     Returns
     -------
@@ -579,7 +627,11 @@ def align_sweeps(
 
     Notes
     -----
-    The method, the gauge and the guards are described in the module docstring.
+    The method, the gauge and the guards are described in the module docstring. With
+    ``options.refine`` the pose graph's result is refined jointly
+    (:func:`refine_sweeps`) with the sensor motion model, the silhouettes as absolute
+    reference and the robot's expected error as prior; the bounds are then checked on
+    the refined corrections.
 
     References
     ----------
@@ -588,56 +640,80 @@ def align_sweeps(
     import open3d as o3d
 
     pts_in, nrm_in = _check_inputs(points, normals)
-    if method not in ("pose_graph", "sequential"):
-        raise ValueError(f"method must be 'pose_graph' or 'sequential', got {method!r}")
-    if gauge not in ("reference", "mean"):
-        raise ValueError(f"gauge must be 'reference' or 'mean', got {gauge!r}")
-    for name, val in (("max_corr_dist", max_corr_dist), ("max_correction_mm", max_correction_mm),
-                      ("max_correction_deg", max_correction_deg)):
-        if not val > 0:
-            raise ValueError(f"{name} must be > 0, got {val}")
-    if voxel_size < 0:
-        raise ValueError(f"voxel_size must be >= 0, got {voxel_size}")
-    if not 0 < min_overlap <= 1:
-        raise ValueError(f"min_overlap must be in (0, 1], got {min_overlap}")
-    if max_iterations < 1 or max_points < _MIN_POINTS:
-        raise ValueError("max_iterations must be >= 1 and max_points >= 10, got "
-                         f"{max_iterations} and {max_points}")
-
+    _check_align_options(options, gauge, max_points)
     n_sweeps = len(pts_in)
     corrections = np.tile(np.eye(4), (n_sweeps, 1, 1))
     if n_sweeps == 0:
-        return AlignmentResult(corrections=corrections.reshape(0, 4, 4), method=method,
-                               gauge=gauge)
+        return AlignmentResult(corrections=corrections.reshape(0, 4, 4),
+                               method=options.method, gauge=gauge)
 
     if origins is not None and (len(origins) != len(pts_in) or any(
             np.shape(o) != p.shape for o, p in zip(origins, pts_in, strict=True))):
         raise ValueError("origins must hold one (N_s, 3) array per sweep, like points")
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        result = _align(pts_in, nrm_in, corrections, voxel_size=voxel_size,
-                        max_corr_dist=max_corr_dist, max_iterations=max_iterations,
-                        max_correction_mm=max_correction_mm,
-                        max_correction_deg=max_correction_deg, min_overlap=min_overlap,
-                        method=method, gauge=gauge, max_points=max_points, seed=seed,
-                        prior_mm=prior_mm, prior_deg=prior_deg,
-                        degenerate_ratio=pair_degenerate_ratio)
-    if refine and n_sweeps > 1:
-        _refine_guarded(result, pts_in, nrm_in, origins, profiles, silhouettes,
-                        voxel_size=voxel_size, max_corr_dist=max_corr_dist,
-                        max_correction_mm=max_correction_mm,
-                        max_correction_deg=max_correction_deg, min_overlap=min_overlap,
-                        prior_mm=prior_mm, prior_deg=prior_deg,
-                        max_iterations=refine_iterations, seed=seed,
-                        extra=dict(rim_weight=rim_weight, normal_k=normal_k,
-                                   normal_max_spacing=normal_max_spacing,
-                                   degenerate_ratio=degenerate_ratio))
+        result = _align(pts_in, nrm_in, corrections, options, gauge, max_points)
+    if options.refine and n_sweeps > 1:
+        _refine_guarded(result, pts_in, nrm_in, origins, profiles, silhouettes, options)
     return result
 
 
-def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silhouettes, *,
-                    voxel_size, max_corr_dist, max_correction_mm, max_correction_deg,
-                    min_overlap, prior_mm, prior_deg, max_iterations, seed,
-                    extra: dict[str, Any] | None = None) -> None:
+def _rescue_with_views(result: AlignmentResult, n_s: int, active: list[int],
+                       pairs: list[tuple[int, int]], min_overlap: float
+                       ) -> tuple[list[int], list[tuple[int, int]], dict[int, str]]:
+    """With an absolute reference a sweep does not need an accepted pair: one whose
+    pairs ICP could not settle (sparse profiles cycle between correspondence sets) is
+    refined against the views, and those pairs take part with the refinement's robust
+    weights and held directions; only grossly inconsistent pairs stay out. Returns the
+    active sweeps, the pairs and the rescued sweeps' pose-graph reasons."""
+    rescued = [s for s in range(n_s) if result.per_sweep[s]["flagged"]
+               and result.per_sweep[s]["n_used"] >= _MIN_POINTS
+               and result.per_sweep[s]["reason"].startswith(("no accepted pair",
+                                                              "not connected"))]
+    saved = {s: result.per_sweep[s]["reason"] for s in rescued}
+    if rescued:
+        log.info("refinement: sweeps %s have no accepted pair; refined against the "
+                 "silhouettes", rescued)
+        for s in rescued:
+            result.per_sweep[s].update(flagged=False, reason="")
+        active = sorted(active + rescued)
+        pairs = [(p["i"], p["j"]) for p in result.pairs
+                 if p["accepted"] or (p["overlap"] >= min_overlap and not str(
+                     p["reason"]).startswith("relative correction"))]
+    return active, pairs, saved
+
+
+def _keep_all(result: AlignmentResult, n_s: int) -> None:
+    """Every sweep flagged before the refinement: all stay at the robot's poses."""
+    result.rotations = np.tile(np.eye(3), (n_s, 1, 1))
+    result.translations = np.zeros((n_s, 3))
+    result.refinement = {"converged": False, "iterations": 0, "gauge": "none",
+                         "skipped": "every sweep was flagged before the refinement "
+                                    "(no accepted pair): all kept at the robot's poses"}
+    result.pairs = [_jsonable(p) for p in result.pairs]
+    result.per_sweep = [_jsonable(p) for p in result.per_sweep]
+
+
+def _worst_refined(pts, origins, ref: RefinementResult, active: list[int],
+                   o: AlignOptions) -> tuple[int, dict[int, tuple[float, float, float]]]:
+    """The active sweep whose refined correction exceeds the bounds most (-1: none), and
+    each active sweep's (centroid displacement mm, largest displacement mm, degrees)."""
+    worst, worst_ratio, motion = -1, 1.0, {}
+    for s in active:
+        moved, _, _ = apply_correction(pts[s], origins[s], ref.rotations[s],
+                                       ref.translations[s])
+        disp = np.linalg.norm(moved - pts[s], axis=1) if len(pts[s]) else np.zeros(1)
+        cen = float(np.linalg.norm(moved.mean(axis=0) - pts[s].mean(axis=0))) * 1e3 if len(
+            pts[s]) else 0.0
+        deg = float(rotation_angle_deg(ref.rotations[s]))
+        motion[s] = (cen, float(disp.max()) * 1e3, deg)
+        ratio = max(cen / o.max_correction_mm, deg / o.max_correction_deg)
+        if ratio > worst_ratio:
+            worst, worst_ratio = s, ratio
+    return worst, motion
+
+
+def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silhouettes,
+                    o: AlignOptions) -> None:
     """Run :func:`refine_sweeps` on the pose graph's result and apply the guards: a sweep
     whose refined correction is out of bounds is flagged, kept at its robot pose and the
     others refined again without it."""
@@ -645,48 +721,19 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
     if origins is None:  # no sensor positions: each sweep turns about its centroid
         origins = [np.broadcast_to(p.mean(axis=0) if len(p) else np.zeros(3), p.shape)
                    for p in pts]
-    origins = [np.asarray(o, dtype=np.float64) for o in origins]
+    origins = [np.asarray(x, dtype=np.float64) for x in origins]
     active = [s for s in range(n_s) if not result.per_sweep[s]["flagged"]]
     pairs = [(p["i"], p["j"]) for p in result.pairs if p["accepted"]]
     saved: dict[int, str] = {}
     pg = (list(active), list(pairs))
     if silhouettes is not None:
-        # with an absolute reference a sweep does not need an accepted pair: one whose
-        # pairs ICP could not settle (sparse profiles cycle between correspondence
-        # sets) is refined against the views, and those pairs take part with the
-        # refinement's robust weights and held directions; only grossly inconsistent
-        # pairs stay out. Without enough contour points this falls back below.
-        rescued = [s for s in range(n_s) if result.per_sweep[s]["flagged"]
-                   and result.per_sweep[s]["n_used"] >= _MIN_POINTS
-                   and result.per_sweep[s]["reason"].startswith(("no accepted pair",
-                                                                  "not connected"))]
-        saved = {s: result.per_sweep[s]["reason"] for s in rescued}
-        if rescued:
-            log.info("refinement: sweeps %s have no accepted pair; refined against the "
-                     "silhouettes", rescued)
-            for s in rescued:
-                result.per_sweep[s].update(flagged=False, reason="")
-            active = sorted(active + rescued)
-            pairs = [(p["i"], p["j"]) for p in result.pairs
-                     if p["accepted"] or (p["overlap"] >= min_overlap and not str(
-                         p["reason"]).startswith("relative correction"))]
-    def keep_all() -> None:
-        result.rotations = np.tile(np.eye(3), (n_s, 1, 1))
-        result.translations = np.zeros((n_s, 3))
-        result.refinement = {"converged": False, "iterations": 0, "gauge": "none",
-                             "skipped": "every sweep was flagged before the refinement "
-                                        "(no accepted pair): all kept at the robot's poses"}
-        result.pairs = [_jsonable(p) for p in result.pairs]
-        result.per_sweep = [_jsonable(p) for p in result.per_sweep]
-
+        # without enough contour points this falls back below
+        active, pairs, saved = _rescue_with_views(result, n_s, active, pairs, o.min_overlap)
     if not active:  # every sweep flagged by the pose graph: nothing to refine
-        keep_all()
+        _keep_all(result, n_s)
         return
     while True:
-        kw = dict(profiles=profiles, initial=result.corrections, active=active,
-                  **(extra or {}),
-                  prior_mm=prior_mm, prior_deg=prior_deg, voxel_size=voxel_size,
-                  max_corr_dist=max_corr_dist, max_iterations=max_iterations, seed=seed)
+        kw = dict(profiles=profiles, initial=result.corrections, active=active, options=o)
         ref = None
         if silhouettes is not None:
             ref = refine_sweeps(pts, nrms, origins, pairs, silhouettes=silhouettes, **kw)
@@ -698,7 +745,7 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
                     active = [s_ for s_ in pg[0] if s_ in active]
                     pairs, saved = pg[1], {}
                     if not active:
-                        keep_all()
+                        _keep_all(result, n_s)
                         return
                     kw["active"] = active
                 log.warning("refinement: too few silhouette residuals; the sweeps' priors "
@@ -706,29 +753,40 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
         if ref is None:
             # no absolute reference: every sweep's prior (the robot's expected error)
             # holds the gauge, which averages the sweeps' errors; fixing one sweep would
-            # give every sweep that sweep's error (measured, the laser-only sphere of the
-            # workflow test: 0.23 mm median at the robot's poses, 0.43 with the reference
-            # sweep fixed, 0.053 with the priors)
+            # give every sweep that sweep's error (benchmarks/README.md)
             ref = refine_sweeps(pts, nrms, origins, pairs, fixed=[], **kw)
-        worst, worst_ratio, motion = -1, 1.0, {}
-        for s in active:
-            moved, _, _ = apply_correction(pts[s], origins[s], ref.rotations[s],
-                                           ref.translations[s])
-            disp = np.linalg.norm(moved - pts[s], axis=1) if len(pts[s]) else np.zeros(1)
-            cen = float(np.linalg.norm(moved.mean(axis=0) - pts[s].mean(axis=0))) * 1e3 if len(
-                pts[s]) else 0.0
-            deg = float(rotation_angle_deg(ref.rotations[s]))
-            motion[s] = (cen, float(disp.max()) * 1e3, deg)
-            ratio = max(cen / max_correction_mm, deg / max_correction_deg)
-            if ratio > worst_ratio:
-                worst, worst_ratio = s, ratio
+        worst, motion = _worst_refined(pts, origins, ref, active, o)
         if worst < 0 or len(active) <= 1:
             break
         cen, _, deg = motion[worst]
         result.per_sweep[worst].update(flagged=True, converged=False, reason=(
             f"refined correction {cen:.3f} mm / {deg:.3f} deg exceeds the bounds "
-            f"{max_correction_mm} mm / {max_correction_deg} deg"))
+            f"{o.max_correction_mm} mm / {o.max_correction_deg} deg"))
         active = [s for s in active if s != worst]
+    rot, trans, corr = _take_refined(result, ref, origins, active, motion)
+    _final_pair_stats(result, pts, nrms, origins, rot, trans, o)
+    result.rotations, result.translations, result.corrections = rot, trans, corr
+    result.gauge = ref.gauge
+    result.refinement = {"converged": bool(ref.converged), "iterations": int(ref.iterations),
+                         "gauge": ref.gauge, "silhouettes": ref.silhouettes,
+                         "pair_sigma_mm": ref.pair_sigma_mm,
+                         "model": "sensor turned about its position at each frame, and shifted",
+                         "prior_mm": o.prior_mm, "prior_deg": o.prior_deg,
+                         "rim_weight": o.rim_weight, "normal_k": o.pair_normals_k,
+                         "normal_max_spacing": o.pair_normals_max_spacing_m,
+                         "degenerate_ratio": o.degenerate_ratio}
+    result.pairs = [_jsonable(p) for p in result.pairs]
+    result.per_sweep = [_jsonable(p) for p in result.per_sweep]
+
+
+def _take_refined(result: AlignmentResult, ref: RefinementResult, origins, active: list[int],
+                  motion: dict[int, tuple[float, float, float]]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The refined corrections of the sweeps that stayed active (rotations, translations
+    and the rigid correction at each sweep's mean sensor position), each sweep's report
+    updated; every sweep at its robot pose, flagged, when the refinement did not
+    converge."""
+    n_s = len(origins)
     rot = np.tile(np.eye(3), (n_s, 1, 1))
     trans = np.zeros((n_s, 3))
     corr = np.tile(np.eye(4), (n_s, 1, 1))
@@ -763,11 +821,19 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
         for s in range(n_s):
             result.per_sweep[s].update(flagged=True, translation_mm=0.0, rotation_deg=0.0,
                                        max_displacement_mm=0.0)
-    # pair statistics at the final poses
-    moved = [apply_correction(pts[s], origins[s], rot[s], trans[s], nrms[s]) for s in range(n_s)]
-    fine = max(voxel_size, max_corr_dist / 4)
-    rng = np.random.default_rng(seed)
-    red = [_reduce(m[0], m[2], voxel_size, 100_000, rng) for m in moved]
+    return rot, trans, corr
+
+
+def _final_pair_stats(result: AlignmentResult, pts, nrms, origins, rot: np.ndarray,
+                      trans: np.ndarray, o: AlignOptions) -> None:
+    """Each pair's fitness and RMS distance at the final poses (``fitness_final``,
+    ``rmse_final_mm``)."""
+    n_s = len(pts)
+    moved = [apply_correction(pts[s], origins[s], rot[s], trans[s], nrms[s])
+             for s in range(n_s)]
+    fine = max(o.voxel_size_m, o.max_corr_dist_m / 4)
+    rng = np.random.default_rng(o.seed)
+    red = [_reduce(m[0], m[2], o.voxel_size_m, 100_000, rng) for m in moved]
     trees = {}
     for p in result.pairs:
         i, j = p["i"], p["j"]
@@ -775,40 +841,19 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
             trees[j] = cKDTree(red[j][0]) if len(red[j][0]) else None
         if trees[j] is None or not len(red[i][0]):
             continue
-        fit = _fit(red[i], red[j], trees[j], np.eye(4), max_corr_dist)[0]
+        fit = _fit(red[i], red[j], trees[j], np.eye(4), o.max_corr_dist_m)[0]
         rmse = _fit(red[i], red[j], trees[j], np.eye(4), fine)[1]
         p.update(fitness_final=fit, rmse_final_mm=None if not np.isfinite(rmse) else rmse * 1e3)
-    result.rotations, result.translations, result.corrections = rot, trans, corr
-    result.gauge = ref.gauge
-    result.refinement = {"converged": bool(ref.converged), "iterations": int(ref.iterations),
-                         "gauge": ref.gauge, "silhouettes": ref.silhouettes,
-                         "pair_sigma_mm": ref.pair_sigma_mm,
-                         "model": "sensor turned about its position at each frame, and shifted",
-                         "prior_mm": prior_mm, "prior_deg": prior_deg, **(extra or {})}
-    result.pairs = [_jsonable(p) for p in result.pairs]
-    result.per_sweep = [_jsonable(p) for p in result.per_sweep]
 
 
-def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterations,
-           max_correction_mm, max_correction_deg, min_overlap, method, gauge, max_points,
-           seed, prior_mm=0.5, prior_deg=0.3, degenerate_ratio=10.0) -> AlignmentResult:
-    import open3d as o3d
-
-    # the relative pose of two sweeps: the difference of two robot errors
-    prior_sd = np.sqrt(2.0) * np.r_[np.full(3, np.radians(prior_deg)), np.full(3, prior_mm * 1e-3)]
-
-    reg = o3d.pipelines.registration
-    rng = np.random.default_rng(seed)
-    n_sweeps = len(pts_in)
-    fine_dist = max(voxel_size, max_corr_dist / 4)
-    nonempty = [p for p in pts_in if len(p)]
-    centre = np.concatenate(nonempty).mean(axis=0) if nonempty else np.zeros(3)
-
-    # --- 1. reduce, centre
-    red = [_reduce(p - centre, n, voxel_size, max_points, rng) for p, n in zip(
+def _reduce_sweeps(pts_in, nrm_in, o: AlignOptions, max_points: int, rng, centre):
+    """Step 1: each sweep thinned and centred (arrays and Open3D clouds), its centroid,
+    its report entry, and whether it has enough points to register."""
+    red = [_reduce(p - centre, n, o.voxel_size_m, max_points, rng) for p, n in zip(
         pts_in, nrm_in, strict=True)]
     clouds = [_to_o3d(p, n) for p, n in red]
     cents = [p.mean(axis=0) if len(p) else np.zeros(3) for p, _ in red]
+    n_sweeps = len(pts_in)
     per_sweep: list[dict[str, Any]] = [
         dict(sweep=s, n_points=len(pts_in[s]), n_used=len(red[s][0]), translation_mm=0.0,
              max_displacement_mm=0.0, rotation_deg=0.0, converged=False, flagged=False,
@@ -819,10 +864,71 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
             per_sweep[s].update(flagged=True, reason=(
                 f"too few points to register ({len(red[s][0])} after reduction, "
                 f"need {_MIN_POINTS})"))
+    return red, clouds, cents, per_sweep, usable
 
-    # --- 2. overlaps and pairwise ICP
-    lo = [p.min(axis=0) - max_corr_dist if len(p) else None for p, _ in red]
-    hi = [p.max(axis=0) + max_corr_dist if len(p) else None for p, _ in red]
+
+def _register_pair(i: int, j: int, red, clouds, trees, cents, o: AlignOptions,
+                   prior_sd: np.ndarray, fine_dist: float, overlap: float,
+                   pair: dict[str, Any]) -> dict[str, Any] | None:
+    """Step 2 for one overlapping pair: ICP (or :func:`_held_icp`) from the robot's
+    relative pose, the result judged; the pose-graph edge when accepted, else None
+    (``pair`` updated either way)."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    eye = np.eye(4)
+    res, d_fine, step = _icp(clouds[i], clouds[j], o.max_corr_dist_m, fine_dist, eye,
+                             o.max_iterations)
+    t = np.asarray(res.transformation).copy()  # maps sweep i onto sweep j
+    # directions the pair's overlap does not constrain (a flat face: the slide in its
+    # plane and the turn about its normal; a sphere: every turn about its centre), from
+    # its whitened point-to-plane information at ICP's result (none left there: it slid
+    # off the overlap, as on a sphere): ICP slides along them, so such a pair is
+    # registered by :func:`_held_icp`, which holds them there. (Open3D's
+    # get_information_matrix_from_point_clouds is point-to-point, of full rank on a
+    # plane: it hides the slide.)
+    got = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
+                     o.voxel_size_m)
+    n_held = int(np.count_nonzero(got[0] < o.pair_degenerate_ratio)) if got else 6
+    # the two sides of a thin wall within the correspondence distance (normals opposed):
+    # Open3D's ICP pairs them and pulls one sweep onto the other's face; _held_icp
+    # leaves such correspondences out
+    if n_held or _opposed_fraction(red[i], red[j], trees[j], o.max_corr_dist_m) > 0.02:
+        t, step = _held_icp(red[i], red[j], trees[j], o.max_corr_dist_m, fine_dist,
+                            cents[i], prior_sd, o.pair_degenerate_ratio, o.voxel_size_m,
+                            o.max_iterations)
+    fin = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
+                     o.voxel_size_m)
+    held = {"held_directions": n_held,
+            "min_information": float(fin[0][0]) if fin else None}
+    info = np.asarray(reg.get_information_matrix_from_point_clouds(
+        clouds[i], clouds[j], d_fine, t)).copy()
+    fit = _fit(red[i], red[j], trees[j], t, o.max_corr_dist_m)[0]
+    rmse = _fit(red[i], red[j], trees[j], t, d_fine)[1]
+    pair.update(fitness=fit, rmse_mm=rmse * 1e3,
+                rmse_before_mm=_fit(red[i], red[j], trees[j], eye, d_fine)[1] * 1e3,
+                converged=_step_small(step, cents[i], o.voxel_size_m), **held)
+    rel_mm, rel_deg = _motion(t, cents[i])
+    if not pair["converged"]:
+        pair["reason"] = "ICP did not converge"
+    elif fit < o.min_overlap:
+        pair["reason"] = f"fitness {fit:.3f} < min_overlap {o.min_overlap}"
+    elif rel_mm > 2 * o.max_correction_mm or rel_deg > 2 * o.max_correction_deg:
+        pair["reason"] = (f"relative correction {rel_mm:.3f} mm / {rel_deg:.3f} deg "
+                          "exceeds twice the per-sweep bounds")
+    else:
+        pair["accepted"] = True
+        return dict(T=t, info=info, weight=overlap, pair=pair)
+    return None
+
+
+def _register_pairs(red, clouds, cents, usable, o: AlignOptions, prior_sd: np.ndarray,
+                    fine_dist: float):
+    """Step 2: the overlap of every pair of usable sweeps at the robot's poses, and the
+    pairwise registration of those that overlap enough: (pairs, accepted edges)."""
+    n_sweeps = len(red)
+    lo = [p.min(axis=0) - o.max_corr_dist_m if len(p) else None for p, _ in red]
+    hi = [p.max(axis=0) + o.max_corr_dist_m if len(p) else None for p, _ in red]
     trees = [cKDTree(p) for p, _ in red]
     pairs: list[dict[str, Any]] = []
     edges: dict[tuple[int, int], dict[str, Any]] = {}
@@ -833,8 +939,8 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
                 continue
             if np.any(lo[i] > hi[j]) or np.any(lo[j] > hi[i]):
                 continue
-            f_ij = _fit(red[i], red[j], trees[j], eye, max_corr_dist)[0]
-            f_ji = _fit(red[j], red[i], trees[i], eye, max_corr_dist)[0]
+            f_ij = _fit(red[i], red[j], trees[j], eye, o.max_corr_dist_m)[0]
+            f_ji = _fit(red[j], red[i], trees[i], eye, o.max_corr_dist_m)[0]
             overlap = float(max(f_ij, f_ji))
             if overlap <= 0.0:
                 continue
@@ -844,62 +950,27 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
                                         reason="", used=False, residual_mm=float("nan"),
                                         residual_deg=float("nan"))
             pairs.append(pair)
-            if overlap < min_overlap:
-                pair["reason"] = f"overlap {overlap:.3f} < min_overlap {min_overlap}"
+            if overlap < o.min_overlap:
+                pair["reason"] = f"overlap {overlap:.3f} < min_overlap {o.min_overlap}"
                 continue
-            res, d_fine, step = _icp(clouds[i], clouds[j], max_corr_dist, fine_dist, eye,
-                                     max_iterations)
-            t = np.asarray(res.transformation).copy()  # maps sweep i onto sweep j
-            # directions the pair's overlap does not constrain (a flat face: the slide
-            # in its plane and the turn about its normal; a sphere: every turn about its
-            # centre), from its whitened point-to-plane information at ICP's result
-            # (none left there: it slid off the overlap, as on a sphere): ICP slides
-            # along them, so
-            # such a pair is registered by :func:`_held_icp`, which holds them there.
-            # (Open3D's get_information_matrix_from_point_clouds is point-to-point, of
-            # full rank on a plane: it hides the slide.)
-            got = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
-                             voxel_size)
-            n_held = int(np.count_nonzero(got[0] < degenerate_ratio)) if got else 6
-            # the two sides of a thin wall within the correspondence distance (normals
-            # opposed): Open3D's ICP pairs them and pulls one sweep onto the other's
-            # face (measured on the simulated 1.8 mm fin: 1.7 mm); _held_icp leaves
-            # such correspondences out
-            if n_held or _opposed_fraction(red[i], red[j], trees[j], max_corr_dist) > 0.02:
-                t, step = _held_icp(red[i], red[j], trees[j], max_corr_dist, fine_dist,
-                                    cents[i], prior_sd, degenerate_ratio, voxel_size,
-                                    max_iterations)
-            fin = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
-                             voxel_size)
-            held = {"held_directions": n_held,
-                    "min_information": float(fin[0][0]) if fin else None}
-            info = np.asarray(reg.get_information_matrix_from_point_clouds(
-                clouds[i], clouds[j], d_fine, t)).copy()
-            fit = _fit(red[i], red[j], trees[j], t, max_corr_dist)[0]
-            rmse = _fit(red[i], red[j], trees[j], t, d_fine)[1]
-            pair.update(fitness=fit, rmse_mm=rmse * 1e3,
-                        rmse_before_mm=_fit(red[i], red[j], trees[j], eye, d_fine)[1] * 1e3,
-                        converged=_step_small(step, cents[i], voxel_size), **held)
-            rel_mm, rel_deg = _motion(t, cents[i])
-            if not pair["converged"]:
-                pair["reason"] = "ICP did not converge"
-            elif fit < min_overlap:
-                pair["reason"] = f"fitness {fit:.3f} < min_overlap {min_overlap}"
-            elif rel_mm > 2 * max_correction_mm or rel_deg > 2 * max_correction_deg:
-                pair["reason"] = (f"relative correction {rel_mm:.3f} mm / {rel_deg:.3f} deg "
-                                  "exceeds twice the per-sweep bounds")
-            else:
-                pair["accepted"] = True
-                edges[(i, j)] = dict(T=t, info=info, weight=overlap, pair=pair)
+            edge = _register_pair(i, j, red, clouds, trees, cents, o, prior_sd, fine_dist,
+                                  overlap, pair)
+            if edge is not None:
+                edges[(i, j)] = edge
+    return pairs, edges
 
-    # --- 3. reference: largest summed accepted overlap
+
+def _choose_reference(n_sweeps: int, usable, edges, pairs, per_sweep
+                      ) -> tuple[int, set[int], np.ndarray]:
+    """Step 3: the reference (largest summed accepted overlap, lowest index on ties),
+    the active sweeps (those with an accepted pair; the others flagged with the reason)
+    and each sweep's score."""
     score = np.zeros(n_sweeps)
     for (i, j), e in edges.items():
         score[i] += e["weight"]
         score[j] += e["weight"]
     cand = [s for s in range(n_sweeps) if usable[s]]
     reference = int(max(cand, key=lambda s: (score[s], -s))) if cand else 0
-
     active = {s for s in cand}
     for s in cand:
         if not any(s in k for k in edges) and n_sweeps > 1:
@@ -912,9 +983,16 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
             per_sweep[s].update(flagged=True, reason=why)
     if reference not in active and cand:
         active.add(reference)
+    return reference, active, score
 
-    # --- 4. solve, refuse out-of-bounds sweeps one at a time, solve again
+
+def _solve_guarded(n_sweeps: int, edges, reference: int, active: set[int], score,
+                   clouds, red, cents, per_sweep, o: AlignOptions, gauge: str,
+                   fine_dist: float):
+    """Step 4: solve (pose graph or sequential), refuse the out-of-bounds sweeps one at a
+    time (worst first), solve again: (solution per sweep, edges used, reference)."""
     sol: dict[int, np.ndarray] = {}
+    used: set[tuple[int, int]] = set()
     for _ in range(n_sweeps + 1):
         act_edges = [(i, j, e["weight"]) for (i, j), e in edges.items()
                      if i in active and j in active]
@@ -924,11 +1002,12 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
             active.discard(s)
             per_sweep[s].update(flagged=True, reason=(
                 f"not connected to the reference sweep {reference} through accepted pairs"))
-        if method == "pose_graph":
-            sol, used = _solve_pose_graph(order, edges, tree, reference, max_corr_dist)
+        if o.method == "pose_graph":
+            sol, used = _solve_pose_graph(order, edges, tree, reference, o.max_corr_dist_m)
         else:
-            sol, used = _solve_sequential(order, parent, edges, clouds, red, max_corr_dist,
-                                          fine_dist, max_iterations, voxel_size, per_sweep)
+            sol, used = _solve_sequential(order, parent, edges, clouds, red,
+                                          o.max_corr_dist_m, fine_dist, o.max_iterations,
+                                          o.voxel_size_m, per_sweep)
             active &= set(sol)
         if gauge == "mean" and len(sol) > 1:
             m = _mean_transform(np.stack(list(sol.values())))
@@ -937,7 +1016,7 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
         worst, worst_ratio = -1, 1.0
         for s in sol:
             mm, deg = _motion(sol[s], cents[s])
-            ratio = max(mm / max_correction_mm, deg / max_correction_deg)
+            ratio = max(mm / o.max_correction_mm, deg / o.max_correction_deg)
             if ratio > worst_ratio and (s != reference or gauge == "mean"):
                 worst, worst_ratio = s, ratio
         if worst < 0:
@@ -945,14 +1024,34 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
         mm, deg = _motion(sol[worst], cents[worst])
         per_sweep[worst].update(flagged=True, reason=(
             f"correction {mm:.3f} mm / {deg:.3f} deg exceeds the bounds "
-            f"{max_correction_mm} mm / {max_correction_deg} deg"))
+            f"{o.max_correction_mm} mm / {o.max_correction_deg} deg"))
         active.discard(worst)
         sol = {}
         if not active:
             break
         if worst == reference:
             reference = int(max(active, key=lambda s: (score[s], -s)))
+    return sol, used, reference
 
+
+def _align(pts_in, nrm_in, corrections, o: AlignOptions, gauge: str, max_points: int
+           ) -> AlignmentResult:
+    """The pairwise registrations and the pose graph (steps 1-5 of the module
+    docstring), with the bounds' guards."""
+    # the relative pose of two sweeps: the difference of two robot errors
+    prior_sd = np.sqrt(2.0) * np.r_[np.full(3, np.radians(o.prior_deg)),
+                                    np.full(3, o.prior_mm * 1e-3)]
+    rng = np.random.default_rng(o.seed)
+    n_sweeps = len(pts_in)
+    fine_dist = max(o.voxel_size_m, o.max_corr_dist_m / 4)
+    nonempty = [p for p in pts_in if len(p)]
+    centre = np.concatenate(nonempty).mean(axis=0) if nonempty else np.zeros(3)
+    red, clouds, cents, per_sweep, usable = _reduce_sweeps(pts_in, nrm_in, o, max_points,
+                                                           rng, centre)
+    pairs, edges = _register_pairs(red, clouds, cents, usable, o, prior_sd, fine_dist)
+    reference, active, score = _choose_reference(n_sweeps, usable, edges, pairs, per_sweep)
+    sol, used, reference = _solve_guarded(n_sweeps, edges, reference, active, score, clouds,
+                                          red, cents, per_sweep, o, gauge, fine_dist)
     # --- 5. collect
     for s, t in sol.items():
         if per_sweep[s]["flagged"]:
@@ -977,9 +1076,9 @@ def _align(pts_in, nrm_in, corrections, *, voxel_size, max_corr_dist, max_iterat
     pairs = [_jsonable(p) for p in pairs]  # NaN (not measured) -> None: valid JSON
     n_flag = sum(p["flagged"] for p in per_sweep)
     log.info("aligned %d sweeps (%s, reference %d): %d pairs accepted, %d sweeps flagged",
-             n_sweeps, method, reference, len(edges), n_flag)
+             n_sweeps, o.method, reference, len(edges), n_flag)
     return AlignmentResult(corrections=corrections, pairs=pairs, per_sweep=per_sweep,
-                           reference=reference, method=method, gauge=gauge)
+                           reference=reference, method=o.method, gauge=gauge)
 
 
 def _solve_pose_graph(order, edges, tree, reference, max_corr_dist):
@@ -1597,141 +1696,23 @@ def _huber(r: np.ndarray, k: float) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
 
 
-def refine_sweeps(
-    points: list[np.ndarray],
-    normals: list[np.ndarray],
-    origins: list[np.ndarray],
-    pairs: list[tuple[int, int]],
-    *,
-    profiles: list[np.ndarray] | None = None,
-    initial: np.ndarray | None = None,
-    active: list[int] | None = None,
-    fixed: list[int] | None = None,
-    silhouettes: SilhouetteViews | None = None,
-    prior_mm: float = 0.5,
-    prior_deg: float = 0.3,
-    voxel_size: float = 0.5e-3,
-    max_corr_dist: float = 2e-3,
-    max_iterations: int = 30,
-    max_points: int = 30_000,
-    rim_cos: float = 0.15,
-    rim_side_px: float = 1.5,
-    rim_search_px: float = 5.0,
-    rim_cell_px: int = 10,
-    rim_min_contrast: float = 2.0,
-    tol: float = 1e-6,
-    settle_tol: float = 3e-5,
-    normal_k: int = 8,
-    normal_max_deg: float = 10.0,
-    normal_reach: float = 4e-3,
-    normal_max_spacing: float = 1.5e-3,
-    rim_weight: float = 3.0,
-    degenerate_ratio: float = 200.0,
-    seed: int = 0,
-) -> RefinementResult:
-    """Joint refinement of all sweep corrections against each other and the silhouettes.
+#: Fixed parameters of the refinement (not config keys; see :func:`refine_sweeps`):
+#: the silhouette term's largest ``|n . ray|`` of a contour-generator point, extent of
+#: its profile on both sides (px), edge search half-width (px), least edge gradient
+#: (grey levels per px) and grouping cell (px); the convergence tolerances (metres);
+#: the pair term's normals' largest disagreement (degrees) and neighbourhood (metres).
+_RIM = dict(cos_max=0.15, side_px=1.5, search_px=5.0, min_contrast=2.0)
+_RIM_CELL_PX = 10
+_TOL, _SETTLE_TOL = 1e-6, 3e-5
+_NORMAL_MAX_DEG, _NORMAL_REACH = 10.0, 4e-3
 
-    The unknowns are one correction per sweep in the motion model of
-    :func:`apply_correction` (the sensor turned about its own position at every frame
-    and shifted): exact for a pose error that is constant in the flange frame while the
-    robot translates, which a rigid transform of the sweep's points is not (it leaves a
-    shear of ``rotation error x travel``, up to 0.15 mm on the demos). Gauss-Newton
-    minimises, with Huber weights,
 
-    - point-to-plane distances between every overlapping pair (both directions, nearest
-      neighbours within a distance shrinking from ``max_corr_dist`` to three robust
-      standard deviations),
-    - with ``silhouettes``: the distance of each view's contour-generator points to the
-      image edge of that view's silhouette (:func:`_rim_residuals`), which fixes the
-      absolute position the sweeps cannot give each other: the views are taken at rest,
-      their poses about ten times more accurate than a moving sweep's,
-    - a prior on each correction (``prior_mm``, ``prior_deg``: the robot's expected
-      error), which only decides what neither of the above determines (without views:
-      the gauge, i.e. the least correction that makes the sweeps agree).
-
-    Parameters
-    ----------
-    points, normals, origins : list of (N_s, 3) float64
-        Each sweep's points (metres, ``base``, at the robot's poses), unit normals, and
-        sensor position at each point's frame.
-    pairs : list of (i, j)
-        Overlapping pairs to use.
-    profiles : list of (N_s,) int, optional
-        Laser profile (frame) of each point; needed for the silhouette term.
-    initial : (S, 4, 4) float64, optional
-        Rigid corrections to start from (e.g. the pose graph's).
-    active : list of int, optional
-        Sweeps to refine (others keep the identity and take no part).
-    fixed : list of int, optional
-        Active sweeps that keep their initial correction (the gauge when there are no
-        silhouettes: without an absolute reference the common motion of all sweeps is
-        held by the prior alone, too weakly against the slow sliding of point-to-plane
-        matching along it, measured up to 0.05 degrees on a bumpy test surface).
-    silhouettes : SilhouetteViews, optional
-    prior_mm, prior_deg : float
-        Standard deviation of the robot's per-sweep error (translation of the sensor,
-        rotation).
-    voxel_size : float, metres
-        Thinning for the pair term (one point per voxel).
-    max_corr_dist : float, metres
-    max_iterations : int
-    max_points : int
-        Cap on points per sweep for the pair and silhouette terms (seeded subsample).
-    rim_cos, rim_side_px, rim_search_px, rim_cell_px, rim_min_contrast : float
-        Silhouette term: largest ``|n . ray|`` of a contour-generator point, extent of
-        its profile on both sides (px), edge search half-width (px), grouping cell (px),
-        least edge gradient (grey levels per px).
-    tol : float, metres
-        Convergence: the largest step of any sweep's points (shift plus rotation times
-        the sensor's distance) falls below this.
-    settle_tol : float, metres
-        Also converged ("settled"): the last four steps all below this. Near the optimum
-        the correspondences may cycle between nearly equal sets with steps of a few to
-        tens of micrometres (measured on the demos; the rotation part at the sensor's
-        distance, about 0.005 degrees); the result is then the mean of the cycle's last
-        four estimates. Calling it "not converged" would keep every sweep at its robot
-        pose, a hundred times further off. Steps that grow again after the fourth
-        iteration (the cycle) are shortened from then on (by 0.6 each time, to 1/16 at
-        least), so that the iterates settle inside it: a 3-sweep scan with 12 views
-        otherwise jumped by 20-80 micrometres for 30 iterations.
-    normal_k, normal_max_deg, normal_reach, normal_max_spacing : int, float, float, float
-        The pair term's normals (:func:`_pair_normals`): the principal axes of the
-        ``normal_k`` nearest points on a point's own and each adjacent profile (within
-        ``normal_reach`` metres); a point whose normal differs by more than
-        ``normal_max_deg`` from the triangulation's own (profile-grid) normal takes no
-        part in the pair term (a crease, a stripe broken by occlusion). Only for sweeps
-        whose profiles are at most ``normal_max_spacing`` metres apart: the neighbourhood
-        spans three profiles, and wider apart it smooths curved parts more than the grid
-        normals err (measured: with 2.2 mm profiles the vase's top sweep ends 0.07
-        degrees off, 0.02 with the grid normals; with 1.1 mm profiles the worst sweep of
-        four simulated scans improves from 0.017-0.019 to 0.013-0.017 degrees).
-        ``normal_k = 0``: the triangulation's normals, every point.
-    rim_weight : float
-        Weight of the silhouette term relative to its residuals' robust scale (measured
-        best at 3 on four simulated scans: the rim residuals' errors are smaller than
-        the scale of the mixed residual distribution suggests).
-    seed : int
-
-    Returns
-    -------
-    RefinementResult
-
-    References
-    ----------
-    Chen & Medioni (1992), point-to-plane residuals; Triggs et al. (2000), Bundle
-    adjustment -- a modern synthesis (Gauss-Newton with robust weights and priors);
-    Cipolla & Giblin (2000), Visual motion of curves and surfaces (contour generators).
-    """
+def _refine_inputs(points, normals, origins, profiles, initial, act: list[int],
+                   max_points: int, rng):
+    """The sweeps' points, unit normals, origins and profile keys (subsampled to
+    ``max_points``, seeded), and the initial rotations and sensor shifts of the active
+    sweeps (from the rigid ``initial`` corrections at their mean sensor positions)."""
     n_s = len(points)
-    if not (len(normals) == len(origins) == n_s):
-        raise ValueError("points, normals and origins need one array per sweep")
-    if profiles is not None and len(profiles) != n_s:
-        raise ValueError("profiles needs one array per sweep")
-    if not (prior_mm > 0 and prior_deg > 0):
-        raise ValueError(f"prior_mm and prior_deg must be > 0, got {prior_mm}, {prior_deg}")
-    rng = np.random.default_rng(seed)
-    act = sorted(set(range(n_s) if active is None else active))
-    fixed = sorted(set(fixed or []) & set(act))
     rot = np.tile(np.eye(3), (n_s, 1, 1))
     trans = np.zeros((n_s, 3))
     P, Nn, O, G = [], [], [], []
@@ -1760,160 +1741,115 @@ def refine_sweeps(
             rot[s] = c[:3, :3]
             mean_o = o.mean(axis=0) if len(o) else np.zeros(3)
             trans[s] = c[:3, 3] + c[:3, :3] @ mean_o - mean_o
-    # pair term on thinned copies (one measured point per voxel)
+    return P, Nn, O, G, rot, trans
+
+
+def _pair_subsets(P, Nn, O, G, o: AlignOptions) -> list[np.ndarray]:
+    """The points of each sweep that take part in the pair term, thinned to one measured
+    point per voxel; ``Nn`` replaced (in place) by :func:`_pair_normals` for sweeps whose
+    profiles are close enough."""
     red_idx = []
-    for s in range(n_s):
+    for s in range(len(P)):
         cand = np.arange(len(P[s]))
-        if normal_k and len(P[s]) and _profile_spacing(O[s], G[s]) <= normal_max_spacing:
-            Nn[s], usable = _pair_normals(P[s], Nn[s], G[s], normal_k, normal_max_deg,
-                                          normal_reach)
+        if (o.pair_normals_k and len(P[s])
+                and _profile_spacing(O[s], G[s]) <= o.pair_normals_max_spacing_m):
+            Nn[s], usable = _pair_normals(P[s], Nn[s], G[s], o.pair_normals_k,
+                                          _NORMAL_MAX_DEG, _NORMAL_REACH)
             cand = cand[usable]
-        if len(cand) == 0 or voxel_size <= 0:
+        if len(cand) == 0 or o.voxel_size_m <= 0:
             red_idx.append(cand)
             continue
-        key = np.floor((P[s][cand] - P[s][cand].min(axis=0)) / voxel_size).astype(np.int64)
+        key = np.floor((P[s][cand] - P[s][cand].min(axis=0)) / o.voxel_size_m).astype(np.int64)
         _, first = np.unique(key, axis=0, return_index=True)
         red_idx.append(cand[np.sort(first)])
-    pairs = [(int(i), int(j)) for i, j in pairs if i in act and j in act and i != j]
-    fields = (_view_fields(silhouettes, rim_cell_px, 0.7)
-              if silhouettes is not None and profiles is not None else [])
-    index = {s: k for k, s in enumerate(act)}
-    n_par = 6 * len(act)
-    sig_t = prior_mm * 1e-3
-    sig_r = np.radians(prior_deg)
-    prior_sd = np.r_[np.full(3, sig_r), np.full(3, sig_t)]
-    degen: dict[str, np.ndarray] = {}
-    sigma_p = max(voxel_size, 1e-6)  # robust scale of the pair residuals (metres)
-    sigma_s = 0.5                    # ... of the rim residuals (px)
-    converged = False
-    it = 0
-    rim_stats: dict[int, np.ndarray] = {}
-    steps: list[float] = []
-    history: list[tuple[np.ndarray, np.ndarray]] = []
-    full_steps: list[float] = []
-    damping = 1.0
-    for it in range(1, max_iterations + 1):
-        cur = [((P[s] - O[s]) @ rot[s].T + O[s] + trans[s]) for s in range(n_s)]
-        cur_n = [Nn[s] @ rot[s].T for s in range(n_s)]
-        org = [O[s] + trans[s] for s in range(n_s)]
-        H = np.zeros((n_par, n_par))
-        b = np.zeros(n_par)
-        d_max = max(max_corr_dist / 2 ** (it - 1), 3 * sigma_p, voxel_size)
-        pair_r = []
-        trees = {}
-        for i, j in pairs:
-            for a_, b_ in ((i, j), (j, i)):
-                if b_ not in trees:
-                    trees[b_] = cKDTree(cur[b_][red_idx[b_]])
-                xa = cur[a_][red_idx[a_]]
-                dist, nb = trees[b_].query(xa, k=1, distance_upper_bound=d_max)
-                ok = np.isfinite(dist)
-                # the two sides of a thin wall lie within the correspondence distance:
-                # points whose normals disagree by more than 60 degrees are not one
-                # surface (as in _pair_info)
-                ok[ok] = np.einsum("ij,ij->i", cur_n[a_][red_idx[a_][ok]],
-                                   cur_n[b_][red_idx[b_][nb[ok]]]) > 0.5
-                if not np.any(ok):
-                    continue
-                ia = red_idx[a_][ok]
-                ib = red_idx[b_][nb[ok]]
-                x, y = cur[a_][ia], cur[b_][ib]
-                nrm = cur_n[b_][ib]
-                r = np.einsum("ij,ij->i", x - y, nrm)
-                w = _huber(r / sigma_p, 2.0) / sigma_p**2
-                ja = np.hstack([np.cross(x - org[a_][ia], nrm), nrm])
-                jb = -np.hstack([np.cross(y - org[b_][ib], nrm), nrm])
-                ka, kb = 6 * index[a_], 6 * index[b_]
-                H[ka:ka + 6, ka:ka + 6] += ja.T @ (ja * w[:, None])
-                H[kb:kb + 6, kb:kb + 6] += jb.T @ (jb * w[:, None])
-                H[ka:ka + 6, kb:kb + 6] += ja.T @ (jb * w[:, None])
-                H[kb:kb + 6, ka:ka + 6] += jb.T @ (ja * w[:, None])
-                b[ka:ka + 6] += ja.T @ (w * r)
-                b[kb:kb + 6] += jb.T @ (w * r)
-                pair_r.append(r)
-        rims = []
-        gate = max(rim_search_px - 1.0, 1.5) if it <= 2 else max(1.5, 4 * sigma_s)
-        for f in fields:
-            for s in act:
-                idx, r, jac, scl = _rim_residuals(
-                    f, cur[s], cur_n[s], G[s], cos_max=rim_cos, side_px=rim_side_px,
-                    search_px=rim_search_px, min_contrast=rim_min_contrast)
-                if len(idx) == 0:
-                    continue
-                okr = np.abs(r) < gate
-                idx, r, jac, scl = idx[okr], r[okr], jac[okr], scl[okr]
-                if len(idx) == 0:
-                    continue
-                x = cur[s][idx]
-                js = np.hstack([np.cross(x - org[s][idx], jac), jac])
-                w = rim_weight * _huber(r / sigma_s, 1.5) / sigma_s**2
-                k = 6 * index[s]
-                H[k:k + 6, k:k + 6] += js.T @ (js * w[:, None])
-                b[k:k + 6] += js.T @ (w * r)
-                rims.append((s, r))
-        # prior on each correction (rotation vector, sensor shift): its information
-        # and gradient, kept apart from the data's so that the directions the data do
-        # not constrain can be left to it alone
-        prior_b = np.zeros(n_par)
+    return red_idx
+
+
+def _add_pair_terms(H: np.ndarray, b: np.ndarray, pairs, cur, cur_n, org, red_idx,
+                    index: dict[int, int], sigma_p: float, d_max: float) -> list[np.ndarray]:
+    """Add the point-to-plane terms of every pair (both directions, Huber-weighted) to
+    the normal equations ``H``, ``b`` (in place); returns the residuals."""
+    pair_r = []
+    trees = {}
+    for i, j in pairs:
+        for a_, b_ in ((i, j), (j, i)):
+            if b_ not in trees:
+                trees[b_] = cKDTree(cur[b_][red_idx[b_]])
+            xa = cur[a_][red_idx[a_]]
+            dist, nb = trees[b_].query(xa, k=1, distance_upper_bound=d_max)
+            ok = np.isfinite(dist)
+            # the two sides of a thin wall lie within the correspondence distance:
+            # points whose normals disagree by more than 60 degrees are not one
+            # surface (as in _pair_info)
+            ok[ok] = np.einsum("ij,ij->i", cur_n[a_][red_idx[a_][ok]],
+                               cur_n[b_][red_idx[b_][nb[ok]]]) > 0.5
+            if not np.any(ok):
+                continue
+            ia = red_idx[a_][ok]
+            ib = red_idx[b_][nb[ok]]
+            x, y = cur[a_][ia], cur[b_][ib]
+            nrm = cur_n[b_][ib]
+            r = np.einsum("ij,ij->i", x - y, nrm)
+            w = _huber(r / sigma_p, 2.0) / sigma_p**2
+            ja = np.hstack([np.cross(x - org[a_][ia], nrm), nrm])
+            jb = -np.hstack([np.cross(y - org[b_][ib], nrm), nrm])
+            ka, kb = 6 * index[a_], 6 * index[b_]
+            H[ka:ka + 6, ka:ka + 6] += ja.T @ (ja * w[:, None])
+            H[kb:kb + 6, kb:kb + 6] += jb.T @ (jb * w[:, None])
+            H[ka:ka + 6, kb:kb + 6] += ja.T @ (jb * w[:, None])
+            H[kb:kb + 6, ka:ka + 6] += jb.T @ (ja * w[:, None])
+            b[ka:ka + 6] += ja.T @ (w * r)
+            b[kb:kb + 6] += jb.T @ (w * r)
+            pair_r.append(r)
+    return pair_r
+
+
+def _add_rim_terms(H: np.ndarray, b: np.ndarray, fields, act, cur, cur_n, org, G,
+                   index: dict[int, int], gate: float, sigma_s: float, rim_weight: float
+                   ) -> list[tuple[int, np.ndarray]]:
+    """Add each view's contour-generator residuals (:func:`_rim_residuals`) within
+    ``gate`` px, Huber-weighted and weighed by ``rim_weight``, to ``H``, ``b`` (in
+    place); returns (sweep, residuals) per view and sweep."""
+    rims = []
+    for f in fields:
         for s in act:
+            idx, r, jac, scl = _rim_residuals(f, cur[s], cur_n[s], G[s], **_RIM)
+            if len(idx) == 0:
+                continue
+            okr = np.abs(r) < gate
+            idx, r, jac, scl = idx[okr], r[okr], jac[okr], scl[okr]
+            if len(idx) == 0:
+                continue
+            x = cur[s][idx]
+            js = np.hstack([np.cross(x - org[s][idx], jac), jac])
+            w = rim_weight * _huber(r / sigma_s, 1.5) / sigma_s**2
             k = 6 * index[s]
-            prior_b[k:k + 3] = _log_so3(rot[s]) / sig_r**2
-            prior_b[k + 3:k + 6] = trans[s] / sig_t**2
-        free = np.ones(n_par, dtype=bool)
-        for s in fixed:  # gauge: these sweeps keep their initial correction
-            if s in index:
-                free[6 * index[s]:6 * index[s] + 6] = False
-        try:
-            delta, degen = _solve_held(H, b, prior_b, np.tile(prior_sd, len(act)), free,
-                                       degenerate_ratio)
-            log.debug("refine it %d: whitened data information %s", it,
-                      np.array2string(degen["eigenvalues"], precision=3))
-        except np.linalg.LinAlgError:
-            log.warning("refinement: singular normal equations at iteration %d", it)
-            break
-        full = 0.0
-        for s in act:
-            k = 6 * index[s]
-            lever = float(np.linalg.norm(cur[s].mean(axis=0) - org[s].mean(axis=0))) if len(
-                cur[s]) else 0.0
-            full = max(full, float(np.linalg.norm(delta[k + 3:k + 6]))
-                       + float(np.linalg.norm(delta[k:k + 3])) * lever)
-        # a full step larger than one already taken, once the estimate is near the
-        # optimum, is the correspondences (pairs, contour points) switching back and
-        # forth: shorten the steps from then on, so that the iterates settle in the
-        # middle of the cycle instead of jumping across it
-        if it > 4 and full > min(full_steps[3:] or [np.inf]):
-            damping = max(damping * 0.6, 1 / 16)
-        full_steps.append(full)
-        delta = delta * damping
-        biggest = full * damping
-        for s in act:
-            k = 6 * index[s]
-            rot[s] = _exp_so3(delta[k:k + 3]) @ rot[s]
-            trans[s] = trans[s] + delta[k + 3:k + 6]
-        if pair_r:
-            rr = np.concatenate(pair_r)
-            sigma_p = max(1.4826 * float(np.median(np.abs(rr))), 1e-6)
-        rim_stats = {}
-        if rims:
-            allr = np.concatenate([r for _, r in rims])
-            sigma_s = float(np.clip(1.4826 * np.median(np.abs(allr - np.median(allr))), 0.1, 2))
-            for s in act:
-                rs = [r for ss, r in rims if ss == s]
-                rim_stats[s] = np.concatenate(rs) if rs else np.zeros(0)
-        log.debug("refine it %d: step %.2e m, pair sigma %.2e m, rim sigma %.3f px", it,
-                  biggest, sigma_p, sigma_s)
-        steps.append(biggest)
-        history.append((rot.copy(), trans.copy()))
-        if it >= 4 and biggest < tol:
-            converged = True
-            break
-        if it >= 6 and max(steps[-4:]) < settle_tol:
-            # settled: the correspondences cycle between nearly equal sets, each step far
-            # below the residuals' scale; the estimate is the centre of the last four
-            rot, trans = _mean_poses(history[-4:])
-            converged = True
-            break
+            H[k:k + 6, k:k + 6] += js.T @ (js * w[:, None])
+            b[k:k + 6] += js.T @ (w * r)
+            rims.append((s, r))
+    return rims
+
+
+def _largest_step(delta: np.ndarray, act, index, cur, org) -> float:
+    """The largest step of any active sweep's points: shift plus rotation times the
+    sensor's distance from its points (metres)."""
+    full = 0.0
+    for s in act:
+        k = 6 * index[s]
+        lever = float(np.linalg.norm(cur[s].mean(axis=0) - org[s].mean(axis=0))) if len(
+            cur[s]) else 0.0
+        full = max(full, float(np.linalg.norm(delta[k + 3:k + 6]))
+                   + float(np.linalg.norm(delta[k:k + 3])) * lever)
+    return full
+
+
+def _refinement_result(rot, trans, converged: bool, it: int, rim_stats, degen, index, act,
+                       fixed, fields, sigma_s: float, sigma_p: float, prior_sd, P, O
+                       ) -> RefinementResult:
+    """The :class:`RefinementResult`: per sweep its rim residuals and the directions its
+    data fixed (:func:`_direction_report`), the silhouette term, the gauge; sweeps not
+    refined at the identity."""
+    n_s = len(P)
     all_rim = np.concatenate(list(rim_stats.values())) if rim_stats else np.zeros(0)
     per_sweep = []
     for s in range(n_s):
@@ -1938,3 +1874,220 @@ def refine_sweeps(
     return RefinementResult(rotations=rot, translations=trans, converged=converged,
                             iterations=it, gauge=gauge, per_sweep=per_sweep,
                             silhouettes=sil, pair_sigma_mm=float(sigma_p * 1e3))
+
+
+def _gauss_newton_step(rot, trans, P, Nn, O, G, pairs, red_idx, fields, act, index,
+                       it: int, sigma_p: float, sigma_s: float, o: AlignOptions,
+                       prior_sd: np.ndarray, free: np.ndarray):
+    """One Gauss-Newton step of :func:`refine_sweeps` at the current corrections: the
+    pair and rim terms, the prior, the step with the held directions
+    (:func:`_solve_held`). Returns (step, eigen-decomposition, its largest point
+    displacement, pair residuals, rim residuals); LinAlgError when singular."""
+    n_s, n_par = len(P), 6 * len(act)
+    cur = [((P[s] - O[s]) @ rot[s].T + O[s] + trans[s]) for s in range(n_s)]
+    cur_n = [Nn[s] @ rot[s].T for s in range(n_s)]
+    org = [O[s] + trans[s] for s in range(n_s)]
+    H = np.zeros((n_par, n_par))
+    b = np.zeros(n_par)
+    d_max = max(o.max_corr_dist_m / 2 ** (it - 1), 3 * sigma_p, o.voxel_size_m)
+    pair_r = _add_pair_terms(H, b, pairs, cur, cur_n, org, red_idx, index, sigma_p, d_max)
+    gate = (max(_RIM["search_px"] - 1.0, 1.5) if it <= 2 else max(1.5, 4 * sigma_s))
+    rims = _add_rim_terms(H, b, fields, act, cur, cur_n, org, G, index, gate, sigma_s,
+                          o.rim_weight)
+    # prior on each correction (rotation vector, sensor shift): its information and
+    # gradient, kept apart from the data's so that the directions the data do not
+    # constrain can be left to it alone
+    prior_b = np.zeros(n_par)
+    for s in act:
+        k = 6 * index[s]
+        prior_b[k:k + 3] = _log_so3(rot[s]) / prior_sd[0]**2
+        prior_b[k + 3:k + 6] = trans[s] / prior_sd[3]**2
+    delta, degen = _solve_held(H, b, prior_b, np.tile(prior_sd, len(act)), free,
+                               o.degenerate_ratio)
+    log.debug("refine it %d: whitened data information %s", it,
+              np.array2string(degen["eigenvalues"], precision=3))
+    return delta, degen, _largest_step(delta, act, index, cur, org), pair_r, rims
+
+
+def _robust_scales(pair_r, rims, act, sigma_p: float, sigma_s: float
+                   ) -> tuple[float, float, dict[int, np.ndarray]]:
+    """The pair residuals' (metres) and rim residuals' (px) robust scales after a step,
+    and each sweep's rim residuals."""
+    if pair_r:
+        rr = np.concatenate(pair_r)
+        sigma_p = max(1.4826 * float(np.median(np.abs(rr))), 1e-6)
+    rim_stats = {}
+    if rims:
+        allr = np.concatenate([r for _, r in rims])
+        sigma_s = float(np.clip(1.4826 * np.median(np.abs(allr - np.median(allr))), 0.1, 2))
+        for s in act:
+            rs = [r for ss, r in rims if ss == s]
+            rim_stats[s] = np.concatenate(rs) if rs else np.zeros(0)
+    return sigma_p, sigma_s, rim_stats
+
+
+def _iterate(rot, trans, sigma_p: float, sigma_s: float, P, Nn, O, G, pairs, red_idx,
+             fields, act, index, o: AlignOptions, prior_sd: np.ndarray, free: np.ndarray):
+    """The Gauss-Newton iterations of :func:`refine_sweeps` from ``rot``, ``trans`` and
+    the residuals' robust scales, with the damping of cycling steps and the two
+    convergence tests: (rotations, translations, converged, iterations, rim residuals
+    per sweep, last eigen-decomposition, pair scale, rim scale)."""
+    degen: dict[str, np.ndarray] = {}
+    converged = False
+    it = 0
+    rim_stats: dict[int, np.ndarray] = {}
+    steps: list[float] = []
+    history: list[tuple[np.ndarray, np.ndarray]] = []
+    full_steps: list[float] = []
+    damping = 1.0
+    for it in range(1, o.refine_iterations + 1):
+        try:
+            delta, degen, full, pair_r, rims = _gauss_newton_step(
+                rot, trans, P, Nn, O, G, pairs, red_idx, fields, act, index, it, sigma_p,
+                sigma_s, o, prior_sd, free)
+        except np.linalg.LinAlgError:
+            log.warning("refinement: singular normal equations at iteration %d", it)
+            break
+        # a full step larger than one already taken, once the estimate is near the
+        # optimum, is the correspondences (pairs, contour points) switching back and
+        # forth: shorten the steps from then on, so that the iterates settle in the
+        # middle of the cycle instead of jumping across it
+        if it > 4 and full > min(full_steps[3:] or [np.inf]):
+            damping = max(damping * 0.6, 1 / 16)
+        full_steps.append(full)
+        delta = delta * damping
+        biggest = full * damping
+        for s in act:
+            k = 6 * index[s]
+            rot[s] = _exp_so3(delta[k:k + 3]) @ rot[s]
+            trans[s] = trans[s] + delta[k + 3:k + 6]
+        sigma_p, sigma_s, rim_stats = _robust_scales(pair_r, rims, act, sigma_p, sigma_s)
+        log.debug("refine it %d: step %.2e m, pair sigma %.2e m, rim sigma %.3f px", it,
+                  biggest, sigma_p, sigma_s)
+        steps.append(biggest)
+        history.append((rot.copy(), trans.copy()))
+        if it >= 4 and biggest < _TOL:
+            converged = True
+            break
+        if it >= 6 and max(steps[-4:]) < _SETTLE_TOL:
+            # settled: the correspondences cycle between nearly equal sets, each step far
+            # below the residuals' scale; the estimate is the centre of the last four
+            rot, trans = _mean_poses(history[-4:])
+            converged = True
+            break
+    return rot, trans, converged, it, rim_stats, degen, sigma_p, sigma_s
+
+
+def _check_refine_inputs(points, normals, origins, profiles, o: AlignOptions) -> None:
+    n_s = len(points)
+    if not (len(normals) == len(origins) == n_s):
+        raise ValueError("points, normals and origins need one array per sweep")
+    if profiles is not None and len(profiles) != n_s:
+        raise ValueError("profiles needs one array per sweep")
+    if not (o.prior_mm > 0 and o.prior_deg > 0):
+        raise ValueError(f"prior_mm and prior_deg must be > 0, got {o.prior_mm}, "
+                         f"{o.prior_deg}")
+
+
+def refine_sweeps(
+    points: list[np.ndarray],
+    normals: list[np.ndarray],
+    origins: list[np.ndarray],
+    pairs: list[tuple[int, int]],
+    *,
+    options: AlignOptions = AlignOptions(),
+    profiles: list[np.ndarray] | None = None,
+    initial: np.ndarray | None = None,
+    active: list[int] | None = None,
+    fixed: list[int] | None = None,
+    silhouettes: SilhouetteViews | None = None,
+    max_points: int = 30_000,
+) -> RefinementResult:
+    """Joint refinement of all sweep corrections against each other and the silhouettes.
+
+    The unknowns are one correction per sweep in the motion model of
+    :func:`apply_correction` (the sensor turned about its own position at every frame
+    and shifted): exact for a pose error that is constant in the flange frame while the
+    robot translates, which a rigid transform of the sweep's points is not (it leaves a
+    shear of ``rotation error x travel``). Gauss-Newton minimises, with Huber weights,
+
+    - point-to-plane distances between every overlapping pair (both directions, nearest
+      neighbours within a distance shrinking from ``max_corr_dist_m`` to three robust
+      standard deviations),
+    - with ``silhouettes``: the distance of each view's contour-generator points to the
+      image edge of that view's silhouette (:func:`_rim_residuals`), which fixes the
+      absolute position the sweeps cannot give each other: the views are taken at rest,
+      their poses about ten times more accurate than a moving sweep's,
+    - a prior on each correction (``prior_mm``, ``prior_deg``: the robot's expected
+      error), which only decides what neither of the above determines (without views:
+      the gauge, i.e. the least correction that makes the sweeps agree).
+
+    Parameters
+    ----------
+    points, normals, origins : list of (N_s, 3) float64
+        Each sweep's points (metres, ``base``, at the robot's poses), unit normals, and
+        sensor position at each point's frame.
+    pairs : list of (i, j)
+        Overlapping pairs to use.
+    options : AlignOptions
+        ``prior_mm``, ``prior_deg`` (the robot's per-sweep error), ``voxel_size_m``
+        (the pair term's thinning), ``max_corr_dist_m``, ``refine_iterations``,
+        ``pair_normals_k``, ``pair_normals_max_spacing_m`` (:func:`_pair_normals`),
+        ``rim_weight``, ``degenerate_ratio`` (:func:`_solve_held`) and ``seed``.
+    profiles : list of (N_s,) int, optional
+        Laser profile (frame) of each point; needed for the silhouette term.
+    initial : (S, 4, 4) float64, optional
+        Rigid corrections to start from (e.g. the pose graph's).
+    active : list of int, optional
+        Sweeps to refine (others keep the identity and take no part).
+    fixed : list of int, optional
+        Active sweeps that keep their initial correction (a gauge without silhouettes).
+    silhouettes : SilhouetteViews, optional
+    max_points : int
+        Cap on points per sweep for the pair and silhouette terms (seeded subsample).
+
+    Returns
+    -------
+    RefinementResult
+
+    Notes
+    -----
+    Converged when the largest step of any sweep's points (shift plus rotation times
+    the sensor's distance) falls below 1 micrometre, or "settled" when the last four
+    steps all fall below 30 micrometres: near the optimum the correspondences may cycle
+    between nearly equal sets, and the result is the mean of the cycle's last four
+    estimates. Steps that grow again after the fourth iteration (the cycle) are
+    shortened from then on (by 0.6 each time, to 1/16 at least). A point whose pair-term
+    normal differs by more than 10 degrees from the triangulation's own takes no part in
+    the pair term (a crease, a stripe broken by occlusion).
+
+    References
+    ----------
+    Chen & Medioni (1992), point-to-plane residuals; Triggs et al. (2000), Bundle
+    adjustment -- a modern synthesis (Gauss-Newton with robust weights and priors);
+    Cipolla & Giblin (2000), Visual motion of curves and surfaces (contour generators).
+    """
+    o = options
+    n_s = len(points)
+    _check_refine_inputs(points, normals, origins, profiles, o)
+    rng = np.random.default_rng(o.seed)
+    act = sorted(set(range(n_s) if active is None else active))
+    fixed = sorted(set(fixed or []) & set(act))
+    P, Nn, O, G, rot, trans = _refine_inputs(points, normals, origins, profiles, initial,
+                                             act, max_points, rng)
+    red_idx = _pair_subsets(P, Nn, O, G, o)  # pair term on thinned copies
+    pairs = [(int(i), int(j)) for i, j in pairs if i in act and j in act and i != j]
+    fields = (_view_fields(silhouettes, _RIM_CELL_PX, 0.7)
+              if silhouettes is not None and profiles is not None else [])
+    index = {s: k for k, s in enumerate(act)}
+    prior_sd = np.r_[np.full(3, np.radians(o.prior_deg)), np.full(3, o.prior_mm * 1e-3)]
+    free = np.ones(6 * len(act), dtype=bool)
+    for s in fixed:  # gauge: these sweeps keep their initial correction
+        free[6 * index[s]:6 * index[s] + 6] = False
+    sigma_p = max(o.voxel_size_m, 1e-6)  # robust scale of the pair residuals (metres)
+    sigma_s = 0.5                        # ... of the rim residuals (px)
+    rot, trans, converged, it, rim_stats, degen, sigma_p, sigma_s = _iterate(
+        rot, trans, sigma_p, sigma_s, P, Nn, O, G, pairs, red_idx, fields, act, index, o,
+        prior_sd, free)
+    return _refinement_result(rot, trans, converged, it, rim_stats, degen, index, act, fixed,
+                              fields, sigma_s, sigma_p, prior_sd, P, O)

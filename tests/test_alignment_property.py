@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from robo3d.errors import Robo3dError
-from robo3d.registration import SilhouetteViews, align_sweeps
+from robo3d.registration import AlignOptions, SilhouetteViews, align_sweeps
 
 sim_render = pytest.importorskip("robo3d.sim.render")
 from robo3d.sim import rig, shapes  # noqa: E402
@@ -150,8 +150,8 @@ def test_alignment_never_crashes_and_never_makes_poses_worse(name, n_sweeps, n_v
     pts = [s[0] for s in sweeps]
     try:
         res = align_sweeps(pts, [s[1] for s in sweeps], origins=[s[2] for s in sweeps],
-                           profiles=[s[3] for s in sweeps], refine=True, silhouettes=views,
-                           seed=seed)
+                           profiles=[s[3] for s in sweeps], silhouettes=views,
+                           options=AlignOptions(seed=seed))
     except Robo3dError:
         return  # robo3d's own, named error: allowed
     aligned = [res.apply(k, s[0], s[2])[0] for k, s in enumerate(sweeps)]

@@ -9,8 +9,11 @@ import numpy as np
 import pytest
 
 from robo3d.evaluate import pose_error
-from robo3d.registration import AlignmentResult, align_sweeps
+from robo3d.registration import AlignmentResult, AlignOptions, align_sweeps
 from robo3d.transforms import euler_to_matrix, invert_transform, make_transform
+
+#: The pose graph alone (AlignOptions' default refines, as the pipeline does).
+RIGID = AlignOptions(refine=False)
 
 OFFSET = np.array([0.5, 0.1, 0.05])  # the object sits half a metre from the robot base
 CENTRES = [(-12e-3, -12e-3), (12e-3, -12e-3), (-12e-3, 12e-3), (12e-3, 12e-3)]
@@ -78,7 +81,7 @@ def _relative_errors(result: AlignmentResult, errs, pts):
 @pytest.mark.parametrize("method", ["pose_graph", "sequential"])
 def test_recovers_known_perturbations(method):
     pts, nrm, errs = _views()
-    res = align_sweeps(pts, nrm, method=method)
+    res = align_sweeps(pts, nrm, options=RIGID.replace(method=method))
     assert res.corrections.shape == (4, 4, 4)
     assert not any(p["flagged"] for p in res.per_sweep)
     assert all(p["converged"] for p in res.per_sweep)
@@ -102,8 +105,8 @@ def test_recovers_known_perturbations(method):
 
 def test_pose_graph_is_deterministic_and_json_ready():
     pts, nrm, _ = _views(n=3000)
-    a = align_sweeps(pts, nrm)
-    b = align_sweeps(pts, nrm)
+    a = align_sweeps(pts, nrm, options=RIGID)
+    b = align_sweeps(pts, nrm, options=RIGID)
     np.testing.assert_allclose(a.corrections, b.corrections, atol=1e-12)
     text = json.dumps(a.to_dict(), allow_nan=False)
     back = json.loads(text)
@@ -112,7 +115,7 @@ def test_pose_graph_is_deterministic_and_json_ready():
 
 def test_mean_gauge_averages_the_corrections():
     pts, nrm, errs = _views(unperturbed=())
-    res = align_sweeps(pts, nrm, gauge="mean")
+    res = align_sweeps(pts, nrm, options=RIGID, gauge="mean")
     # the chordal mean rotation is the identity ...
     u, _, vt = np.linalg.svd(res.corrections[:, :3, :3].mean(axis=0))
     np.testing.assert_allclose(u @ vt, np.eye(3), atol=1e-9)
@@ -130,7 +133,7 @@ def test_mean_gauge_averages_the_corrections():
 def test_grossly_wrong_sweep_is_flagged_and_left_at_robot_pose():
     pts, nrm, errs = _views()
     pts[3] = pts[3] + np.array([0.0, 0.0, 10e-3])  # 10 mm off: no overlap
-    res = align_sweeps(pts, nrm)
+    res = align_sweeps(pts, nrm, options=RIGID)
     bad = res.per_sweep[3]
     assert bad["flagged"] and "overlap" in bad["reason"]
     np.testing.assert_array_equal(res.corrections[3], np.eye(4))
@@ -142,7 +145,8 @@ def test_grossly_wrong_sweep_is_flagged_and_left_at_robot_pose():
 def test_correction_beyond_bounds_is_refused():
     # only sweep 3 is off, by 0.3 mm / 0.1 deg
     pts, nrm, errs = _views(perturb_deg=0.1, unperturbed=(0, 1, 2))
-    res = align_sweeps(pts, nrm, max_correction_mm=0.2, max_correction_deg=3.0)
+    res = align_sweeps(pts, nrm, options=RIGID.replace(max_correction_mm=0.2,
+                                                       max_correction_deg=3.0))
     bad = res.per_sweep[3]
     assert bad["flagged"] and "exceeds the bounds" in bad["reason"]
     np.testing.assert_array_equal(res.corrections[3], np.eye(4))
@@ -151,11 +155,11 @@ def test_correction_beyond_bounds_is_refused():
         assert res.per_sweep[s]["translation_mm"] < 0.01
         assert res.per_sweep[s]["rotation_deg"] < 0.01
     # with room to move, the same sweep is corrected
-    res2 = align_sweeps(pts, nrm)
+    res2 = align_sweeps(pts, nrm, options=RIGID)
     assert not res2.per_sweep[3]["flagged"]
     assert res2.per_sweep[3]["translation_mm"] > 0.2
     # tighter still, the pairwise results themselves are refused: no accepted pair
-    res3 = align_sweeps(pts, nrm, max_correction_mm=0.1)
+    res3 = align_sweeps(pts, nrm, options=RIGID.replace(max_correction_mm=0.1))
     assert res3.per_sweep[3]["flagged"]
     assert "exceeds twice the per-sweep bounds" in res3.per_sweep[3]["reason"]
     np.testing.assert_array_equal(res3.corrections[3], np.eye(4))
@@ -167,7 +171,7 @@ def test_distant_sweep_is_not_connected():
     pts, nrm, _ = _views(n=3000)
     rng = np.random.default_rng(5)
     p, n = _patch(200e-3, 0.0, 3000, rng)
-    res = align_sweeps(pts + [p], nrm + [n])
+    res = align_sweeps(pts + [p], nrm + [n], options=RIGID)
     assert res.per_sweep[4]["flagged"]
     assert "no overlapping sweep" in res.per_sweep[4]["reason"]
     np.testing.assert_array_equal(res.corrections[4], np.eye(4))
@@ -183,7 +187,7 @@ def test_no_overlapping_pair_at_all_keeps_every_sweep_at_its_robot_pose():
         p, n = _patch(0.2 * k, 0.0, 2000, rng)
         pts.append(p)
         nrm.append(n)
-    res = align_sweeps(pts, nrm, refine=True)
+    res = align_sweeps(pts, nrm, options=AlignOptions(refine=True))
     assert all(q["flagged"] for q in res.per_sweep)
     np.testing.assert_array_equal(res.corrections, np.tile(np.eye(4), (3, 1, 1)))
     assert "skipped" in res.refinement
@@ -192,12 +196,12 @@ def test_no_overlapping_pair_at_all_keeps_every_sweep_at_its_robot_pose():
 def test_single_and_empty_inputs():
     rng = np.random.default_rng(0)
     p, n = _patch(0.0, 0.0, 500, rng)
-    one = align_sweeps([p], [n])
+    one = align_sweeps([p], [n], options=RIGID)
     np.testing.assert_array_equal(one.corrections, np.eye(4)[None])
     assert one.reference == 0 and not one.per_sweep[0]["flagged"]
-    none = align_sweeps([], [])
+    none = align_sweeps([], [], options=RIGID)
     assert none.corrections.shape == (0, 4, 4) and none.reference == -1
-    tiny = align_sweeps([p, p[:3]], [n, n[:3]])
+    tiny = align_sweeps([p, p[:3]], [n, n[:3]], options=RIGID)
     assert tiny.per_sweep[1]["flagged"] and "too few points" in tiny.per_sweep[1]["reason"]
 
 
@@ -208,9 +212,9 @@ def test_single_and_empty_inputs():
         (dict(points=[np.zeros((5, 2))], normals=[np.zeros((5, 2))]), r"\(N, 3\)"),
         (dict(points=[np.zeros((5, 3))], normals=[np.zeros((4, 3))]), "normals\\[0\\]"),
         (dict(points=[np.full((5, 3), np.nan)], normals=[np.zeros((5, 3))]), "non-finite"),
-        (dict(points=[], normals=[], method="magic"), "method"),
+        (dict(points=[], normals=[], options=AlignOptions(method="magic")), "method"),
         (dict(points=[], normals=[], gauge="first"), "gauge"),
-        (dict(points=[], normals=[], min_overlap=0.0), "min_overlap"),
+        (dict(points=[], normals=[], options=AlignOptions(min_overlap=0.0)), "min_overlap"),
         (dict(points=np.zeros((5, 3)), normals=np.zeros((5, 3))), "lists"),
     ],
 )
@@ -261,9 +265,10 @@ def _common_rigid_residual_mm(truth, corrected):
 
 def test_refinement_undoes_sensor_pose_errors_that_rigid_icp_cannot():
     truth, pts, nrm, org, prof = _sweeps_with_sensor_errors()
-    rigid = align_sweeps(pts, nrm, voxel_size=0.4e-3, max_corr_dist=3e-3)
-    ref = align_sweeps(pts, nrm, voxel_size=0.4e-3, max_corr_dist=3e-3, origins=org,
-                       profiles=prof, refine=True)
+    opts = RIGID.replace(voxel_size_m=0.4e-3, max_corr_dist_m=3e-3)
+    rigid = align_sweeps(pts, nrm, options=opts)
+    ref = align_sweeps(pts, nrm, options=opts.replace(refine=True), origins=org,
+                       profiles=prof)
     moved_rigid = [rigid.apply(s, p)[0] for s, p in enumerate(pts)]
     moved_ref = [ref.apply(s, p, o)[0] for s, (p, o) in enumerate(zip(pts, org, strict=True))]
     before = _common_rigid_residual_mm(truth, pts)
@@ -286,9 +291,9 @@ def test_refined_correction_beyond_bounds_is_flagged():
     truth, pts, nrm, org, prof = _sweeps_with_sensor_errors(rot_deg=0.25, shift_mm=0.3)
     # the pairs pass (relative corrections 0.7-1.8 mm < twice the bound), but the
     # refined corrections of some sweeps (relative to the reference) exceed 1 mm
-    res = align_sweeps(pts, nrm, voxel_size=0.4e-3, max_corr_dist=3e-3, origins=org,
-                       profiles=prof, refine=True, max_correction_mm=1.0,
-                       max_correction_deg=0.3)
+    res = align_sweeps(pts, nrm, options=AlignOptions(
+        voxel_size_m=0.4e-3, max_corr_dist_m=3e-3, max_correction_mm=1.0,
+        max_correction_deg=0.3), origins=org, profiles=prof)
     assert all(p["accepted"] for p in res.pairs)
     flagged = [p for p in res.per_sweep if p["flagged"]]
     assert flagged and all("exceeds the bounds" in p["reason"] for p in flagged)
@@ -401,7 +406,8 @@ def test_pairwise_icp_does_not_pull_the_two_sides_of_a_thin_wall_together():
     pulled one sweep onto the other's face (1.7 mm). Measured: 0.0001 mm with the pair
     sent to the normal-gated ICP, 1.81 mm without."""
     pts, nrm, _ = _thin_plate_sweeps()
-    res = align_sweeps(pts, nrm, voxel_size=0.4e-3, max_corr_dist=2e-3)
+    res = align_sweeps(pts, nrm, options=RIGID.replace(voxel_size_m=0.4e-3,
+                                                       max_corr_dist_m=2e-3))
     assert res.pairs[0]["accepted"]
     c = res.corrections[1] @ invert_transform(res.corrections[0])
     moved = pts[1] @ c[:3, :3].T + c[:3, 3]
@@ -415,8 +421,8 @@ def test_refinement_does_not_pull_the_two_sides_of_a_thin_wall_together():
     from robo3d.registration import refine_sweeps
 
     pts, nrm, org = _thin_plate_sweeps()
-    res = refine_sweeps(pts, nrm, org, [(0, 1)], fixed=[0], voxel_size=0.4e-3,
-                        max_corr_dist=2e-3)
+    res = refine_sweeps(pts, nrm, org, [(0, 1)], fixed=[0],
+                        options=AlignOptions(voxel_size_m=0.4e-3, max_corr_dist_m=2e-3))
     moved = (pts[1] - org[1]) @ res.rotations[1].T + org[1] + res.translations[1]
     assert res.converged
     assert np.abs(moved - pts[1]).max() < 0.02e-3

@@ -27,9 +27,9 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
     pose there), and ``correction_model`` (rotation, translation of
     :func:`robo3d.registration.apply_correction`).
     """
+    from ..artefacts import load_clouds_npz, save_clouds_npz
     from ..meshio import write_point_cloud
-    from ..registration import align_sweeps, correction_at
-    from ..triangulation import load_clouds_npz, save_clouds_npz
+    from ..registration import AlignOptions, align_sweeps, correction_at
     from ..viz import log_points, log_report, rerun_log
 
     t0 = time.perf_counter()
@@ -40,22 +40,9 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         views = silhouette_views(inputs, cfg)
     if ac["enabled"] and len(clouds) > 1:
         result = align_sweeps([c.points_base for c in clouds], [c.normals_base for c in clouds],
-                              voxel_size=ac["voxel_size_m"], max_corr_dist=ac["max_corr_dist_m"],
-                              max_iterations=ac["max_iterations"],
-                              max_correction_mm=ac["max_correction_mm"],
-                              max_correction_deg=ac["max_correction_deg"],
-                              min_overlap=ac["min_overlap"], method=ac["method"],
-                              seed=cfg["seed"],
+                              options=AlignOptions.from_config(ac, seed=cfg["seed"]),
                               origins=[c.sensor_origin_base for c in clouds],
-                              profiles=[c.frame_index for c in clouds], refine=ac["refine"],
-                              silhouettes=views, prior_mm=ac["prior_mm"],
-                              prior_deg=ac["prior_deg"],
-                              refine_iterations=ac["refine_iterations"],
-                              rim_weight=ac["rim_weight"],
-                              normal_k=ac["pair_normals_k"],
-                              normal_max_spacing=ac["pair_normals_max_spacing_m"],
-                              degenerate_ratio=ac["degenerate_ratio"],
-                              pair_degenerate_ratio=ac["pair_degenerate_ratio"])
+                              profiles=[c.frame_index for c in clouds], silhouettes=views)
         align_report = {"method": result.method, "gauge": result.gauge,
                         "reference": result.reference, "pairs": result.pairs,
                         "per_sweep": result.per_sweep, "refinement": result.refinement,

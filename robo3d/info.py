@@ -383,7 +383,7 @@ def _pairing(rec: Recording, msgs: list, max_gap_ns: int) -> dict[str, Any]:
     nearest = np.zeros(len(msgs))
     bracket = np.zeros(len(msgs))
     no_pose = np.zeros(len(msgs), dtype=bool)
-    from .recording.reader import _chain_problem
+    from .recording.reader import chain_problem as _chain_problem
 
     for fid in np.unique(fids):
         sel = fids == fid
@@ -433,7 +433,7 @@ def _sweeps(rec: Recording, sweep_gap_ns: int) -> dict[str, Any] | None:
 
 
 def _stages(rec: Recording, topics: TopicMap) -> dict[str, dict[str, Any]]:
-    from .recording.reader import _chain_problem
+    from .recording.reader import chain_problem as _chain_problem
 
     def check(msgs: list, role: str) -> tuple[str, list[str]]:
         topic = topics.views if role == "views" else topics.laser

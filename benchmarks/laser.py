@@ -90,11 +90,12 @@ def _best(fn, repeats: int, cpu: list | None = None) -> float:
     return float(best)
 
 
-def _cfg_kw() -> dict:
+def _cfg_options():
+    """The pipeline's stripe options (:class:`robo3d.stripes.StripeOptions`)."""
     from robo3d.config import default_config
-    from robo3d.stripes import config_options
+    from robo3d.stripes import StripeOptions
 
-    return config_options(default_config()["stripes"])
+    return StripeOptions.from_config(default_config()["stripes"])
 
 
 # ---------------------------------------------------------------------------- accuracy
@@ -239,7 +240,7 @@ def accuracy_plate(distances: list[float], frames: int, log) -> dict:
     scene = SimScene(mesh, threads=2)
     cam = default_camera(640, 480)
     T_cl = default_laser_mount()
-    kw = _cfg_kw()
+    options = _cfg_options()
     # view direction: 30 degrees off the plate's normal, about the plate's x axis
     view_dir = rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.radians(30.0)) @ normal
     out = {}
@@ -254,7 +255,7 @@ def accuracy_plate(distances: list[float], frames: int, log) -> dict:
             signal = render_laser_frame(scene, cam, T, T @ T_cl)
             img = sensor_noise(signal, np.random.default_rng([SEED, 20, int(D * 1e3), j]),
                                0.025, 0.12)
-            sp = extract_stripe_centres(img, **kw)
+            sp = extract_stripe_centres(img, options=options)
             P, keep, _ = triangulate_pixels(sp.pixels_uv, cam, T_cl)
             P = P[keep] @ T[:3, :3].T + T[:3, 3]
             pts.append(P)
@@ -286,7 +287,7 @@ def accuracy_plate(distances: list[float], frames: int, log) -> dict:
 def centre_accuracy() -> dict:
     from scipy.special import erf
 
-    from robo3d.stripes import extract_stripe_centres
+    from robo3d.stripes import StripeOptions, extract_stripe_centres
 
     H, W = 128, 1024
     rng = np.random.default_rng([SEED, 30])
@@ -305,7 +306,8 @@ def centre_accuracy() -> dict:
         img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         row = {}
         for method in ("cog", "gaussian"):
-            sp = extract_stripe_centres(img, method=method)
+            sp = extract_stripe_centres(img, options=StripeOptions(min_peak=None,
+                                                                   method=method))
             err = sp.v - vc[sp.line]
             row[method] = {"rms_px": float(np.sqrt(np.mean(err ** 2))),
                            "max_px": float(np.abs(err).max()), "found": int(len(sp))}
@@ -347,7 +349,7 @@ class _Rig:
         self.cam = default_camera(W_SPEED, H_SPEED)
         self.T_cl = default_laser_mount()
         self.T_bc = look_at(np.array([0.2, -0.1, 0.25]), np.zeros(3))
-        self.kw = _cfg_kw()
+        self.options = _cfg_options()
 
 
 def ours(img: np.ndarray, rig: _Rig) -> np.ndarray:
@@ -355,7 +357,7 @@ def ours(img: np.ndarray, rig: _Rig) -> np.ndarray:
     from robo3d.stripes import extract_stripe_centres
     from robo3d.triangulation import triangulate_pixels
 
-    sp = extract_stripe_centres(img, **rig.kw)
+    sp = extract_stripe_centres(img, options=rig.options)
     P, keep, _ = triangulate_pixels(sp.pixels_uv, rig.cam, rig.T_cl, min_range=0.02,
                                     max_range=2.0)
     return P[keep] @ rig.T_bc[:3, :3].T + rig.T_bc[:3, 3]
@@ -571,9 +573,9 @@ def ambient_speed(n_frames: int = 16, repeats: int = 5, log=print) -> dict:
 
     rig = _Rig()
     frames = ambient_frames(n_frames)
-    colour, _ = estimate_laser_colour(frames[:6], min_peak=rig.kw["min_peak"])
+    colour, _ = estimate_laser_colour(frames[:6], min_peak=rig.options.min_peak)
     rig_auto = _Rig()
-    rig.kw["colour"] = colour
+    rig.options = rig.options.replace(colour=colour)
     for f in frames[:2]:
         ours(f, rig)
         ours(f, rig_auto)
@@ -639,8 +641,8 @@ def ambient_speed(n_frames: int = 16, repeats: int = 5, log=print) -> dict:
         # the centre's profile as the stage chooses it for these bytes (the luma for a
         # JPEG with subsampled chroma)
         rig_k = _Rig()
-        rig_k.kw["colour"] = colour
-        rig_k.kw["centre_on"] = centre_on_for(rig_k.kw["centre_on"], blobs[0])
+        rig_k.options = rig_k.options.replace(
+            colour=colour, centre_on=centre_on_for(rig_k.options.centre_on, blobs[0]))
         ours(dec(blobs[0]), rig_k)
 
         def whole(b: bytes, rig_k: _Rig = rig_k) -> np.ndarray:
@@ -652,7 +654,7 @@ def ambient_speed(n_frames: int = 16, repeats: int = 5, log=print) -> dict:
             p2 = _best(lambda blobs_b=blobs_b: list(pool.map(whole_peer, blobs_b)),
                        max(2, repeats // 2))
         out[kind] = {"kb_per_frame": float(np.mean([len(b) for b in blobs])) / 1e3,
-                     "centre_on": rig_k.kw["centre_on"],
+                     "centre_on": rig_k.options.centre_on,
                      "decode_ms_2t": 1e3 * d2 / n2, "stage_ms_2t": 1e3 * s2 / n2,
                      "stage_over_decode": s2 / d2, "peer_stage_over_decode": p2 / d2}
         o = out[kind]
@@ -754,15 +756,15 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
     log(f"intrinsics from {len(img_pts)} of {len(views)} views: RMS {rms_px:.3f} px, "
         f"f = {K[0, 0]:.1f} / {K[1, 1]:.1f}, pp = ({K[0, 2]:.1f}, {K[1, 2]:.1f})")
 
-    kw = _cfg_kw()
+    options = _cfg_options()
     frames = rec.laser_frames[::frame_step]
     images = [rec.decode(m) for m in frames]
     sample = np.linspace(0, len(images) - 1, min(len(images), 12)).round().astype(int)
     colour, _ = estimate_laser_colour([images[i] for i in sample],
                                       min_peak=default_config()["stripes"]["min_peak"])
-    kw["colour"] = colour
-    kw["centre_on"] = centre_on_for(kw["centre_on"], rec.laser_frames[0].data
-                                    if rec.laser_frames else None)  # as the stage does
+    options = options.replace(  # as the stage does
+        colour=colour, centre_on=centre_on_for(options.centre_on, rec.laser_frames[0].data
+                                               if rec.laser_frames else None))
     nx, ny = SRV_BOARD
     # the board's region: the pattern (one square beyond the inner corners) and the
     # white board around it, 2 squares wide on the left and right and 1.5 squares
@@ -770,12 +772,12 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
     x0r, x1r, y0r, y1r = -3.0, nx + 2.0, -2.5, ny + 1.5
     quad_obj = np.array([[x0r, y0r, 0], [x1r, y0r, 0], [x1r, y1r, 0], [x0r, y1r, 0]],
                         np.float64) * SRV_SQUARE_M
-    extract_stripe_centres(images[0], **kw)  # compiled or loaded before the clock runs
+    extract_stripe_centres(images[0], options=options)  # compiled or loaded before timing
     per = []
     t_detect = 0.0
     for i, img in enumerate(images):
         t = time.perf_counter()
-        sp = extract_stripe_centres(img, **kw)
+        sp = extract_stripe_centres(img, options=options)
         t_detect += time.perf_counter() - t
         c = _board_corners(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
         rec_i = {"frame": i * frame_step, "stripe": sp, "board": c is not None}
@@ -898,12 +900,12 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
 _COLD = """
 import time, numpy as np
 t0 = time.perf_counter()
-from robo3d.stripes import extract_stripe_centres
+from robo3d.stripes import StripeOptions, extract_stripe_centres
 from robo3d.triangulation import triangulate_pixels
 from robo3d.sim.rig import default_camera, default_laser_mount
 t1 = time.perf_counter()
 img = np.zeros((480, 640), np.uint8); img[200:203] = 200
-sp = extract_stripe_centres(img, axis="auto")
+sp = extract_stripe_centres(img, options=StripeOptions(min_peak=None))
 triangulate_pixels(sp.pixels_uv, default_camera(), default_laser_mount())
 t2 = time.perf_counter()
 print(t1 - t0, t2 - t1)

@@ -10,15 +10,171 @@ checks what it reads and names the file when something is missing or malformed.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .atomic import save_npz
+from .camera import CameraModel
+from .errors import StageError
 from .grid import VoxelGrid  # noqa: F401 - the visual hull's artefact, re-exported
 
+if TYPE_CHECKING:
+    from .stripes import StripePoints
+
+
+class ArtefactError(StageError, ValueError):
+    """A stage's input file that is not what its stage writes (a key missing, a shape
+    that does not fit), naming the file."""
+
+
+# --- what every artefact keeps: cameras and the workspace box ------------------------
+_CAMERA_KEYS = ("K", "D", "image_size", "frame_ids")
+
+
+def camera_arrays(cameras: list[CameraModel]) -> dict[str, np.ndarray]:
+    """The cameras as the arrays of an artefact: ``K`` (N, 3, 3), ``D`` (N, 5),
+    ``image_size`` (N, 2: width, height) int64, ``frame_ids`` (N,) str."""
+    return {
+        "K": np.stack([c.K for c in cameras]) if cameras else np.zeros((0, 3, 3)),
+        "D": np.stack([c.D[:5] for c in cameras]) if cameras else np.zeros((0, 5)),
+        "image_size": np.array([[c.width, c.height] for c in cameras], dtype=np.int64
+                               ).reshape(-1, 2),
+        "frame_ids": np.array([c.frame_id for c in cameras], dtype=str),
+    }
+
+
+def cameras_from(npz: Mapping[str, np.ndarray]) -> list[CameraModel]:
+    """The cameras of an artefact's arrays (:func:`camera_arrays`)."""
+    return [CameraModel(str(f), int(s[0]), int(s[1]), k, d) for f, s, k, d in
+            zip(npz["frame_ids"], npz["image_size"], npz["K"], npz["D"], strict=True)]
+
+
+def workspace_arrays(workspace: tuple[np.ndarray, np.ndarray] | None
+                     ) -> dict[str, np.ndarray]:
+    """The workspace box as an artefact's ``workspace_min``, ``workspace_max`` (none
+    without a box)."""
+    if workspace is None:
+        return {}
+    return {"workspace_min": workspace[0], "workspace_max": workspace[1]}
+
+
+def workspace_from(npz: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The workspace box of an artefact's arrays, or None."""
+    if "workspace_min" in npz:
+        return np.asarray(npz["workspace_min"]), np.asarray(npz["workspace_max"])
+    return None
+
+
+def _read_npz(path: str | os.PathLike[str], required: Sequence[str], what: str
+              ) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz``; :class:`ArtefactError` naming the file when it does
+    not open or lacks one of ``required``."""
+    import zipfile
+
+    try:
+        with np.load(path) as z:
+            d = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise ArtefactError(f"{path}: not a readable {what}.npz ({exc})") from None
+    missing = [k for k in required if k not in d]
+    if missing:
+        raise ArtefactError(f"{path}: no {', '.join(missing)}: not a {what}.npz written by "
+                            f"robo3d's {what} stage")
+    return d
+
+
 # --- silhouettes (silhouettes.npz) ---------------------------------------------------
+@dataclass(frozen=True)
+class Silhouettes:
+    """What the ``silhouettes`` stage writes: every silhouette view's mask, camera and pose.
+
+    Attributes
+    ----------
+    masks : (V, H, W) bool
+        The views' masks (True = the pixel's ray meets the object), padded with False to
+        the largest camera's size when the cameras differ; :meth:`view_masks` crops them.
+    T_base_camera : (V, 4, 4) float64
+        Each view's camera pose in ``base``.
+    stamps_ns : (V,) int64
+        Each view's time.
+    cameras : list of CameraModel
+        Each view's camera.
+    qa_flagged : (V,) bool or None
+        The views whose mask :func:`robo3d.silhouettes.silhouette_qa` flagged as absurd
+        (None in files written before the QA).
+    workspace : ((3,), (3,)) float64, metres, or None
+        The recording's workspace box in ``base``.
+
+    The file (``np.savez_compressed``): ``masks`` packed 8 pixels a byte along each row
+    (``np.packbits(axis=-1)``) with their ``mask_shape`` (V, H, W), ``T_base_camera``,
+    ``stamps_ns``, ``qa_flagged``, the cameras as ``K`` (V, 3, 3), ``D`` (V, 5),
+    ``image_size`` (V, 2: width, height) and ``frame_ids``, and ``workspace_min``,
+    ``workspace_max`` when there is a box.
+    """
+
+    masks: np.ndarray
+    T_base_camera: np.ndarray
+    stamps_ns: np.ndarray
+    cameras: list[CameraModel]
+    qa_flagged: np.ndarray | None = None
+    workspace: tuple[np.ndarray, np.ndarray] | None = None
+
+    @classmethod
+    def from_views(cls, masks: Sequence[np.ndarray], T_base_camera: np.ndarray,
+                   stamps_ns: Sequence[int], cameras: list[CameraModel],
+                   qa_flagged: Sequence[bool],
+                   workspace: tuple[np.ndarray, np.ndarray] | None = None) -> Silhouettes:
+        """The artefact of one mask per view (of the views' own sizes, padded to the
+        largest)."""
+        sizes = {m.shape for m in masks}
+        if len(sizes) == 1:
+            stack = np.stack(masks)
+        else:  # cameras of different sizes: pad to the largest, sizes kept per view
+            h = max(s[0] for s in sizes)
+            w = max(s[1] for s in sizes)
+            stack = np.zeros((len(masks), h, w), dtype=bool)
+            for i, m in enumerate(masks):
+                stack[i, : m.shape[0], : m.shape[1]] = m
+        return cls(masks=stack, T_base_camera=T_base_camera,
+                   stamps_ns=np.array(stamps_ns, dtype=np.int64), cameras=cameras,
+                   qa_flagged=np.array(qa_flagged, dtype=bool), workspace=workspace)
+
+    def view_masks(self) -> list[np.ndarray]:
+        """Each view's mask at its camera's size, (H_i, W_i) bool."""
+        return [self.masks[i, : c.height, : c.width] for i, c in enumerate(self.cameras)]
+
+    def as_arrays(self) -> dict[str, np.ndarray]:
+        """The file's arrays, the masks unpacked ((V, H, W) bool)."""
+        out = {"masks": self.masks, "mask_shape": np.array(self.masks.shape),
+               "T_base_camera": self.T_base_camera, "stamps_ns": self.stamps_ns}
+        if self.qa_flagged is not None:
+            out["qa_flagged"] = self.qa_flagged
+        return {**out, **camera_arrays(self.cameras), **workspace_arrays(self.workspace)}
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write ``silhouettes.npz`` (atomically)."""
+        arrays = self.as_arrays()
+        arrays["masks"] = np.packbits(self.masks, axis=-1)
+        save_npz(path, **arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Silhouettes:
+        """Read a ``silhouettes.npz``; :class:`ArtefactError` naming the file and what is
+        missing when it is not one."""
+        d = _read_npz(path, ("masks", "mask_shape", "T_base_camera", "stamps_ns",
+                             *_CAMERA_KEYS), "silhouettes")
+        shape = tuple(int(n) for n in d["mask_shape"])
+        masks = np.unpackbits(d["masks"], axis=-1, count=shape[-1]).astype(bool)
+        if masks.shape != shape:
+            raise ArtefactError(f"{path}: masks unpack to {masks.shape}, mask_shape says "
+                                f"{shape}")
+        return cls(masks=masks, T_base_camera=d["T_base_camera"], stamps_ns=d["stamps_ns"],
+                   cameras=cameras_from(d), qa_flagged=d.get("qa_flagged"),
+                   workspace=workspace_from(d))
+
 
 # --- visual hull (hull.npz) ----------------------------------------------------------
 # The hull's artefact is robo3d.grid.VoxelGrid itself (imported above): VoxelGrid.save_npz
@@ -29,6 +185,138 @@ from .grid import VoxelGrid  # noqa: F401 - the visual hull's artefact, re-expor
 # (robo3d.carving, robo3d.octree) share it without importing each other.
 
 # --- stripes (stripes.npz) -----------------------------------------------------------
+#: The arrays of ``stripes.npz`` in the order they are written (then the cameras' and the
+#: workspace's), and those that every file has (the others are missing in older files).
+_STRIPES_ARRAYS = ("u", "v", "confidence", "peak", "width_px", "line", "offsets", "axis",
+                   "angle_deg", "colour", "s", "n_lines", "rejected", "rejection_reasons",
+                   "stamps_ns", "T_base_camera", "T_camera_laser")
+_STRIPES_REQUIRED = ("u", "v", "confidence", "offsets", "stamps_ns", "T_base_camera")
+
+
+@dataclass(frozen=True)
+class Stripes:
+    """What the ``stripes`` stage writes: the stripe centres of every laser frame, with the
+    frame's camera, pose and laser pose.
+
+    The centres of all frames are concatenated; frame ``i``'s are
+    ``offsets[i]:offsets[i + 1]``. The per-frame arrays have one entry per laser frame.
+
+    Attributes
+    ----------
+    u, v : (N,) float64, pixels
+        The sub-pixel centres (:class:`robo3d.stripes.StripePoints`).
+    confidence : (N,) float64 in [0, 1]
+    offsets : (F + 1,) int64
+        Where each frame's centres start, and the total.
+    stamps_ns : (F,) int64
+        Each laser frame's time.
+    T_base_camera : (F, 4, 4) float64
+        The camera's pose in ``base`` at each frame.
+    cameras : list of CameraModel
+        Each frame's camera.
+    T_camera_laser : (F, 4, 4) float64 or None
+        The laser's pose in the camera at each frame.
+    peak, width_px : (N,) float32 or None
+        Each centre's peak height (grey levels) and width (pixels).
+    line : (N,) int32 or None
+        The image line (column or row) of each centre.
+    axis : (F,) str or None
+        ``"columns"`` or ``"rows"``: each frame's search direction.
+    angle_deg : (F,) float64 or None
+        Each frame's stripe direction in the image.
+    colour : (F,) str or None
+        The contrast each frame's stripe was found in.
+    s : (F,) float64 or None
+        Each frame's brightness coefficient (seed eq. 18).
+    n_lines : (F,) int64 or None
+        Lines searched in each frame.
+    rejected : (F, R) int64 or None
+        Lines without a centre, per frame and reason (``rejection_reasons``).
+    rejection_reasons : (R,) str or None
+    workspace : ((3,), (3,)) float64, metres, or None
+        The recording's workspace box in ``base``.
+
+    The fields that may be None are absent from files written by older versions; the file
+    holds one array per field under its name, the cameras as in :class:`Silhouettes`.
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    confidence: np.ndarray
+    offsets: np.ndarray
+    stamps_ns: np.ndarray
+    T_base_camera: np.ndarray
+    cameras: list[CameraModel]
+    T_camera_laser: np.ndarray | None = None
+    peak: np.ndarray | None = None
+    width_px: np.ndarray | None = None
+    line: np.ndarray | None = None
+    axis: np.ndarray | None = None
+    angle_deg: np.ndarray | None = None
+    colour: np.ndarray | None = None
+    s: np.ndarray | None = None
+    n_lines: np.ndarray | None = None
+    rejected: np.ndarray | None = None
+    rejection_reasons: np.ndarray | None = None
+    workspace: tuple[np.ndarray, np.ndarray] | None = None
+
+    @classmethod
+    def from_frames(cls, found: Sequence[StripePoints], stamps_ns: Sequence[int],
+                    T_base_camera: np.ndarray, T_camera_laser: np.ndarray,
+                    cameras: list[CameraModel],
+                    workspace: tuple[np.ndarray, np.ndarray] | None = None) -> Stripes:
+        """The artefact of one :class:`~robo3d.stripes.StripePoints` per laser frame."""
+        from .stripes import REJECTION_REASONS
+
+        def cat(name: str, dtype: type) -> np.ndarray:
+            if not found:
+                return np.zeros(0, dtype=dtype)
+            return np.concatenate([getattr(sp, name) for sp in found]).astype(dtype)
+
+        counts = np.array([len(sp) for sp in found], dtype=np.int64)
+        rejected = np.array([[sp.rejected[k] for k in REJECTION_REASONS] for sp in found],
+                            dtype=np.int64).reshape(-1, len(REJECTION_REASONS))
+        return cls(u=cat("u", np.float64), v=cat("v", np.float64),
+                   confidence=cat("confidence", np.float64),
+                   offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                   stamps_ns=np.array(stamps_ns, dtype=np.int64), T_base_camera=T_base_camera,
+                   cameras=cameras, T_camera_laser=T_camera_laser,
+                   peak=cat("peak", np.float32), width_px=cat("width_px", np.float32),
+                   line=cat("line", np.int32),
+                   axis=np.array([sp.axis for sp in found], dtype="<U7"),
+                   angle_deg=np.array([sp.angle_deg for sp in found], dtype=np.float64),
+                   colour=np.array([sp.colour for sp in found], dtype="<U9"),
+                   s=np.array([sp.s for sp in found], dtype=np.float64),
+                   n_lines=np.array([sp.n_lines for sp in found], dtype=np.int64),
+                   rejected=rejected, rejection_reasons=np.array(REJECTION_REASONS),
+                   workspace=workspace)
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(F,) int64: the number of centres of each frame."""
+        return np.diff(self.offsets)
+
+    def as_arrays(self) -> dict[str, np.ndarray]:
+        """The file's arrays (the fields that are not None)."""
+        out = {k: getattr(self, k) for k in _STRIPES_ARRAYS if getattr(self, k) is not None}
+        return {**out, **camera_arrays(self.cameras), **workspace_arrays(self.workspace)}
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write ``stripes.npz`` (atomically)."""
+        save_npz(path, **self.as_arrays())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Stripes:
+        """Read a ``stripes.npz`` (older files without the optional arrays too);
+        :class:`ArtefactError` naming the file and what is missing when it is not one."""
+        d = _read_npz(path, (*_STRIPES_REQUIRED, *_CAMERA_KEYS), "stripes")
+        n_frames = len(d["stamps_ns"])
+        if d["offsets"].shape != (n_frames + 1,) or int(d["offsets"][-1]) != len(d["u"]):
+            raise ArtefactError(f"{path}: offsets {d['offsets'].shape} do not fit "
+                                f"{n_frames} frames of {len(d['u'])} centres")
+        return cls(**{k: d.get(k) for k in _STRIPES_ARRAYS}, cameras=cameras_from(d),
+                   workspace=workspace_from(d))
+
 
 # --- sweep clouds (clouds.npz, aligned.npz) ------------------------------------------
 _CLOUDS_FORMAT = "robo3d.sweep_clouds/1"

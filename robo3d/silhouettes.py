@@ -46,9 +46,8 @@ E. **GrabCut** (``grabcut=True``, the pipeline's default): the mask seeds OpenCV
    probable background, the rest and everything outside the ROI sure background. Its
    colour mixtures and graph cut move the outline onto the object's colour edge where a
    shadow, a reflection on the table or a shaded part near a background colour misled
-   the threshold (DTU scan24: mean IoU 0.980 → 0.987, worst view 0.920 → 0.958). Holes and
-   specks are cleaned again afterwards; a refinement that loses the object leaves the
-   thresholded mask.
+   the threshold. Holes and specks are cleaned again afterwards; a refinement that loses
+   the object leaves the thresholded mask.
 F. **Edge refinement** (``edge_refine_px``, default 3; :func:`refine_edges`): at full
    resolution, each pixel within 3 px of the outline is object when its colour, as a
    blend of the colours just inside and just outside the outline (the nearest pixels
@@ -59,20 +58,13 @@ F. **Edge refinement** (``edge_refine_px``, default 3; :func:`refine_edges`): at
    wider than its reach (GrabCut taking in a black square that touches the object,
    ``tests/test_silhouettes.py`` keeps such a scene as a strict xfail).
 
-Measured with the defaults: DTU scan24 (49 real views, published masks) mean IoU 0.989,
-worst 0.958 (before E at full resolution and F: 0.987 / 0.958); Middlebury
-templeSparseRing: no QA flag, the gaps between the columns kept; the benchmark's
-simulated cells (``benchmarks/front_end.py`` CELLS, 640 x 480, 12 views, room light, JPEG
-80): red laser / orange vase mean 0.998, worst 0.996 (before: 0.991 / 0.988), green laser /
-green blob 0.998 / 0.994 (0.989 / 0.979); GrabCut at 640 px, one iteration, plus F cost
-about 1.0-1.6 times the former 320 px, two iterations (220 ms per 640 x 480 view, 390 ms
-per 1600 x 1200 DTU view on a loaded 2-core machine).
+What these steps gave on DTU scan24, Middlebury templeSparseRing and the benchmark's
+simulated cells, and what they cost, is recorded in ``benchmarks/README.md`` ("Notes moved
+from robo3d/silhouettes.py"); ``benchmarks/front_end.py`` measures it again.
 Known limit: an object whose colours are the background's (a white object on a white
 table, a grey object whose shaded side has the wall's, a shadow's or a marker blend's
 grey) is not told apart by colour (``tests/test_silhouettes.py`` keeps such scenes as
-strict xfails; the benchmark's blue cell, a white object on the bright marker table,
-scores mean 0.54, worst 0.15; a grey object on a bright table before a light wall is
-now found).
+strict xfails).
 
 The seed's grey threshold (``polarity="brighter"`` / ``"darker"``):
 
@@ -147,6 +139,13 @@ four sides is no flag (that is ``touches_image_border``). The pipeline puts the 
 the silhouettes report per view (``views[i]["qa"]["flags"]``), lists the flagged views
 (``qa_flagged_views``) and stores ``qa_flagged`` per view in ``silhouettes.npz``.
 
+Entry points: :func:`segment_view` segments one view as the pipeline does (the ROI from
+the workspace box, or :func:`find_roi`, then :func:`segment_silhouette`);
+:func:`segment_silhouette` is the segmentation of one image in a given ROI. Both take
+their parameters as one :class:`SegmentOptions`, made from the config's ``segmentation``
+section (``SegmentOptions.from_config(cfg["segmentation"])``); its defaults are the
+config's. The image, its empty scene and the ROI are per call.
+
 Pixel ``(u, v)`` is (column, row), origin at the centre of the top-left pixel.
 
 References
@@ -176,10 +175,12 @@ from .camera import CameraModel, project_points
 from .camera import distortion_limit_r2 as _distortion_limit_r2
 from .errors import StageError
 from .grid import check_box as _check_box
+from .options import Options
 from .transforms import invert_transform
 
-__all__ = ["Silhouette", "segment_silhouette", "roi_from_box", "find_roi", "to_grey", "to_lab",
-           "colour_difference", "refine_with_grabcut", "silhouette_qa", "QA_FLAGS"]
+__all__ = ["Silhouette", "SegmentOptions", "segment_silhouette", "segment_view", "roi_from_box",
+           "find_roi", "to_grey", "to_lab", "colour_difference", "refine_with_grabcut",
+           "silhouette_qa", "QA_FLAGS"]
 
 _log = logging.getLogger(__name__)
 
@@ -957,45 +958,33 @@ def silhouette_qa(mask: np.ndarray, roi: tuple[int, int, int, int] | None,
             "difference_outside": None if d_out is None else round(d_out, 3)}
 
 
-def segment_silhouette(
-    image: np.ndarray,
-    *,
-    polarity: str = "auto",
-    threshold: float | None = None,
-    roi: tuple[int, int, int, int] | None = None,
-    blur_sigma_px: float = 1.0,
-    min_component_px: int = 50,
-    min_component_fraction: float = 0.01,
-    fill_holes: bool = True,
-    max_hole_fraction: float = 1.0,
-    background: np.ndarray | None = None,
-    grabcut: bool = False,
-    edge_refine_px: int = 0,
-) -> Silhouette:
-    """Segment the object's silhouette in one view (seed §3.2).
+@dataclass(frozen=True)
+class SegmentOptions(Options):
+    """The segmentation's parameters: the config's ``segmentation`` keys that
+    :func:`segment_view` and :func:`segment_silhouette` use, under the same names.
 
-    Parameters
+    The section's other keys (``background_topic``, ``background_max_offset_mm``,
+    ``background_max_offset_deg``) are the stage's: which empty-scene image goes with a
+    view. :func:`segment_silhouette` reads the first nine fields; the three ``roi_*``
+    fields say how :func:`segment_view` finds the region it analyses.
+
+    Attributes
     ----------
-    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
-        The ambient-lit view (RGB if colour).
     polarity : {"auto", "brighter", "darker"}
         ``"auto"``: the object is what differs in colour from the background, modelled
         from the pixels outside the ROI (or the image border), see
         :func:`colour_difference`. ``"brighter"`` / ``"darker"``: the seed's grey
         threshold, object where the grey value is above (``f > s``) or below (``f < s``).
-        With ``background`` the feature is the difference to the empty scene (colour
-        with ``"auto"``, grey otherwise).
-    threshold : float, optional
+        With a background image the feature is the difference to the empty scene
+        (colour with ``"auto"``, grey otherwise).
+    threshold : float or None
         ``s``: on the 0–255 grey scale for ``brighter``/``darker`` and grey background
         subtraction; in the background's standard deviations (colour difference) for
-        ``auto``; in CIE Lab units (ΔE) for colour background subtraction. By default
-        chosen per view (Otsu; see the module docstring).
-    roi : (u0, v0, u1, v1) int, optional
-        Half-open pixel box (``image[v0:v1, u0:u1]``) outside which everything is
-        background; clipped to the image. See :func:`roi_from_box`.
-    blur_sigma_px : float
-        Gaussian blur (pixels) before thresholding; 0 for none.
-    min_component_px : int
+        ``auto``; in CIE Lab units (ΔE) for colour background subtraction. None: chosen
+        per view (Otsu; see the module docstring).
+    blur_sigma_px : float, pixels
+        Gaussian blur before thresholding; 0 for none.
+    min_component_px : int, pixels
         Foreground components with fewer pixels are specks and are removed.
     min_component_fraction : float
         Components smaller than this fraction of the largest one are removed too.
@@ -1003,65 +992,77 @@ def segment_silhouette(
         Fill the background regions enclosed by the object (the silhouette is the whole
         projected region).
     max_hole_fraction : float
-        Enclosed background regions larger than this fraction of the silhouette's area are
-        see-through gaps and stay background (1.0 fills every hole, as the seed does).
-    background : array like ``image``, optional
-        The empty scene under the same light and pose.
+        Enclosed background regions larger than this fraction of the silhouette's area
+        are see-through gaps and stay background (1.0 fills every hole, as the seed does).
     grabcut : bool
         Refine the outline with GrabCut seeded by the thresholded mask
         (:func:`refine_with_grabcut`).
-    edge_refine_px : int
+    edge_refine_px : int, pixels
         Move the outline onto the object's colour edge within this many pixels, at full
         resolution (:func:`refine_edges`); 0 for none.
-
-    Returns
-    -------
-    Silhouette
-
-    Raises
-    ------
-    ValueError
-        Bad dtype, shape, polarity, ROI or parameter.
-    StageError
-        Empty silhouette, or one covering the whole analysed region, or a uniform image.
-
-    References
-    ----------
-    N. Otsu, IEEE Trans. SMC 9(1), 1979 (threshold selection); C. Rother, V. Kolmogorov,
-    A. Blake, ACM Trans. Graphics 23(3), 2004 (GrabCut).
+    roi_from_workspace : bool
+        :func:`segment_view`: analyse only the projected workspace box when there is one.
+    roi_auto : bool
+        :func:`segment_view`: without a box, find the object's region first
+        (:func:`find_roi`).
+    roi_margin_px : int, pixels
+        Margin around the projected box or the found region.
     """
-    if polarity not in _POLARITIES:
-        raise ValueError(f"polarity must be one of {_POLARITIES}, got {polarity!r}")
-    if not np.isfinite(blur_sigma_px) or blur_sigma_px < 0:
-        raise ValueError(f"blur_sigma_px must be >= 0, got {blur_sigma_px}")
-    if int(min_component_px) < 0:
-        raise ValueError(f"min_component_px must be >= 0, got {min_component_px}")
-    if not 0.0 <= float(min_component_fraction) <= 1.0:
-        raise ValueError(f"min_component_fraction must be in [0, 1], "
-                         f"got {min_component_fraction}")
-    if not 0.0 <= float(max_hole_fraction):
-        raise ValueError(f"max_hole_fraction must be >= 0, got {max_hole_fraction}")
-    if threshold is not None and not np.isfinite(threshold):
-        raise ValueError(f"threshold must be finite, got {threshold}")
-    if int(edge_refine_px) < 0:
-        raise ValueError(f"edge_refine_px must be >= 0, got {edge_refine_px}")
 
-    f = to_grey(image)
+    section = "segmentation"
+
+    polarity: str = "auto"
+    threshold: float | None = None
+    blur_sigma_px: float = 1.0
+    min_component_px: int = 200
+    min_component_fraction: float = 0.01
+    fill_holes: bool = True
+    max_hole_fraction: float = 0.02
+    grabcut: bool = True
+    edge_refine_px: int = 3
+    roi_from_workspace: bool = True
+    roi_auto: bool = True
+    roi_margin_px: int = 10
+
+
+def _check_options(o: SegmentOptions) -> None:
+    """``ValueError`` naming the first option of :func:`segment_silhouette` out of range."""
+    if o.polarity not in _POLARITIES:
+        raise ValueError(f"polarity must be one of {_POLARITIES}, got {o.polarity!r}")
+    if not np.isfinite(o.blur_sigma_px) or o.blur_sigma_px < 0:
+        raise ValueError(f"blur_sigma_px must be >= 0, got {o.blur_sigma_px}")
+    if int(o.min_component_px) < 0:
+        raise ValueError(f"min_component_px must be >= 0, got {o.min_component_px}")
+    if not 0.0 <= float(o.min_component_fraction) <= 1.0:
+        raise ValueError(f"min_component_fraction must be in [0, 1], "
+                         f"got {o.min_component_fraction}")
+    if not 0.0 <= float(o.max_hole_fraction):
+        raise ValueError(f"max_hole_fraction must be >= 0, got {o.max_hole_fraction}")
+    if o.threshold is not None and not np.isfinite(o.threshold):
+        raise ValueError(f"threshold must be finite, got {o.threshold}")
+    if int(o.edge_refine_px) < 0:
+        raise ValueError(f"edge_refine_px must be >= 0, got {o.edge_refine_px}")
+
+
+def _feature(image: np.ndarray, grey: np.ndarray, background: np.ndarray | None,
+             box: tuple[int, int, int, int], sample: np.ndarray, sample_kind: str,
+             o: SegmentOptions) -> tuple[np.ndarray, str, np.ndarray | None, dict]:
+    """The feature ``f`` that is thresholded (module docstring, steps 1-3 and C), its
+    mode (``polarity``, or ``"difference"`` with a background image), the colour
+    difference to the background model when that is the feature (for QA), and the
+    model (modes, Lab image) of the automatic polarity (empty otherwise)."""
+    u0, v0, u1, v1 = box
+    f = grey
     height, width = f.shape
-    if roi is None:
-        u0, v0, u1, v1 = 0, 0, width, height
-    else:
-        u0, v0, u1, v1 = _check_roi(roi, width, height)
-    box = (u0, v0, u1, v1)
-    mode = polarity
-    sample, sample_kind = _sure_background((height, width), box)
+    mode = o.polarity
     difference = None  # colour difference to the background model (auto, and for QA)
+    model: dict = {}
     if background is not None:
         if np.asarray(background).shape[:2] != f.shape:
             b = np.asarray(background)
             raise ValueError(f"background must have the image's size {width}x{height}, "
                              f"got {b.shape[1] if b.ndim > 1 else '?'}x{b.shape[0]}")
-        if polarity == "auto":
+        if o.polarity == "auto":
             lab, lab_bg = to_lab(image), to_lab(background, name="background")
             f = np.sqrt(((lab - lab_bg) ** 2).sum(axis=2)).astype(np.float32)
         else:
@@ -1069,28 +1070,35 @@ def segment_silhouette(
         mode = "difference"
     else:
         inside_grey = f[v0:v1, u0:u1]
-        if threshold is None and float(inside_grey.max()) - float(inside_grey.min()) <= 1e-6:
+        if o.threshold is None and float(inside_grey.max()) - float(inside_grey.min()) <= 1e-6:
             raise StageError(f"silhouette: the image is uniform (grey "
                              f"{float(inside_grey.min()):.1f}) inside the region analysed, "
                              "so no threshold separates object and background")
-        if polarity == "auto":
-            model: dict = {}
-            difference = colour_difference(image, sample, blur_sigma_px=blur_sigma_px,
+        if o.polarity == "auto":
+            difference = colour_difference(image, sample, blur_sigma_px=o.blur_sigma_px,
                                            border_sample=sample_kind == "image border",
                                            _keep_model=model)
             f = difference
-    if blur_sigma_px > 0 and mode != "auto":
-        f = cv2.GaussianBlur(f, (0, 0), sigmaX=float(blur_sigma_px),
+    if o.blur_sigma_px > 0 and mode != "auto":
+        f = cv2.GaussianBlur(f, (0, 0), sigmaX=float(o.blur_sigma_px),
                              borderType=cv2.BORDER_REPLICATE)
-    inside = f[v0:v1, u0:u1]
+    return f, mode, difference, model
 
+
+def _threshold(f: np.ndarray, box: tuple[int, int, int, int], sample: np.ndarray, mode: str,
+               o: SegmentOptions
+               ) -> tuple[float, tuple[float, float] | None, np.ndarray | None]:
+    """The threshold ``s`` (steps 5 and D), the background's ``(level, edge)`` when known,
+    and the per-pixel midpoints of the outline band (None: ``s`` everywhere)."""
+    u0, v0, u1, v1 = box
+    inside = f[v0:v1, u0:u1]
     local = None
     level = None
     if mode in ("brighter", "darker"):
         level = _background_level(f, box, mode)
-    if threshold is not None:
-        s = float(threshold)
-    elif polarity == "auto":
+    if o.threshold is not None:
+        s = float(o.threshold)
+    elif o.polarity == "auto":
         # the colour difference (to the background's modes, or to the empty scene) is
         # heavy-tailed: the object's colours lie at many distances from the background's.
         # Otsu on its logarithm, the outline then cut at its own midpoint
@@ -1100,16 +1108,25 @@ def segment_silhouette(
         if level is not None:
             s_shade = _shade_aware_threshold(inside, s, level, mode)
             if s_shade != s:
-                local = _local_midpoint(inside, level, mode, blur_sigma_px)
+                local = _local_midpoint(inside, level, mode, o.blur_sigma_px)
                 s = s_shade
-    if polarity == "auto":  # the background's level and edge (see-through gaps, outline)
+    if o.polarity == "auto":  # the background's level and edge (see-through gaps, outline)
         bg = f[sample & (f <= s)]
         if bg.size >= 100:
             med = float(np.median(bg))
             spread = 6.0 * max(1.4826 * float(np.median(np.abs(bg - med))), 0.1)
             level = (med, min(float(np.percentile(bg, 99.5)) + spread, s))
-            if threshold is None:
-                local = _local_midpoint(inside, level, "brighter", blur_sigma_px)
+            if o.threshold is None:
+                local = _local_midpoint(inside, level, "brighter", o.blur_sigma_px)
+    return s, level, local
+
+
+def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: str,
+                sample_kind: str, model: dict, box: tuple[int, int, int, int],
+                blur_sigma_px: float) -> np.ndarray:
+    """The ROI's foreground: ``f`` beyond ``s``, the outline band cut at its local
+    midpoints, and (automatic polarity) blends of two background colours dropped."""
+    u0, v0, u1, v1 = box
     fg_roi = inside < s if mode == "darker" else inside > s
     if local is not None:  # refine the outline only: a band along the background
         r = max(2, int(np.ceil(3 * blur_sigma_px)))
@@ -1131,12 +1148,88 @@ def segment_silhouette(
             blend &= cv2.dilate((~fg_roi).view(np.uint8), np.ones((5, 5), np.uint8)
                                 ).astype(bool)
         fg_roi &= ~blend
+    return fg_roi
+
+
+def _clean(m: np.ndarray, f: np.ndarray, s_bg: float | None, hole_mode: str,
+           o: SegmentOptions, where: str) -> tuple[np.ndarray, int, int]:
+    """Holes filled (step 6) and specks removed (step 7): the mask, its number of
+    components before and of specks removed."""
+    if o.fill_holes:
+        m = _fill_holes(m, o.max_hole_fraction, f, s_bg, hole_mode)
+    n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(m.view(np.uint8),
+                                                               connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA].astype(np.int64)
+    if areas.size == 0:
+        raise StageError(f"silhouette is empty after refinement {where}")
+    keep_min = max(int(o.min_component_px),
+                   int(np.ceil(o.min_component_fraction * areas.max())))
+    keep = np.concatenate([[False], areas >= keep_min])
+    if not np.any(keep):
+        raise StageError(f"silhouette is empty: all {areas.size} foreground components "
+                         f"are smaller than {keep_min} px (largest {int(areas.max())} px)"
+                         f" {where}")
+    return keep[labels], int(areas.size), int(areas.size) - int(np.count_nonzero(keep))
+
+
+def segment_silhouette(
+    image: np.ndarray,
+    *,
+    roi: tuple[int, int, int, int] | None = None,
+    background: np.ndarray | None = None,
+    options: SegmentOptions = SegmentOptions(),
+) -> Silhouette:
+    """Segment the object's silhouette in one view (seed §3.2).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
+        The ambient-lit view (RGB if colour).
+    roi : (u0, v0, u1, v1) int, optional
+        Half-open pixel box (``image[v0:v1, u0:u1]``) outside which everything is
+        background; clipped to the image. See :func:`roi_from_box`.
+    background : array like ``image``, optional
+        The empty scene under the same light and pose.
+    options : SegmentOptions
+        Polarity, threshold, blur, speck and hole rules, refinements (its ``roi_*``
+        fields are :func:`segment_view`'s). Default: the project's defaults.
+
+    Returns
+    -------
+    Silhouette
+
+    Raises
+    ------
+    ValueError
+        Bad dtype, shape, polarity, ROI or parameter.
+    StageError
+        Empty silhouette, or one covering the whole analysed region, or a uniform image.
+
+    References
+    ----------
+    N. Otsu, IEEE Trans. SMC 9(1), 1979 (threshold selection); C. Rother, V. Kolmogorov,
+    A. Blake, ACM Trans. Graphics 23(3), 2004 (GrabCut).
+    """
+    o = options
+    _check_options(o)
+    grey = to_grey(image)
+    height, width = grey.shape
+    if roi is None:
+        u0, v0, u1, v1 = 0, 0, width, height
+    else:
+        u0, v0, u1, v1 = _check_roi(roi, width, height)
+    box = (u0, v0, u1, v1)
+    sample, sample_kind = _sure_background((height, width), box)
+    f, mode, difference, model = _feature(image, grey, background, box, sample, sample_kind,
+                                           o)
+    s, level, local = _threshold(f, box, sample, mode, o)
+    fg_roi = _foreground(f[v0:v1, u0:u1], s, local, mode, sample_kind, model, box,
+                         o.blur_sigma_px)
     where = f"(threshold s={s:.2f}, polarity {mode}, roi {box})"
-    n_roi = fg_roi.size
     n_fg = int(np.count_nonzero(fg_roi))
     if n_fg == 0:
         raise StageError(f"silhouette is empty: no pixel passes the threshold {where}")
-    if n_fg == n_roi:
+    if n_fg == fg_roi.size:
         raise StageError(f"silhouette covers every pixel of the region analysed {where}: "
                          "wrong polarity or threshold, or the object fills the view")
 
@@ -1144,37 +1237,35 @@ def segment_silhouette(
     mask[v0:v1, u0:u1] = fg_roi
     hole_mode = "darker" if mode == "darker" else "brighter"
     s_bg = None if level is None else level[1]
-
-    def clean(m: np.ndarray) -> tuple[np.ndarray, int, int]:
-        if fill_holes:
-            m = _fill_holes(m, max_hole_fraction, f, s_bg, hole_mode)
-        n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(m.view(np.uint8),
-                                                                   connectivity=8)
-        areas = stats[1:, cv2.CC_STAT_AREA].astype(np.int64)
-        if areas.size == 0:
-            raise StageError(f"silhouette is empty after refinement {where}")
-        keep_min = max(int(min_component_px),
-                       int(np.ceil(min_component_fraction * areas.max())))
-        keep = np.concatenate([[False], areas >= keep_min])
-        if not np.any(keep):
-            raise StageError(f"silhouette is empty: all {areas.size} foreground components "
-                             f"are smaller than {keep_min} px (largest {int(areas.max())} px)"
-                             f" {where}")
-        return keep[labels], int(areas.size), int(areas.size) - int(np.count_nonzero(keep))
-
-    mask, n_components, n_removed = clean(mask)
-    if grabcut or edge_refine_px > 0:
-        refined = refine_with_grabcut(image, mask, box) if grabcut else mask
-        if edge_refine_px > 0:
-            refined = refine_edges(image, refined, box, reach_px=int(edge_refine_px))
+    mask, n_components, n_removed = _clean(mask, f, s_bg, hole_mode, o, where)
+    if o.grabcut or o.edge_refine_px > 0:
+        refined = refine_with_grabcut(image, mask, box) if o.grabcut else mask
+        if o.edge_refine_px > 0:
+            refined = refine_edges(image, refined, box, reach_px=int(o.edge_refine_px))
         try:
-            mask = clean(refined)[0]
+            mask = _clean(refined, f, s_bg, hole_mode, o, where)[0]
         except StageError:  # the refinement lost the object: keep the thresholded mask
             _log.debug("refinement left no silhouette %s; the thresholded mask is kept", where)
     if np.all(mask[v0:v1, u0:u1]):
         raise StageError(f"silhouette covers every pixel of the region analysed {where}: "
                          "wrong polarity or threshold, or the object fills the view")
+    if difference is None and background is None:
+        try:
+            difference = colour_difference(image, sample, blur_sigma_px=o.blur_sigma_px,
+                                           border_sample=sample_kind == "image border")
+        except StageError:
+            difference = None
+    return _measured(mask, box, s, mode, n_components, n_removed, sample_kind,
+                     bool(o.grabcut), silhouette_qa(mask, box, difference))
 
+
+def _measured(mask: np.ndarray, box: tuple[int, int, int, int], s: float, mode: str,
+              n_components: int, n_removed: int, sample_kind: str, refined: bool,
+              qa: dict) -> Silhouette:
+    """The :class:`Silhouette` of a final mask: its area, centroid, bounding box and
+    whether it touches its region's or the image's border."""
+    u0, v0, u1, v1 = box
+    height, width = mask.shape
     vs, us = np.nonzero(mask)
     area = int(us.size)
     centroid = np.array([us.mean(), vs.mean()], dtype=np.float64)
@@ -1182,45 +1273,39 @@ def segment_silhouette(
     touches = bool(bbox[0] <= u0 or bbox[1] <= v0 or bbox[2] >= u1 or bbox[3] >= v1)
     touches_image = bool(bbox[0] == 0 or bbox[1] == 0 or bbox[2] == width
                          or bbox[3] == height)
-    if difference is None and background is None:
-        try:
-            difference = colour_difference(image, sample, blur_sigma_px=blur_sigma_px,
-                                           border_sample=sample_kind == "image border")
-        except StageError:
-            difference = None
-    qa = silhouette_qa(mask, box, difference)
     _log.debug("silhouette: s=%.2f (%s), %d px, %d components (%d specks removed)%s%s",
                s, mode, area, n_components, n_removed, ", touches border" if touches else "",
                f", QA flags {qa['flags']}" if qa["flags"] else "")
     return Silhouette(mask=mask, threshold=s, polarity=mode, area_px=area,
                       n_components=n_components, touches_border=touches,
                       centroid_uv=centroid, bbox=bbox, touches_image_border=touches_image,
-                      roi=box, background_sample=sample_kind, refined=bool(grabcut), qa=qa)
+                      roi=box, background_sample=sample_kind, refined=refined, qa=qa)
 
 
 def find_roi(
     image: np.ndarray,
     *,
-    margin_px: int = 10,
-    **segment_kwargs,
+    background: np.ndarray | None = None,
+    options: SegmentOptions = SegmentOptions(),
 ) -> tuple[int, int, int, int]:
     """The object's region in a view without a workspace box (seed §3.2, fig. 10).
 
-    A first segmentation of the whole image (:func:`segment_silhouette` with
-    ``segment_kwargs``, Otsu's threshold unless one is given) is reduced to its largest
-    8-connected component, the object; its bounding box grown on every side by the
-    larger of ``margin_px`` and 10 % of its size, clipped to the image, is the ROI of
-    the final segmentation. Bright clutter far from the object is then outside the
-    region, and the threshold is chosen from the object and its surroundings only.
+    A first segmentation of the whole image (:func:`segment_silhouette` with ``options``
+    but without GrabCut and the edge refinement: they only move the outline, which the
+    margin covers) is reduced to its largest 8-connected component, the object; its
+    bounding box grown on every side by the larger of ``options.roi_margin_px`` and 10 %
+    of its size, clipped to the image, is the ROI of the final segmentation. Bright
+    clutter far from the object is then outside the region, and the threshold is chosen
+    from the object and its surroundings only.
 
     Parameters
     ----------
     image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
-    margin_px : int
-        Least growth of the box, pixels, on each side.
-    **segment_kwargs
-        Passed to :func:`segment_silhouette` (``polarity``, ``threshold``,
-        ``blur_sigma_px``, ``background``, ...); ``roi`` is not accepted.
+    background : array like ``image``, optional
+        The empty scene, as for :func:`segment_silhouette`.
+    options : SegmentOptions
+        The segmentation's options; ``roi_margin_px`` is the least growth of the box,
+        pixels, on each side.
 
     Returns
     -------
@@ -1230,15 +1315,15 @@ def find_roi(
     Raises
     ------
     ValueError
-        Bad arguments (as :func:`segment_silhouette`), or a ``roi`` among them.
+        Bad arguments (as :func:`segment_silhouette`).
     StageError
         The first segmentation finds nothing (as :func:`segment_silhouette`).
     """
-    if "roi" in segment_kwargs:
-        raise ValueError("find_roi segments the whole image: do not pass roi")
+    margin_px = options.roi_margin_px
     if int(margin_px) < 0:
-        raise ValueError(f"margin_px must be >= 0, got {margin_px}")
-    first = segment_silhouette(image, **segment_kwargs)
+        raise ValueError(f"roi_margin_px must be >= 0, got {margin_px}")
+    first = segment_silhouette(image, background=background,
+                               options=options.replace(grabcut=False, edge_refine_px=0))
     height, width = first.mask.shape
     n, labels, stats, _ = cv2.connectedComponentsWithStats(first.mask.view(np.uint8),
                                                            connectivity=8)
@@ -1333,14 +1418,30 @@ def segment_view(
     image: np.ndarray,
     camera: CameraModel,
     T_base_camera: np.ndarray,
-    seg: dict,
     workspace: tuple[np.ndarray, np.ndarray] | None = None,
     background: np.ndarray | None = None,
+    *,
+    options: SegmentOptions = SegmentOptions(),
 ) -> tuple[Silhouette, str]:
-    """One view segmented as the pipeline does, from the config's ``segmentation`` section.
+    """One view segmented as the pipeline does.
 
     The ROI is the projected workspace box when there is one (and
-    ``roi_from_workspace``), else found automatically (``roi_auto``), else the image.
+    ``options.roi_from_workspace``), else found automatically (``options.roi_auto``,
+    :func:`find_roi`), else the image.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8, uint16 or float in [0, 1]
+    camera : CameraModel
+    T_base_camera : (4, 4) float64
+        The camera's pose in ``base``.
+    workspace : ((3,), (3,)) float64, metres, in ``base``, optional
+        The workspace box.
+    background : array like ``image``, optional
+        The empty scene at this pose.
+    options : SegmentOptions
+        Made from the config's ``segmentation`` section
+        (``SegmentOptions.from_config(cfg["segmentation"])``).
 
     Returns
     -------
@@ -1348,21 +1449,15 @@ def segment_view(
     roi_source : str
         ``"workspace box"``, ``"automatic"`` or ``"image"``.
     """
-    kwargs = dict(polarity=seg["polarity"], threshold=seg["threshold"],
-                  blur_sigma_px=seg["blur_sigma_px"], min_component_px=seg["min_component_px"],
-                  min_component_fraction=seg["min_component_fraction"],
-                  fill_holes=seg["fill_holes"], max_hole_fraction=seg["max_hole_fraction"])
     roi, roi_source = None, "image"
-    if workspace is not None and seg["roi_from_workspace"]:
+    if workspace is not None and options.roi_from_workspace:
         roi = roi_from_box(workspace[0], workspace[1], camera, T_base_camera,
-                           margin_px=seg["roi_margin_px"])
+                           margin_px=options.roi_margin_px)
         roi_source = "workspace box"
-    elif seg["roi_auto"]:
-        roi = find_roi(image, margin_px=seg["roi_margin_px"], background=background, **kwargs)
+    elif options.roi_auto:
+        roi = find_roi(image, background=background, options=options)
         roi_source = "automatic"
-    sil = segment_silhouette(image, roi=roi, background=background,
-                             grabcut=bool(seg.get("grabcut", False)),
-                             edge_refine_px=int(seg.get("edge_refine_px", 0)), **kwargs)
+    sil = segment_silhouette(image, roi=roi, background=background, options=options)
     return sil, roi_source
 
 
@@ -1402,6 +1497,7 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     rec = read_recording(path, roles=("views",), **reader_options(cfg))
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
     poses = rec.camera_poses(views)
+    options = SegmentOptions.from_config(cfg["segmentation"])
     ious: dict[int, float] = {}
     flags: dict[int, list[str]] = {}
     seconds = 0.0
@@ -1413,8 +1509,8 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
                              cv2.IMREAD_GRAYSCALE)
         image = rec.decode(views[i])
         t0 = time.perf_counter()
-        sil, _ = segment_view(image, rec.camera_for(views[i]), poses[i], cfg["segmentation"],
-                              rec.workspace)
+        sil, _ = segment_view(image, rec.camera_for(views[i]), poses[i], rec.workspace,
+                              options=options)
         seconds += time.perf_counter() - t0
         gt = truth > 127
         if gt.shape != sil.mask.shape:

@@ -63,11 +63,9 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    within 1.5 px (else the laser channel's centre stays): a JPEG that stores colour at
    half resolution (4:2:0, 4:2:2: what webcams and most encoders write) keeps the
    laser's channel mostly in its blurred, half-sampled chroma, whose centre moves with
-   the stripe's phase on the 2-pixel chroma grid (measured on the simulated blue cell:
-   0.5 px bias at one phase, -0.1 px at the other, median error 0.108 px), while the
-   luma is stored at full resolution (median error 0.059 px, p95 0.26 against 0.52).
-   The pipeline chooses it per recording from the JPEG header (``stripes.centre_on:
-   auto``).
+   the stripe's phase on the 2-pixel chroma grid, while the luma is stored at full
+   resolution (``tests/test_jpeg_centres.py`` measures both). The pipeline chooses it
+   per recording from the JPEG header (``stripes.centre_on: auto``).
 6. Confidence: the SNR term and the width term below, a contrast term (the peak over the
    frame's median peak, capped at 1) and a curve term (its length over ``2 min_run``,
    capped at 1). ``s`` (eq. 18) is reported on the centres' pixels.
@@ -91,22 +89,20 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    simulated orange vase). What the region cannot remove: an object's lit rim or edge
    of the laser's colour inside the sheet's band in frames where the sheet misses the
    object there (no stripe in the line to beat it): the remaining outliers of the
-   simulated cells (640 x 480, exact poses, default config: red laser on the orange
-   vase 6 %, blue on the blue block 7 %, green on the green blob 1.5 % of the points
-   > 1 mm; medians 0.04-0.07 mm). Such points lie in free space (on the cone of rays
+   simulated cells. Such points lie in free space (on the cone of rays
    that graze the object); a test against the other frames' rays or the visual hull
    would remove them, the detector alone cannot. Without the region the line on the
    table or the wall (outside the box) wins those lines and the crop drops it, which
-   hides the rim: on the red and blue cells the region costs outliers (6.1 vs 5.4 %,
-   6.3 vs 4.3 %) and gains recall where that line would beat the stripe (blue 0.93 vs
-   0.91).
+   hides the rim: the region costs some outliers and gains recall where that line would
+   beat the stripe (the figures: ``benchmarks/README.md``, "Notes moved from
+   robo3d/stripes.py").
 
 Cost: one pass over the image reads the laser's channel (or the lightness) of each row
 once, into a ring of 13 rows (one centre per column) or a row buffer (per row: no
 transpose), computes the heights in vectorised loops and updates a line's candidates
 only where a height beats its second (blocks of 32 are skipped by a vectorised test);
 the other channels are read only there. Clutter adds only those rare updates: a busy
-frame costs about what a clean one does (``benchmarks/laser.py``: 1.13x). On uint8
+frame costs about what a clean one does. On uint8
 frames (a laser colour, or mono: what cameras record) the scans and the axis probe run
 in byte arithmetic (:func:`_lines8`, :func:`_ridge_scan_cols8`: the laser's channel
 read at literal offsets, saturating heights of 32 pixels per instruction, the pixels
@@ -114,10 +110,8 @@ whose height beats the line's second candidate found 8 bytes at a time, a pixel 
 best ridge that is not above it passed over), the probe's sampled columns are gathered
 in one pass over the rows, and everything after the choice of colour is one compiled
 call that holds no interpreter lock (:func:`_ridge_frame8`, :func:`_ridge_tail8`), so
-frames scale over threads; the results are identical to the generic kernels' (checked
-on ambient, simulated-cell and real srv frames). An ambient-lit 1280 x 960 RGB frame
-costs about 1.1 ms of CPU in the kernels (probe 0.15, noise 0.03, scan 0.5, centres
-0.25) and 0.15 ms around them.
+frames scale over threads; the results are identical to the generic kernels'.
+``benchmarks/laser.py`` measures the cost (the figures: ``benchmarks/README.md``).
 
 Choices where issue 10 leaves room: the two-candidate limit (a third, stronger clutter
 ridge in a line hides the stripe there: counted ``too_weak`` or ``isolated``); the
@@ -202,31 +196,33 @@ The work is done by Numba-compiled kernels (``nogil``, cached on disk), written 
 their inner loops vectorise (branch-free updates, integer compares on integer images):
 one pass over the image for the lines' peaks and the rows' extrema, one pass counting the
 band's pixels per line over the rows that can reach a band (the others are skipped), then
-``O(window)`` work per line. On a 1280 x 960 mono frame that is about 0.45 ms on one core
-(see ``benchmarks/laser.py``); since the kernels release the GIL,
-:func:`extract_stripes_batch` and the pipeline's stage run frames on several threads.
-The first call of a process compiles the kernels (about 10 s once, all of them; later
-processes load them from Numba's cache in about 0.35 s).
+``O(window)`` work per line (``benchmarks/laser.py`` times it); since the kernels release
+the GIL, :func:`extract_stripes_batch` and the pipeline's stage run frames on several
+threads. The first call of a process compiles the kernels (once; later processes load
+them from Numba's cache).
 
 A stripe narrower than about 1.2 px (full width at half maximum) is *pixel locked*: the
-sensor integrates it over one or two pixels and its position inside the pixel is lost
-(0.05 px RMS at 1.2 px, 0.13 px at 1.05 px, for either estimator); at 1.5 px and wider
-both estimators are within 0.01 px. The optics should spread the stripe over 1.5 px or
-more (the simulated one is 1.5-1.7 px wide at 640 x 480).
+sensor integrates it over one or two pixels and its position inside the pixel is lost,
+for either estimator; from 1.5 px on both are unbiased. The optics should spread the
+stripe over 1.5 px or more (the simulated one is 1.5-1.7 px wide at 640 x 480).
 
 Choices where the seed is vague
 -------------------------------
 * The seed's image is RGB and the laser red; we accept any laser colour (eq. 19 is
   colour-blind) and mono images.
 * Images are read in their own units (grey levels for integer images); ``min_peak`` is
-  in those units (the config's ``stripes.min_peak`` is in grey levels), and defaults to
-  4 % of the full scale (255 for uint8, 65535 for uint16, 1.0 for float images).
+  in those units (the config's ``stripes.min_peak``, default 8, is in grey levels of
+  8-bit images); ``min_peak=None`` is 4 % of the full scale (255 for uint8, 65535 for
+  uint16, 1.0 for float images).
 * ``axis="columns"`` gives one centre per column: ``u`` is the (integer) column and
   ``v`` the sub-pixel row. ``axis="rows"`` gives one centre per row; ``axis="auto"``
   (the default, for both detectors) picks it per frame from the stripe's geometry
-  (step 4 of the ridge detector, on the lightness for the band detector). Counting the
-  lines whose peak stands ``min_peak`` above their darkest pixel, as before, chose
-  columns for a nearly vertical real stripe (room light lifts every line).
+  (step 4 of the ridge detector, on the lightness for the band detector), not from the
+  number of lines whose peak stands ``min_peak`` above their darkest pixel (room light
+  lifts every line).
+* The parameters are one :class:`StripeOptions`, made from the config's ``stripes``
+  section (``StripeOptions.from_config(cfg["stripes"])``); the image, its laser-off
+  frame and its region of interest are per call.
 * Images with another number of channels than 1 or 3, booleans or non-finite floats are
   refused; integer types other than uint8/uint16 and float64 are read as float32.
 
@@ -255,11 +251,12 @@ from typing import Literal
 import numpy as np
 from numba import njit
 
+from .options import Options
+
 __all__ = [
-    "CONFIG_KEYS",
     "CONTRASTS",
+    "StripeOptions",
     "StripePoints",
-    "config_options",
     "centre_on_for",
     "REJECTION_REASONS",
     "brightness_coefficient",
@@ -390,6 +387,90 @@ class StripePoints:
         z = np.zeros(0)
         return cls(z, z, axis=axis, s=s, n_lines=n_lines,
                    rejected=dict(rejected or {}), colour=colour)
+
+
+@dataclass(frozen=True)
+class StripeOptions(Options):
+    """The stripe detector's parameters: the config's ``stripes`` keys that
+    :func:`extract_stripe_centres` uses, under the same names, and two estimator
+    constants that are not in the config (``not_in_config``).
+
+    The section's other keys (``laser_off_topic``, ``roi_from_workspace``,
+    ``roi_margin_px``) are the stage's: which laser-off frame and which region of interest
+    go with a frame. The stage resolves ``colour="auto"`` once per recording
+    (:func:`estimate_laser_colour`) and ``centre_on="auto"`` from the frames' encoding
+    (:func:`centre_on_for`) with :meth:`replace`.
+
+    Attributes
+    ----------
+    detector : {"ridge", "band"}
+        ``ridge`` (default): the stripe as a connected ridge of the laser's colour
+        contrast (see the module docstring); ``band``: the seed's eq. 20 band on the
+        lightness (``band``, ``s``, ``reference`` apply to it only).
+    colour : {"auto", "red", "green", "blue", "lightness"}
+        The ridge detector's contrast image: a channel's excess over the other two, or
+        the lightness; ``auto`` chooses per frame the one in which the stripe is the
+        most consistent ridge. Mono images always use their own values.
+    min_run : int, lines
+        Ridge detector: the shortest connected piece of stripe kept.
+    link_px : float, pixels
+        Ridge detector: largest step of the stripe between neighbouring lines (per line
+        of a gap) for the two to belong to one curve.
+    band : float
+        Half-width of the brightness band of eq. 20 relative to the reference (0.15 in
+        the seed).
+    method : {"cog", "gaussian"}
+        Centre of gravity of the background-subtracted, soft-thresholded run, or the
+        Gaussian (weighted log-parabola) fit over the same run.
+    axis : {"columns", "rows", "auto"}
+        One centre per column (stripe roughly horizontal), per row, or chosen per frame
+        from the stripe's direction.
+    min_peak : float or None, the image's units (grey levels for integer images)
+        Smallest accepted peak height above the local background. None: 4 % of the full
+        scale (10.2 for uint8, 2621.4 for uint16, 0.04 for float images).
+    max_width_px : float, pixels
+        Largest accepted full width at half maximum across the line.
+    reference : {"local", "frame"}
+        The brightness the band of eq. 20 is centred on, per line: the median of the
+        neighbouring lines' peaks capped by the line's own (``local``), or the frame's
+        ``s`` (``frame``, the seed as written).
+    reference_lines : int, lines
+        Half-width of the neighbourhood of the local reference.
+    s : float or None
+        Brightness coefficient (eq. 18) chosen by the caller, as the seed's user does;
+        it is then the reference of every line (``reference`` is ignored). None: ``s``
+        is computed from the lines' brightest pixels.
+    centre_on : {"laser", "luma", "auto"}
+        Ridge detector, RGB frames: the profile of the sub-pixel centre, the laser's
+        channel or the luma (for JPEGs with subsampled chroma; module docstring, step 5).
+        ``auto`` is the stage's choice from the frames' encoding; an array carries none,
+        so :func:`extract_stripe_centres` takes it as the laser's channel.
+    tail_fraction : float
+        Soft threshold of the centre of gravity, relative to the peak height (not in the
+        config).
+    noise_k : float
+        The soft threshold is at least ``noise_k`` times the frame's noise sigma (not in
+        the config).
+    """
+
+    section = "stripes"
+    not_in_config = ("tail_fraction", "noise_k")
+
+    detector: Literal["ridge", "band"] = "ridge"
+    colour: str = "auto"
+    min_run: int = 8
+    link_px: float = 3.0
+    band: float = 0.15
+    method: Literal["cog", "gaussian"] = "cog"
+    axis: _Axis = "auto"
+    min_peak: float | None = 8.0
+    max_width_px: float = 15.0
+    reference: Literal["local", "frame"] = "local"
+    reference_lines: int = 16
+    s: float | None = None
+    centre_on: Literal["laser", "luma", "auto"] = "auto"
+    tail_fraction: float = 0.05
+    noise_k: float = 3.0
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -1943,26 +2024,46 @@ def _eq18(img: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
     return float((means.max() + means.min()) / 2.0)
 
 
+def _check_options(o: StripeOptions) -> None:
+    """``ValueError`` naming the first option of :func:`extract_stripe_centres` out of
+    range."""
+    if o.axis not in ("columns", "rows", "auto"):
+        raise ValueError(f"axis must be 'columns', 'rows' or 'auto', got {o.axis!r}")
+    if o.method not in ("cog", "gaussian"):
+        raise ValueError(f"method must be 'cog' or 'gaussian', got {o.method!r}")
+    if o.centre_on not in ("laser", "luma", "auto"):
+        raise ValueError(f"centre_on must be 'laser', 'luma' or 'auto', got {o.centre_on!r}")
+    if o.reference not in ("local", "frame"):
+        raise ValueError(f"reference must be 'local' or 'frame', got {o.reference!r}")
+    if not (0.0 < o.band < 1.0):
+        raise ValueError(f"band must be in (0, 1), got {o.band}")
+    if not (o.max_width_px > 0):
+        raise ValueError(f"max_width_px must be positive, got {o.max_width_px}")
+    if o.min_peak is not None and not (o.min_peak >= 0):
+        raise ValueError(f"min_peak must be >= 0, got {o.min_peak}")
+    if not (0.0 <= o.tail_fraction < 1.0) or not (o.noise_k >= 0):
+        raise ValueError(f"need 0 <= tail_fraction < 1 and noise_k >= 0, got "
+                         f"{o.tail_fraction} and {o.noise_k}")
+    if int(o.reference_lines) != o.reference_lines or o.reference_lines < 0:
+        raise ValueError(f"reference_lines must be an integer >= 0, got {o.reference_lines}")
+    if o.s is not None and not (np.isfinite(o.s) and o.s >= 0):
+        raise ValueError(f"s must be a finite brightness >= 0, got {o.s}")
+    if o.detector not in ("ridge", "band"):
+        raise ValueError(f"detector must be 'ridge' or 'band', got {o.detector!r}")
+    if o.colour != "auto" and o.colour not in CONTRASTS:
+        raise ValueError(f"colour must be 'auto' or one of {CONTRASTS}, got {o.colour!r}")
+    if int(o.min_run) != o.min_run or o.min_run < 1:
+        raise ValueError(f"min_run must be an integer >= 1, got {o.min_run}")
+    if not (o.link_px > 0):
+        raise ValueError(f"link_px must be positive, got {o.link_px}")
+
+
 def extract_stripe_centres(
     image: np.ndarray,
     *,
-    band: float = 0.15,
-    s: float | None = None,
-    axis: _Axis = "auto",
-    min_peak: float | None = None,
-    max_width_px: float = 15.0,
-    method: Literal["cog", "gaussian"] = "cog",
-    reference: Literal["local", "frame"] = "local",
-    reference_lines: int = 16,
     background: np.ndarray | None = None,
-    tail_fraction: float = 0.05,
-    noise_k: float = 3.0,
-    detector: Literal["ridge", "band"] = "ridge",
-    colour: str = "auto",
-    min_run: int = 8,
-    link_px: float = 3.0,
     roi: np.ndarray | None = None,
-    centre_on: Literal["laser", "luma", "auto"] = "laser",
+    options: StripeOptions = StripeOptions(),
 ) -> StripePoints:
     """Sub-pixel laser stripe centres, at most one per image column (or row).
 
@@ -1973,50 +2074,8 @@ def extract_stripe_centres(
     ----------
     image : (H, W) or (H, W, 3) uint8, uint16 or float
         The laser-lit frame, mono or RGB, any laser colour.
-    band : float
-        Half-width of the brightness band of eq. 20 relative to the reference (0.15 in
-        the seed).
-    s : float, optional
-        Brightness coefficient (eq. 18) chosen by the caller, as the seed's user does;
-        it is then the reference of every line (``reference`` is ignored). When None,
-        ``s`` is computed from the lines' brightest pixels.
-    axis : {"columns", "rows", "auto"}
-        One centre per column (stripe roughly horizontal), per row, or chosen from the
-        direction in which the stripe covers more lines.
-    min_peak : float, optional
-        Smallest accepted peak height above the local background, in the image's units
-        (grey levels for integer images). Default: 4 % of the full scale (10.2 for
-        uint8, 2621.4 for uint16, 0.04 for float images).
-    max_width_px : float, pixels
-        Largest accepted full width at half maximum across the line.
-    method : {"cog", "gaussian"}
-        Centre of gravity of the background-subtracted, soft-thresholded run, or the
-        Gaussian (weighted log-parabola) fit over the same run.
-    reference : {"local", "frame"}
-        The brightness the band of eq. 20 is centred on, per line: the median of the
-        neighbouring lines' peaks capped by the line's own (``local``), or the frame's
-        ``s`` (``frame``, the seed as written).
-    reference_lines : int
-        Half-width, in lines, of the neighbourhood of the local reference.
     background : same shape as ``image``, optional
         Laser-off frame subtracted (clipped at 0) before anything else.
-    tail_fraction : float
-        Soft threshold of the centre of gravity, relative to the peak height.
-    noise_k : float
-        The soft threshold is at least ``noise_k`` times the frame's noise sigma.
-    detector : {"ridge", "band"}
-        ``ridge`` (default): the stripe as a connected ridge of the laser's colour
-        contrast (see the module docstring); ``band``: the seed's eq. 20 band on the
-        lightness (``band``, ``s``, ``reference`` apply to it only).
-    colour : {"auto", "red", "green", "blue", "lightness"}
-        The ridge detector's contrast image: a channel's excess over the other two, or
-        the lightness; ``auto`` chooses per frame the one in which the stripe is the
-        most consistent ridge. Mono images always use their own values.
-    min_run : int
-        Ridge detector: the shortest connected piece of stripe kept, in lines.
-    link_px : float, pixels
-        Ridge detector: largest step of the stripe between neighbouring lines (per line
-        of a gap) for the two to belong to one curve.
     roi : (H, W) bool, optional
         Ridge detector: the region where the stripe can be (the laser sheet inside the
         workspace, :func:`robo3d.triangulation.sheet_roi_mask`); candidates are sought
@@ -2024,11 +2083,9 @@ def extract_stripe_centres(
         a convex region), for the colour, the axis and the stripe. Lines that do not
         meet it are counted ``outside_roi``. None: the whole image. The band detector
         ignores it.
-    centre_on : {"laser", "luma", "auto"}
-        Ridge detector, RGB frames: the profile of the sub-pixel centre, the laser's
-        channel or the luma (for JPEGs with subsampled chroma; module docstring, step 5).
-        ``auto`` is the stage's choice from the frames' encoding; an array carries none,
-        so here it is the laser's channel.
+    options : StripeOptions
+        The detector, its colour, axis and thresholds, the sub-pixel estimator (see
+        :class:`StripeOptions`). Default: the project's defaults.
 
     Returns
     -------
@@ -2044,56 +2101,36 @@ def extract_stripe_centres(
        detection", 1996.
     .. [3] H. Guo, "A simple algorithm for fitting a Gaussian function", 2011.
     """
+    o = options
     image = _check_image(np.asarray(image))
-    if axis not in ("columns", "rows", "auto"):
-        raise ValueError(f"axis must be 'columns', 'rows' or 'auto', got {axis!r}")
-    if method not in ("cog", "gaussian"):
-        raise ValueError(f"method must be 'cog' or 'gaussian', got {method!r}")
-    if centre_on not in ("laser", "luma", "auto"):
-        raise ValueError(f"centre_on must be 'laser', 'luma' or 'auto', got {centre_on!r}")
-    if reference not in ("local", "frame"):
-        raise ValueError(f"reference must be 'local' or 'frame', got {reference!r}")
-    if not (0.0 < band < 1.0):
-        raise ValueError(f"band must be in (0, 1), got {band}")
-    if not (max_width_px > 0):
-        raise ValueError(f"max_width_px must be positive, got {max_width_px}")
-    if min_peak is not None and not (min_peak >= 0):
-        raise ValueError(f"min_peak must be >= 0, got {min_peak}")
-    if not (0.0 <= tail_fraction < 1.0) or not (noise_k >= 0):
-        raise ValueError(f"need 0 <= tail_fraction < 1 and noise_k >= 0, got "
-                         f"{tail_fraction} and {noise_k}")
-    if int(reference_lines) != reference_lines or reference_lines < 0:
-        raise ValueError(f"reference_lines must be an integer >= 0, got {reference_lines}")
-    if s is not None and not (np.isfinite(s) and s >= 0):
-        raise ValueError(f"s must be a finite brightness >= 0, got {s}")
-    if detector not in ("ridge", "band"):
-        raise ValueError(f"detector must be 'ridge' or 'band', got {detector!r}")
-    if colour != "auto" and colour not in CONTRASTS:
-        raise ValueError(f"colour must be 'auto' or one of {CONTRASTS}, got {colour!r}")
-    if int(min_run) != min_run or min_run < 1:
-        raise ValueError(f"min_run must be an integer >= 1, got {min_run}")
-    if not (link_px > 0):
-        raise ValueError(f"link_px must be positive, got {link_px}")
+    _check_options(o)
     roi = _check_roi(roi, image.shape)
     full_scale = _full_scale(image.dtype)
-    min_peak_abs = 0.04 * full_scale if min_peak is None else float(min_peak)
+    min_peak_abs = 0.04 * full_scale if o.min_peak is None else float(o.min_peak)
     work = _subtract_background(image, background)
     img = _as_kernel_image(work)
     if img.dtype == np.float32 and not np.all(np.isfinite(img)):
         raise ValueError("image has non-finite (NaN or inf) pixels")
     h_img, w_img, nch = img.shape
     if img.size == 0:
-        ax = "columns" if axis == "auto" else axis
-        return StripePoints.empty(axis=ax, s=float("nan") if s is None else float(s),
+        ax = "columns" if o.axis == "auto" else o.axis
+        return StripePoints.empty(axis=ax, s=float("nan") if o.s is None else float(o.s),
                                   n_lines=w_img if ax == "columns" else h_img,
                                   rejected={"too_weak": w_img if ax == "columns" else h_img})
-    if detector == "ridge":
-        return _extract_ridge(img, axis=axis, colour=colour, min_peak=min_peak_abs,
-                              max_width_px=float(max_width_px), method=method,
-                              tail_fraction=float(tail_fraction), noise_k=float(noise_k),
-                              min_run=int(min_run), link_px=float(link_px), roi=roi,
-                              centre_on=centre_on)
+    if o.detector == "ridge":
+        return _extract_ridge(img, axis=o.axis, colour=o.colour, min_peak=min_peak_abs,
+                              max_width_px=float(o.max_width_px), method=o.method,
+                              tail_fraction=float(o.tail_fraction), noise_k=float(o.noise_k),
+                              min_run=int(o.min_run), link_px=float(o.link_px), roi=roi,
+                              centre_on=o.centre_on)
+    return _extract_band(img, o, min_peak_abs)
 
+
+def _extract_band(img: np.ndarray, o: StripeOptions, min_peak_abs: float) -> StripePoints:
+    """The band detector (the seed as written, module docstring) on an (H, W, 1|3) kernel
+    image, ``min_peak_abs`` in its units."""
+    axis, s, band, max_width_px = o.axis, o.s, o.band, o.max_width_px
+    nch = img.shape[2]
     # pass 1: the lines' brightest pixels (and the rows' for "auto")
     # the rows' extrema: to choose the axis, and to skip the rows of pass 2 that cannot
     # reach any line's band (cheap for mono images, whose reductions vectorise)
@@ -2115,10 +2152,10 @@ def extract_stripe_centres(
         s_frame = _eq18(img, carg[lines_idx], lines_idx) if lines_idx.size else 0.0
     else:
         s_frame = float(s)
-    if s is not None or reference == "frame":
+    if s is not None or o.reference == "frame":
         s_ref = np.full(n_lines, s_frame, dtype=np.float32)
     else:
-        s_ref = _local_reference(cmax, good, int(reference_lines))
+        s_ref = _local_reference(cmax, good, int(o.reference_lines))
     lo = ((1.0 - band) * s_ref).astype(np.float32)
     hi = ((1.0 + band) * s_ref).astype(np.float32)
 
@@ -2133,9 +2170,9 @@ def extract_stripe_centres(
     h = int(np.ceil(1.1 * max_width_px)) + 2
     status, centre, amp, width = _centres(
         img, nch, good, carg, lo, hi, n_above, n_band, barg, h, _H_SMALL,
-        float(tail_fraction),
-        float(noise_k * sigma_n), float(min_peak_abs), float(max_width_px),
-        method == "gaussian")
+        float(o.tail_fraction),
+        float(o.noise_k * sigma_n), float(min_peak_abs), float(max_width_px),
+        o.method == "gaussian")
 
     counts = np.bincount(status, minlength=len(REJECTION_REASONS) + 1)
     rejected = {name: int(counts[i + 1]) for i, name in enumerate(REJECTION_REASONS)}
@@ -2368,19 +2405,6 @@ def centre_on_for(centre_on: str, encoded: bytes | None) -> str:
     return "luma" if encoded is not None and chroma_subsampled(encoded) else "laser"
 
 
-#: The keyword arguments of :func:`extract_stripe_centres` that the config's ``stripes``
-#: section holds under the same names.
-CONFIG_KEYS: tuple[str, ...] = ("detector", "colour", "min_run", "link_px", "band", "method",
-                                "axis", "min_peak", "max_width_px", "reference",
-                                "reference_lines", "s", "centre_on")
-
-
-def config_options(section: dict) -> dict:
-    """The keyword arguments of :func:`extract_stripe_centres` from a config's ``stripes``
-    section (the same names; the section's other keys are the stage's)."""
-    return {k: section[k] for k in CONFIG_KEYS}
-
-
 def estimate_laser_colour(images: Sequence[np.ndarray], *,
                           backgrounds: Sequence[np.ndarray | None] | None = None,
                           min_peak: float | None = None,
@@ -2447,7 +2471,8 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
 
 
 def extract_stripes_batch(
-    frames: np.ndarray | Sequence[np.ndarray], *, threads: int = 1, **kw: object
+    frames: np.ndarray | Sequence[np.ndarray], *, threads: int = 1,
+    options: StripeOptions = StripeOptions(),
 ) -> list[StripePoints]:
     """:func:`extract_stripe_centres` on every frame of a batch, on ``threads`` threads.
 
@@ -2457,9 +2482,9 @@ def extract_stripes_batch(
         The laser-lit frames.
     threads : int
         Frames processed in parallel (the kernels release the GIL); 1 for none.
-    **kw
-        Keyword arguments of :func:`extract_stripe_centres` (``s`` applies to every
-        frame; when None each frame gets its own brightness coefficient).
+    options : StripeOptions
+        As for :func:`extract_stripe_centres` (``s`` applies to every frame; when None
+        each frame gets its own brightness coefficient).
 
     Returns
     -------
@@ -2474,7 +2499,7 @@ def extract_stripes_batch(
         raise ValueError(f"threads must be >= 1, got {threads}")
 
     def one(f: np.ndarray) -> StripePoints:
-        return extract_stripe_centres(f, **kw)  # type: ignore[arg-type]
+        return extract_stripe_centres(f, options=options)
 
     if int(threads) == 1 or len(frames) < 2:
         return [one(f) for f in frames]

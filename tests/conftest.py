@@ -32,7 +32,7 @@ WARM_UP = r"""
 import os
 os.nice(10)
 import numpy as np
-from robo3d.stripes import extract_stripe_centres
+from robo3d.stripes import StripeOptions, extract_stripe_centres
 
 h, w = 48, 64
 yy, xx = np.mgrid[0:h, 0:w]
@@ -49,13 +49,13 @@ for img, min_peak in images:
     for detector in ("ridge", "band"):
         for axis in ("auto", "columns", "rows"):
             for method in ("cog", "gaussian"):
+                opts = StripeOptions(detector=detector, axis=axis, method=method,
+                                     min_peak=min_peak)
                 try:
-                    extract_stripe_centres(img, detector=detector, axis=axis, method=method,
-                                           min_peak=min_peak)
+                    extract_stripe_centres(img, options=opts)
                     extract_stripe_centres(img.T.copy() if img.ndim == 2 else
                                            np.ascontiguousarray(img.transpose(1, 0, 2)),
-                                           detector=detector, axis=axis, method=method,
-                                           min_peak=min_peak)
+                                           options=opts)
                 except Exception:
                     pass  # a combination the detector refuses: nothing to compile
 try:

@@ -13,11 +13,14 @@ import numpy as np
 import pytest
 
 from robo3d.recording.images import chroma_subsampled
-from robo3d.stripes import centre_on_for, extract_stripe_centres
+from robo3d.stripes import StripeOptions, centre_on_for, extract_stripe_centres
 
 H, W = 160, 320
 #: The simulator's sensor responses of a red and a blue laser (LASER_RGB).
 LASERS = {"red": (1.0, 0.12, 0.06), "blue": (0.10, 0.38, 1.0)}
+#: The stripe detector as :func:`extract_stripe_centres` defaulted to before its options:
+#: ``min_peak`` at 4 % of the full scale.
+BASE = StripeOptions(min_peak=None)
 
 
 def _jpeg(rgb: np.ndarray, sampling: int) -> bytes:
@@ -64,7 +67,8 @@ def test_luma_centre_removes_the_chroma_grid_bias(colour):
         cv2.COLOR_BGR2RGB)
     err = {}
     for mode in ("laser", "luma"):
-        sp = extract_stripe_centres(jpg, colour=colour, axis="columns", centre_on=mode)
+        sp = extract_stripe_centres(jpg, options=BASE.replace(colour=colour, axis="columns",
+                                                              centre_on=mode))
         assert sp.axis == "columns" and sp.colour == colour
         assert len(sp) >= 0.95 * W
         err[mode] = np.abs(sp.v - vc[sp.line])
@@ -74,10 +78,12 @@ def test_luma_centre_removes_the_chroma_grid_bias(colour):
     assert np.median(err["luma"]) < 0.6 * np.median(err["laser"])
     assert np.percentile(err["luma"], 95) < np.percentile(err["laser"], 95)
     # on the lossless frame both profiles are unbiased: luma changes nothing much
-    sp = extract_stripe_centres(rgb, colour=colour, axis="columns", centre_on="laser")
+    sp = extract_stripe_centres(rgb, options=BASE.replace(colour=colour, axis="columns",
+                                                          centre_on="laser"))
     assert np.median(np.abs(sp.v - vc[sp.line])) < 0.02
 
 
 def test_centre_on_is_checked():
     with pytest.raises(ValueError, match="centre_on"):
-        extract_stripe_centres(np.zeros((8, 8, 3), np.uint8), centre_on="chroma")
+        extract_stripe_centres(np.zeros((8, 8, 3), np.uint8),
+                               options=BASE.replace(centre_on="chroma"))

@@ -13,6 +13,7 @@ import pytest
 from robo3d.camera import CameraModel
 from robo3d.errors import StageError
 from robo3d.silhouettes import (
+    SegmentOptions,
     Silhouette,
     _distortion_limit_r2,
     colour_difference,
@@ -30,6 +31,10 @@ from robo3d.transforms import invert_transform
 H, W = 160, 200
 CX, CY, R = 110.3, 75.6, 40.0
 HOLES = [(-15, -10, 6), (12, 5, 5), (0, 20, 4), (18, -18, 5)]
+#: The segmentation without the pipeline's refinements and speck and hole rules: Otsu's
+#: threshold, every hole filled (the seed's rule), specks under 50 px removed.
+PLAIN = SegmentOptions(min_component_px=50, max_hole_fraction=1.0, grabcut=False,
+                       edge_refine_px=0)
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -59,7 +64,7 @@ def _scene(seed: int = 0, cx=CX, cy=CY) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("threshold", [None, 125.0])
 def test_bright_disc(threshold):
     img, disc = _scene()
-    sil = segment_silhouette(img, polarity="brighter", threshold=threshold)
+    sil = segment_silhouette(img, options=PLAIN.replace(polarity="brighter", threshold=threshold))
     assert isinstance(sil, Silhouette)
     assert sil.mask.dtype == np.bool_ and sil.mask.shape == (H, W)
     assert _iou(sil.mask, disc) >= 0.99
@@ -79,44 +84,46 @@ def test_bright_disc(threshold):
 @pytest.mark.parametrize("threshold", [None, 130.0])
 def test_dark_disc(threshold):
     img, disc = _scene(seed=1)
-    sil = segment_silhouette(255 - img, polarity="darker", threshold=threshold)
+    sil = segment_silhouette(255 - img,
+                             options=PLAIN.replace(polarity="darker", threshold=threshold))
     assert _iou(sil.mask, disc) >= 0.99
     assert sil.polarity == "darker"
 
 
 def test_holes_filled_only_when_asked():
     img, disc = _scene()
-    holed = segment_silhouette(img, fill_holes=False)
+    holed = segment_silhouette(img, options=PLAIN.replace(fill_holes=False))
     assert _iou(holed.mask, disc) < 0.98  # the dark texture does punch holes
-    assert _iou(segment_silhouette(img).mask, disc) >= 0.99
+    assert _iou(segment_silhouette(img, options=PLAIN).mask, disc) >= 0.99
 
 
 def test_rgb_uint16_and_float_inputs_agree():
     img, disc = _scene(seed=2)
-    ref = segment_silhouette(img).mask
+    ref = segment_silhouette(img, options=PLAIN).mask
     rgb = np.stack([img, img, img], axis=-1)
-    assert np.array_equal(segment_silhouette(rgb).mask, ref)
+    assert np.array_equal(segment_silhouette(rgb, options=PLAIN).mask, ref)
     wide = img.astype(np.uint16) * 257
-    assert np.array_equal(segment_silhouette(wide).mask, ref)
-    assert _iou(segment_silhouette(img / 255.0).mask, disc) >= 0.99
+    assert np.array_equal(segment_silhouette(wide, options=PLAIN).mask, ref)
+    assert _iou(segment_silhouette(img / 255.0, options=PLAIN).mask, disc) >= 0.99
     tinted = np.stack([img, (img * 0.8).astype(np.uint8), (img * 0.6).astype(np.uint8)], -1)
-    assert _iou(segment_silhouette(tinted).mask, disc) >= 0.99
+    assert _iou(segment_silhouette(tinted, options=PLAIN).mask, disc) >= 0.99
     assert to_grey(rgb) == pytest.approx(img.astype(np.float32), abs=1e-3)
 
 
 def test_roi_excludes_a_distractor():
     img, disc = _scene(seed=3)
     img[5:25, 5:35] = 200  # a bright thing beside the object (600 px)
-    whole = segment_silhouette(img)
+    whole = segment_silhouette(img, options=PLAIN)
     assert whole.n_components == 2 and _iou(whole.mask, disc) < 0.95
     vs, us = np.nonzero(disc)
     roi = (us.min() - 10, vs.min() - 10, us.max() + 11, vs.max() + 11)
-    sil = segment_silhouette(img, roi=roi)
+    sil = segment_silhouette(img, roi=roi, options=PLAIN)
     assert _iou(sil.mask, disc) >= 0.99
     assert sil.n_components == 1 and not sil.touches_border
     # an ROI that cuts the object: nothing outside it, and the cut is reported (grey
     # threshold: the automatic polarity would take the object outside it as background)
-    cut = segment_silhouette(img, polarity="brighter", roi=(0, 0, int(CX), H))
+    cut = segment_silhouette(img, roi=(0, 0, int(CX), H),
+                             options=PLAIN.replace(polarity="brighter"))
     assert not cut.mask[:, int(CX):].any() and cut.touches_border
 
 
@@ -129,10 +136,11 @@ def test_specks_removed():
         if not _disc(CX, CY, R + 8)[v:v + 3, u:u + 3].any():
             img[v:v + 3, u:u + 3] = 255
             placed += 1
-    sil = segment_silhouette(img)
+    sil = segment_silhouette(img, options=PLAIN)
     assert sil.n_components == 11
     assert _iou(sil.mask, disc) >= 0.99
-    kept = segment_silhouette(img, min_component_px=0, min_component_fraction=0.0)
+    kept = segment_silhouette(img, options=PLAIN.replace(min_component_px=0,
+                                                         min_component_fraction=0.0))
     assert _iou(kept.mask, disc) < 0.99
 
 
@@ -147,9 +155,9 @@ def test_background_subtraction():
     img[hole] = background[hole]
     noisy = lambda a: np.clip(np.rint(a + rng.normal(0, 4, a.shape)), 0, 255).astype(np.uint8)  # noqa: E731
     img, background = noisy(img), noisy(background)
-    plain = segment_silhouette(img)
+    plain = segment_silhouette(img, options=PLAIN)
     assert _iou(plain.mask, disc) < 0.9  # thresholding alone cannot do it
-    sil = segment_silhouette(img, background=background)
+    sil = segment_silhouette(img, background=background, options=PLAIN)
     assert sil.polarity == "difference"
     assert _iou(sil.mask, disc) >= 0.99
 
@@ -158,7 +166,7 @@ def test_touches_border():
     img, disc = _scene(cx=30.0, cy=80.0)  # cut by the left side; the holes stay inside
     # grey threshold: the border ring holds the cut object, as flat and noisy as the
     # background here, so the automatic polarity could not tell them apart
-    sil = segment_silhouette(img, polarity="brighter")
+    sil = segment_silhouette(img, options=PLAIN.replace(polarity="brighter"))
     assert sil.touches_border and sil.bbox[0] == 0
     assert sil.touches_image_border
     assert _iou(sil.mask, disc) >= 0.99
@@ -167,68 +175,70 @@ def test_touches_border():
     assert s["roi"] == [0, 0, W, H]
     # an ROI cutting the object: its border is touched, not the image's
     img, disc = _scene()
-    cut = segment_silhouette(img, polarity="brighter", roi=(0, 0, int(CX), H))
+    cut = segment_silhouette(img, roi=(0, 0, int(CX), H),
+                             options=PLAIN.replace(polarity="brighter"))
     assert cut.touches_border and not cut.touches_image_border
     assert cut.roi == (0, 0, int(CX), H)
-    whole = segment_silhouette(img)
+    whole = segment_silhouette(img, options=PLAIN)
     assert not whole.touches_border and not whole.touches_image_border
 
 
 def test_find_roi_around_the_object_excludes_clutter():
     img, disc = _scene(seed=3)
     img[5:25, 5:35] = 200  # a bright thing beside the object, as in the test above
-    roi = find_roi(img, margin_px=10)
+    roi = find_roi(img, options=PLAIN.replace(roi_margin_px=10))
     vs, us = np.nonzero(disc)
     # the disc's box grown by max(10 px, 10 % of its size) = 10 px on each side
     assert roi == (us.min() - 10, vs.min() - 10, us.max() + 11, vs.max() + 11)
-    sil = segment_silhouette(img, roi=roi)
+    sil = segment_silhouette(img, roi=roi, options=PLAIN)
     assert _iou(sil.mask, disc) >= 0.99 and sil.n_components == 1
     # near the image's side the region is clipped to the image
     img2, disc2 = _scene(seed=2, cx=30.0, cy=80.0)
-    roi2 = find_roi(img2, margin_px=25)
+    roi2 = find_roi(img2, options=PLAIN.replace(roi_margin_px=25))
     assert roi2[0] == 0 and roi2[2] <= W
-    with pytest.raises(ValueError, match="do not pass roi"):
-        find_roi(img, roi=(0, 0, 10, 10))
+    with pytest.raises(ValueError, match="roi_margin_px"):
+        find_roi(img, options=PLAIN.replace(roi_margin_px=-1))
     with pytest.raises(StageError, match="empty"):
-        find_roi(np.full((H, W), 40, np.uint8), polarity="brighter", threshold=100)
+        find_roi(np.full((H, W), 40, np.uint8),
+                 options=PLAIN.replace(polarity="brighter", threshold=100))
 
 
 # ---------------------------------------------------------------------- exceptions
 def test_empty_and_full_silhouettes_raise():
     dark = np.full((H, W), 40, np.uint8)
     with pytest.raises(StageError, match="silhouette is empty"):
-        segment_silhouette(dark, polarity="brighter", threshold=128)
+        segment_silhouette(dark, options=PLAIN.replace(polarity="brighter", threshold=128))
     bright = np.full((H, W), 230, np.uint8)
     with pytest.raises(StageError, match="covers every pixel"):
-        segment_silhouette(bright, polarity="brighter", threshold=128)
+        segment_silhouette(bright, options=PLAIN.replace(polarity="brighter", threshold=128))
     with pytest.raises(StageError, match="uniform"):
-        segment_silhouette(dark)
+        segment_silhouette(dark, options=PLAIN)
     img, _ = _scene()
     with pytest.raises(StageError, match="covers every pixel"):
-        segment_silhouette(img, polarity="brighter", threshold=125,
-                           roi=(75, 65, 85, 75))  # ROI inside the disc
+        segment_silhouette(img, roi=(75, 65, 85, 75),  # ROI inside the disc
+                           options=PLAIN.replace(polarity="brighter", threshold=125))
     specks = dark.copy()
     specks[10:13, 10:13] = 250
     with pytest.raises(StageError, match="smaller than 50 px"):
-        segment_silhouette(specks, polarity="brighter", threshold=128)
+        segment_silhouette(specks, options=PLAIN.replace(polarity="brighter", threshold=128))
 
 
 def test_bad_inputs_raise():
     img, _ = _scene()
     with pytest.raises(ValueError, match=r"uint8, uint16 or float32/float64.*int32"):
-        segment_silhouette(img.astype(np.int32))
+        segment_silhouette(img.astype(np.int32), options=PLAIN)
     with pytest.raises(ValueError, match=r"\(H, W\) grey or \(H, W, 3\) RGB.*\(160, 200, 4\)"):
-        segment_silhouette(np.zeros((H, W, 4), np.uint8))
+        segment_silhouette(np.zeros((H, W, 4), np.uint8), options=PLAIN)
     with pytest.raises(ValueError, match=r"\(H, W\) grey.*\(200,\)"):
-        segment_silhouette(np.zeros(200, np.uint8))
+        segment_silhouette(np.zeros(200, np.uint8), options=PLAIN)
     with pytest.raises(ValueError, match="polarity must be one of"):
-        segment_silhouette(img, polarity="lighter")
+        segment_silhouette(img, options=PLAIN.replace(polarity="lighter"))
     with pytest.raises(ValueError, match="leaves no pixel"):
-        segment_silhouette(img, roi=(300, 0, 400, 50))
+        segment_silhouette(img, roi=(300, 0, 400, 50), options=PLAIN)
     with pytest.raises(ValueError, match="background must have the image's size"):
-        segment_silhouette(img, background=img[:-1])
+        segment_silhouette(img, background=img[:-1], options=PLAIN)
     with pytest.raises(ValueError, match="non-finite"):
-        segment_silhouette(np.full((H, W), np.nan))
+        segment_silhouette(np.full((H, W), np.nan), options=PLAIN)
 
 
 # ---------------------------------------------------------------------- the box ROI
@@ -293,14 +303,13 @@ def test_large_enclosed_gap_stays_background_small_marking_is_filled():
     image = np.full((h, w), 20, np.uint8)
     image[(r < 80) & (r > 40)] = 200          # a ring: its inside (r < 40) is background
     image[(np.abs(uu - 120) < 4) & (np.abs(vv - 40) < 4)] = 20   # a small dark marking on it
-    sil = segment_silhouette(image, polarity="brighter", threshold=100, blur_sigma_px=0,
-                             max_hole_fraction=0.05)
+    grey = PLAIN.replace(polarity="brighter", threshold=100, blur_sigma_px=0)
+    sil = segment_silhouette(image, options=grey.replace(max_hole_fraction=0.05))
     assert not sil.mask[100, 120]              # the gap stays background
     assert sil.mask[40, 120]                   # the marking is filled
     truth = (r < 80) & (r > 40)
     assert (sil.mask ^ truth).sum() < 0.01 * truth.sum()
-    every = segment_silhouette(image, polarity="brighter", threshold=100, blur_sigma_px=0,
-                               max_hole_fraction=1.0)
+    every = segment_silhouette(image, options=grey.replace(max_hole_fraction=1.0))
     assert every.mask[100, 120]                # the seed's rule fills every hole
 
 
@@ -315,7 +324,7 @@ def test_shaded_side_is_kept_with_automatic_threshold():
     image = np.clip(image, 0, 255).astype(np.uint8)
     truth = np.zeros((h, w), bool)
     truth[60:180, 80:240] = True
-    sil = segment_silhouette(image, roi=(40, 30, 280, 210))
+    sil = segment_silhouette(image, roi=(40, 30, 280, 210), options=PLAIN)
     iou = (sil.mask & truth).sum() / (sil.mask | truth).sum()
     assert iou > 0.99, iou
     assert sil.threshold < 70
@@ -331,7 +340,7 @@ def test_large_shadowed_pocket_is_filled_but_see_through_gap_is_not():
     image[80:160, 70:130] = rng.normal(15, 2, (80, 60))     # gap: background seen through
     image[80:160, 190:250] = rng.normal(70, 3, (80, 60))    # pocket: object in shadow
     image = np.clip(image, 0, 255).astype(np.uint8)
-    sil = segment_silhouette(image, max_hole_fraction=0.02)
+    sil = segment_silhouette(image, options=PLAIN.replace(max_hole_fraction=0.02))
     assert not sil.mask[120, 100]
     assert sil.mask[120, 220]
 
@@ -454,18 +463,13 @@ def _cell_scene(obj_rgb, table_rgb, wall_rgb=(0.35, 0.35, 0.37), seed=0):
     return np.ascontiguousarray(img), body, roi
 
 
-def _segment_as_configured(img, **kw):
-    """segment_silhouette with the project's default segmentation settings."""
+def _segment_as_configured(img, roi=None, **kw):
+    """segment_silhouette with the project's default segmentation settings (some
+    changed by ``kw``)."""
     from robo3d.config import load_config
 
-    seg = load_config()["segmentation"]
-    args = dict(polarity=seg["polarity"], threshold=seg["threshold"],
-                blur_sigma_px=seg["blur_sigma_px"], min_component_px=seg["min_component_px"],
-                min_component_fraction=seg["min_component_fraction"],
-                fill_holes=seg["fill_holes"], max_hole_fraction=seg["max_hole_fraction"],
-                grabcut=seg["grabcut"], edge_refine_px=seg["edge_refine_px"])
-    args.update(kw)
-    return segment_silhouette(img, **args)
+    options = SegmentOptions.from_config(load_config()["segmentation"]).replace(**kw)
+    return segment_silhouette(img, roi=roi, options=options)
 
 
 ORANGE, BLUE, GREY, WHITE = (0.86, 0.40, 0.10), (0.14, 0.30, 0.72), (0.55, 0.55, 0.55), \
@@ -489,10 +493,9 @@ def test_auto_polarity_coloured_objects_on_a_marker_table(obj, table, wall):
     assert sil.polarity == "auto" and sil.background_sample == "outside roi"
     assert _iou(sil.mask, truth) >= 0.985   # orange on grey: 0.987 (a marker at its foot)
     assert sil.qa["flags"] == []
-    grey = segment_silhouette(img, polarity="brighter", roi=roi, min_component_px=200,
-                              max_hole_fraction=0.02)
-    darker = segment_silhouette(img, polarity="darker", roi=roi, min_component_px=200,
-                                max_hole_fraction=0.02)
+    rules = PLAIN.replace(min_component_px=200, max_hole_fraction=0.02)
+    grey = segment_silhouette(img, roi=roi, options=rules.replace(polarity="brighter"))
+    darker = segment_silhouette(img, roi=roi, options=rules.replace(polarity="darker"))
     assert max(_iou(grey.mask, truth), _iou(darker.mask, truth)) < 0.97
 
 
@@ -552,13 +555,14 @@ def test_colour_background_subtraction():
     img[disc] = b
     noisy = lambda x: np.clip(np.rint(x + rng.normal(0, 2, x.shape)), 0, 255).astype(np.uint8)  # noqa: E731
     img, scene = noisy(img), noisy(scene)
-    sil = segment_silhouette(img, background=scene)
+    sil = segment_silhouette(img, background=scene, options=PLAIN)
     assert sil.polarity == "difference"
     # 0.977: the object differs from the two stripes by two amounts, and its outline is
     # cut midway to the larger, a pixel inside on the other stripes
     assert _iou(sil.mask, disc) >= 0.97
     with pytest.raises(StageError):        # grey difference: nothing stands out
-        segment_silhouette(img, background=scene, polarity="brighter", threshold=20)
+        segment_silhouette(img, background=scene,
+                           options=PLAIN.replace(polarity="brighter", threshold=20))
 
 
 def test_grabcut_refinement_follows_the_colour_edge():
@@ -633,7 +637,7 @@ def test_edge_refinement_in_the_default_segmentation():
     refined = _segment_as_configured(img, roi=roi)
     assert _iou(refined.mask, truth) >= 0.995
     with pytest.raises(ValueError, match="edge_refine_px"):
-        segment_silhouette(img, edge_refine_px=-1)
+        segment_silhouette(img, options=PLAIN.replace(edge_refine_px=-1))
 
 
 @pytest.mark.xfail(strict=True, reason="known limit: GrabCut takes in black squares that "

@@ -12,6 +12,7 @@ from scipy.special import erf
 
 from robo3d.stripes import (
     REJECTION_REASONS,
+    StripeOptions,
     StripePoints,
     _noise_sigma,
     brightness_coefficient,
@@ -22,6 +23,9 @@ from robo3d.stripes import (
 )
 
 H, W = 96, 128
+#: The project's stripe options but ``min_peak`` at 4 % of each image's full scale (10.2
+#: grey levels for uint8), so that one threshold fits the uint8, uint16 and float images.
+BASE = StripeOptions(min_peak=None)
 
 
 def _centres(w: int = W, h: int = H, seed: int = 0) -> np.ndarray:
@@ -94,7 +98,7 @@ def test_brightness_coefficient_mono_and_errors():
 def test_gaussian_stripe_subpixel_accuracy(method, sigma):
     vc = _centres()
     img = _stripe_image(vc, sigma=sigma)
-    sp = extract_stripe_centres(img, method=method)
+    sp = extract_stripe_centres(img, options=BASE.replace(method=method))
     assert len(sp) == W, sp.rejected
     np.testing.assert_array_equal(sp.u, np.arange(W))
     err = sp.v - vc[sp.line]
@@ -112,7 +116,7 @@ def test_saturated_stripe(method):
     vc = _centres()
     img = _stripe_image(vc, amp=400.0, sigma=1.6)
     assert (img == 255).sum() > W
-    sp = extract_stripe_centres(img, method=method)
+    sp = extract_stripe_centres(img, options=BASE.replace(method=method))
     assert len(sp) == W
     assert _rms(sp.v - vc) < 0.05
 
@@ -124,7 +128,7 @@ def test_noise_free_float_image_is_nearly_exact():
     # through the window's two sides takes the Gaussian's tails (1e-6) with it
     for detector, method, tol in (("band", "cog", 0.01), ("band", "gaussian", 1e-4),
                                   ("ridge", "cog", 0.01), ("ridge", "gaussian", 3e-4)):
-        sp = extract_stripe_centres(img, method=method, detector=detector)
+        sp = extract_stripe_centres(img, options=BASE.replace(method=method, detector=detector))
         assert len(sp) == W
         assert np.abs(sp.v - vc).max() < tol, (detector, method)
 
@@ -133,7 +137,7 @@ def test_band_clipping_the_peak_does_not_bias():
     # s well below the peak: the eq. 20 band only holds the stripe's flanks
     vc = _centres()
     img = _stripe_image(vc, amp=200.0, sigma=2.0)
-    sp = extract_stripe_centres(img, s=0.6 * 212.0)
+    sp = extract_stripe_centres(img, options=BASE.replace(s=0.6 * 212.0))
     assert len(sp) == W
     assert _rms(sp.v - vc) < 0.05
 
@@ -144,7 +148,7 @@ def test_any_laser_colour(channel):
     stripe = _stripe_image(vc, amp=220.0, bg=0.0)
     img = np.full((H, W, 3), 25, dtype=np.uint8)  # grey scene
     img[..., channel] = np.maximum(stripe, 25)
-    sp = extract_stripe_centres(img)
+    sp = extract_stripe_centres(img, options=BASE)
     assert len(sp) == W, sp.rejected
     assert _rms(sp.v - vc) < 0.05
 
@@ -152,14 +156,14 @@ def test_any_laser_colour(channel):
 def test_rows_axis_and_auto():
     vc = _centres(w=W, h=H)
     img = _stripe_image(vc)
-    ref = extract_stripe_centres(img, axis="columns")
-    rows = extract_stripe_centres(np.ascontiguousarray(img.T), axis="rows")
+    ref = extract_stripe_centres(img, options=BASE.replace(axis="columns"))
+    rows = extract_stripe_centres(np.ascontiguousarray(img.T), options=BASE.replace(axis="rows"))
     assert rows.axis == "rows" and len(rows) == len(ref)
     np.testing.assert_allclose(rows.u, ref.v, atol=1e-9)
     np.testing.assert_array_equal(rows.v, ref.u)
     np.testing.assert_array_equal(rows.line, np.arange(W))
-    assert extract_stripe_centres(img.T, axis="auto").axis == "rows"
-    assert extract_stripe_centres(img, axis="auto").axis == "columns"
+    assert extract_stripe_centres(img.T, options=BASE.replace(axis="auto")).axis == "rows"
+    assert extract_stripe_centres(img, options=BASE.replace(axis="auto")).axis == "columns"
     # a frame rebuilt from its stored centres keeps its axis and lines
     rebuilt = StripePoints(u=rows.u, v=rows.v)
     assert rebuilt.axis == "rows"
@@ -175,7 +179,7 @@ def test_two_blobs_and_too_weak_columns_are_rejected():
     # columns 30..33: washed out by ambient light (stripe 5 levels above 200)
     base[:, 30:34] = 200.0 + 5.0 * _profile(vc[:4], H, 1.5)
     img = np.clip(np.rint(base), 0, 255).astype(np.uint8)
-    sp = extract_stripe_centres(img, s=212.0, detector="band")
+    sp = extract_stripe_centres(img, options=BASE.replace(s=212.0, detector="band"))
     assert sp.rejected["two_blobs"] == 5
     assert sp.rejected["too_weak"] == 4
     assert len(sp) == W - 9
@@ -193,7 +197,7 @@ def test_highlight_brighter_than_band_is_ignored_beside_the_stripe():
     lit = img.copy()
     lit[5:12, 20:40] = 255  # a white specular highlight, above the band, sharp edges
     for detector in ("band", "ridge"):
-        sp = extract_stripe_centres(lit, s=s, detector=detector)
+        sp = extract_stripe_centres(lit, options=BASE.replace(s=s, detector=detector))
         assert len(sp) == W and sp.rejected["two_blobs"] == 0
         assert _rms(sp.v - vc) < 0.05
 
@@ -201,15 +205,15 @@ def test_highlight_brighter_than_band_is_ignored_beside_the_stripe():
 def test_too_wide_and_at_border():
     vc = np.full(W, 48.0)
     img = _stripe_image(vc, sigma=8.0, noise=0.0)  # FWHM 18.8 px > 15 px
-    sp = extract_stripe_centres(img)
+    sp = extract_stripe_centres(img, options=BASE)
     assert len(sp) == 0 and sp.rejected["too_wide"] == W
-    assert len(extract_stripe_centres(img, max_width_px=30.0)) == W
+    assert len(extract_stripe_centres(img, options=BASE.replace(max_width_px=30.0))) == W
 
     edge = _stripe_image(np.full(W, 0.2), sigma=1.5, noise=0.0)  # cut by row 0
-    sp = extract_stripe_centres(edge, detector="band")
+    sp = extract_stripe_centres(edge, options=BASE.replace(detector="band"))
     assert len(sp) == 0 and sp.rejected["at_border"] == W
     # the ridge detector needs the baseline on both sides: no candidate there at all
-    sp = extract_stripe_centres(edge)
+    sp = extract_stripe_centres(edge, options=BASE)
     assert len(sp) == 0 and sp.rejected["too_weak"] == W
 
 
@@ -219,58 +223,62 @@ def test_background_frame_is_subtracted():
     ambient = np.clip(60 + 0.8 * np.arange(H)[:, None] + rng.normal(0, 2, (H, W)), 0, 255)
     on = np.clip(ambient + 150.0 * _profile(vc, H, 1.6), 0, 255)
     sp = extract_stripe_centres(on.astype(np.float32) / 255.0,
-                                background=ambient.astype(np.float32) / 255.0)
+                                background=ambient.astype(np.float32) / 255.0, options=BASE)
     assert len(sp) == W
     assert _rms(sp.v - vc) < 0.02
 
 
 def test_empty_image_gives_zero_points_with_reason():
     black = np.zeros((H, W), dtype=np.uint8)
-    sp = extract_stripe_centres(black)
+    sp = extract_stripe_centres(black, options=BASE)
     assert len(sp) == 0 and sp.u.shape == (0,) and sp.pixels_uv.shape == (0, 2)
     assert sp.n_lines == W and sp.rejected["too_weak"] == W
     assert set(sp.rejected) == set(REJECTION_REASONS)
-    none = extract_stripe_centres(np.zeros((0, 0, 3), dtype=np.uint8))
+    none = extract_stripe_centres(np.zeros((0, 0, 3), dtype=np.uint8), options=BASE)
     assert len(none) == 0
     # uniform noise, no stripe: whatever passes must be rare
     noisy = np.random.default_rng(0).integers(0, 8, (H, W)).astype(np.uint8)
-    assert len(extract_stripe_centres(noisy)) == 0
+    assert len(extract_stripe_centres(noisy, options=BASE)) == 0
 
 
 def test_batch_matches_single_frames():
     frames = np.stack([_stripe_image(_centres(seed=i), seed=i) for i in range(3)])
-    out = extract_stripes_batch(frames)
+    out = extract_stripes_batch(frames, options=BASE)
     assert len(out) == 3
     for f, sp in zip(frames, out, strict=True):
-        ref = extract_stripe_centres(f)
+        ref = extract_stripe_centres(f, options=BASE)
         np.testing.assert_array_equal(sp.v, ref.v)
-    assert len(extract_stripes_batch(list(frames), method="gaussian")) == 3
+    assert len(extract_stripes_batch(list(frames), options=BASE.replace(method="gaussian"))) == 3
     with pytest.raises(ValueError, match="single RGB"):
-        extract_stripes_batch(np.zeros((H, W, 3), dtype=np.uint8))
+        extract_stripes_batch(np.zeros((H, W, 3), dtype=np.uint8), options=BASE)
 
 
 def test_input_errors():
     with pytest.raises(ValueError, match=r"\(H, W\) mono or \(H, W, 3\) RGB"):
-        extract_stripe_centres(np.zeros((4, 4, 2), dtype=np.uint8))
+        extract_stripe_centres(np.zeros((4, 4, 2), dtype=np.uint8), options=BASE)
     with pytest.raises(ValueError, match="axis"):
-        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), axis="diagonal")
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8),
+                               options=BASE.replace(axis="diagonal"))
     with pytest.raises(ValueError, match="method"):
-        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), method="steger")
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8),
+                               options=BASE.replace(method="steger"))
     with pytest.raises(ValueError, match="background"):
         extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8),
-                               background=np.zeros((4, 5), dtype=np.uint8))
+                               background=np.zeros((4, 5), dtype=np.uint8), options=BASE)
     with pytest.raises(ValueError, match="same length"):
         StripePoints(u=np.zeros(3), v=np.zeros(2))
     with pytest.raises(ValueError, match="reference"):
-        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), reference="global")
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8),
+                               options=BASE.replace(reference="global"))
     with pytest.raises(ValueError, match="reference_lines"):
-        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), reference_lines=-1)
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8),
+                               options=BASE.replace(reference_lines=-1))
     with pytest.raises(ValueError, match="s must be"):
-        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), s=-3.0)
+        extract_stripe_centres(np.zeros((4, 4), dtype=np.uint8), options=BASE.replace(s=-3.0))
     with pytest.raises(ValueError, match="non-finite"):
-        extract_stripe_centres(np.full((4, 4), np.nan))
+        extract_stripe_centres(np.full((4, 4), np.nan), options=BASE)
     with pytest.raises(ValueError, match="threads"):
-        extract_stripes_batch([np.zeros((4, 4), dtype=np.uint8)], threads=0)
+        extract_stripes_batch([np.zeros((4, 4), dtype=np.uint8)], threads=0, options=BASE)
 
 
 # ---------------------------------------------------------------------------- the band
@@ -286,14 +294,14 @@ def _varying_stripe(amp_left: float, amp_right: float, *, sigma: float = 1.2,
 
 def test_local_reference_keeps_a_stripe_of_varying_brightness():
     img, vc = _varying_stripe(230.0, 40.0)
-    local = extract_stripe_centres(img, detector="band")
+    local = extract_stripe_centres(img, options=BASE.replace(detector="band"))
     assert len(local) == W, local.rejected
     assert _rms(local.v - vc) < 0.05
-    ridge = extract_stripe_centres(img)
+    ridge = extract_stripe_centres(img, options=BASE)
     assert len(ridge) == W and _rms(ridge.v - vc) < 0.05
     # the seed's one band around the frame's s loses the dim end (and the bright one is
     # kept only because a lone blob brighter than the band is still the stripe)
-    frame = extract_stripe_centres(img, reference="frame", detector="band")
+    frame = extract_stripe_centres(img, options=BASE.replace(reference="frame", detector="band"))
     assert 100.0 < frame.s < 160.0
     assert frame.rejected["no_band"] > 0.25 * W
     assert len(frame) < 0.75 * W
@@ -311,7 +319,7 @@ def test_sweep_end_rim_of_the_object_beside_the_dim_table_stripe():
     obj = np.zeros((H, W))
     obj[:, 50:71] = 90.0 * _profile(vc[50:71], H, 0.8)
     img = np.clip(np.rint(2.0 + table + obj), 0, 255).astype(np.uint8)
-    sp = extract_stripe_centres(img, min_peak=20.0)
+    sp = extract_stripe_centres(img, options=BASE.replace(min_peak=20.0))
     np.testing.assert_array_equal(sp.line, np.arange(50, 71))
     assert np.abs(sp.v - 60.37).max() < 0.05
     assert sp.rejected["too_weak"] == W - 21
@@ -324,7 +332,7 @@ def test_highlight_brighter_than_the_band_is_ignored_with_the_local_reference():
     img = _stripe_image(vc, amp=200.0, sigma=1.5)
     lit = img.copy()
     lit[5:12, 20:28] = 255  # a white highlight over 8 columns (< reference_lines)
-    sp = extract_stripe_centres(lit)
+    sp = extract_stripe_centres(lit, options=BASE)
     assert len(sp) == W and sp.rejected["two_blobs"] == 0
     assert _rms(sp.v - vc) < 0.05
 
@@ -335,7 +343,7 @@ def test_reflection_inside_the_band_is_rejected_with_the_local_reference():
     base[:, 10:15] += 180.0 * _profile(np.full(5, 75.0), H, 1.5)  # 90 % as bright
     base[:, 60:65] += 100.0 * _profile(np.full(5, 75.0), H, 1.5)  # 50 %: below the band
     img = np.clip(np.rint(base), 0, 255).astype(np.uint8)
-    sp = extract_stripe_centres(img, detector="band")
+    sp = extract_stripe_centres(img, options=BASE.replace(detector="band"))
     assert sp.rejected["two_blobs"] == 5
     assert not np.isin(sp.line, np.r_[10:15]).any()
     assert np.isin(np.r_[60:65], sp.line).all()  # the dim reflection is ignored
@@ -362,7 +370,7 @@ def _integrated_stripe(vc: np.ndarray, sigma: float, *, h: int = H, amp: float =
 def test_narrow_pixel_integrated_stripe(method, sigma):
     # FWHM 1.2-1.5 px, as in the simulated frames: pixel locking stays below 0.03 px
     vc = _centres()
-    sp = extract_stripe_centres(_integrated_stripe(vc, sigma), method=method)
+    sp = extract_stripe_centres(_integrated_stripe(vc, sigma), options=BASE.replace(method=method))
     assert len(sp) == W
     err = sp.v - vc
     assert _rms(err) < 0.03 and abs(err.mean()) < 0.01, (_rms(err), err.mean())
@@ -372,17 +380,18 @@ def test_narrow_pixel_integrated_stripe(method, sigma):
 def test_rgb_mono_and_other_dtypes_agree():
     vc = _centres()
     img = _stripe_image(vc, sigma=1.3)
-    ref = extract_stripe_centres(img)
-    grey = extract_stripe_centres(np.repeat(img[..., None], 3, axis=2))
+    ref = extract_stripe_centres(img, options=BASE)
+    grey = extract_stripe_centres(np.repeat(img[..., None], 3, axis=2), options=BASE)
     np.testing.assert_allclose(grey.v, ref.v, atol=1e-9)
     # 16 bits and floats: the same centres (min_peak in the image's own units)
-    wide = extract_stripe_centres(img.astype(np.uint16) * 257, min_peak=10.2 * 257)
+    wide = extract_stripe_centres(img.astype(np.uint16) * 257,
+                                  options=BASE.replace(min_peak=10.2 * 257))
     np.testing.assert_allclose(wide.v, ref.v, atol=1e-6)
-    flt = extract_stripe_centres(img / 255.0, min_peak=0.04)
+    flt = extract_stripe_centres(img / 255.0, options=BASE.replace(min_peak=0.04))
     np.testing.assert_allclose(flt.v, ref.v, atol=1e-5)
     # a red laser on a grey scene, by eq. 19
     red = np.stack([img, np.full_like(img, 10), np.full_like(img, 10)], axis=-1)
-    sp = extract_stripe_centres(red, min_peak=5.0)
+    sp = extract_stripe_centres(red, options=BASE.replace(min_peak=5.0))
     assert len(sp) == W and _rms(sp.v - vc) < 0.05
     assert sp.s == pytest.approx(brightness_coefficient(red, sample=sp.pixels_uv), rel=0.1)
 
@@ -394,16 +403,16 @@ def test_noise_sigma_estimate():
     assert sigma == pytest.approx(5.0, rel=0.1)
     # and the threshold keeps the centres of a stripe in that noise unbiased
     vc = _centres()
-    sp = extract_stripe_centres(_stripe_image(vc, noise=5.0, sigma=1.6))
+    sp = extract_stripe_centres(_stripe_image(vc, noise=5.0, sigma=1.6), options=BASE)
     assert len(sp) >= W - 2 and _rms(sp.v - vc[sp.line]) < 0.1
 
 
 def test_auto_axis_counts_lines():
     vc = _centres(w=W, h=H)
     img = _stripe_image(vc)
-    assert extract_stripe_centres(img, axis="auto").axis == "columns"
+    assert extract_stripe_centres(img, options=BASE.replace(axis="auto")).axis == "columns"
     tall = np.ascontiguousarray(img.T)  # a vertical stripe: more rows than columns lit
-    sp = extract_stripe_centres(tall, axis="auto")
+    sp = extract_stripe_centres(tall, options=BASE.replace(axis="auto"))
     assert sp.axis == "rows" and len(sp) == W
     np.testing.assert_allclose(sp.u, vc, atol=0.2)
     np.testing.assert_array_equal(sp.v, np.arange(W))
@@ -411,8 +420,8 @@ def test_auto_axis_counts_lines():
 
 def test_batch_on_threads_equals_serial():
     frames = [_stripe_image(_centres(seed=i), seed=i) for i in range(6)]
-    one = extract_stripes_batch(frames)
-    two = extract_stripes_batch(frames, threads=2, method="cog")
+    one = extract_stripes_batch(frames, options=BASE)
+    two = extract_stripes_batch(frames, threads=2, options=BASE.replace(method="cog"))
     for a, b in zip(one, two, strict=True):
         np.testing.assert_array_equal(a.v, b.v)
         assert a.rejected == b.rejected
@@ -516,7 +525,7 @@ def test_laser_line_in_room_light_any_colour_any_angle(colour, angle):
     the true line, its reflection and the clutter rejected, its direction reported."""
     img, truth = _room_scene(colour, angle, seed=int(angle) + len(colour))
     h, w = img.shape[:2]
-    sp = extract_stripe_centres(img)
+    sp = extract_stripe_centres(img, options=BASE)
     assert sp.colour == colour
     # the stripe's direction decides the lines: within 45 degrees of vertical, rows
     assert sp.axis == ("rows" if 45.0 < angle < 135.0 else "columns") or angle == 45.0
@@ -543,7 +552,7 @@ def test_second_line_is_rejected_not_averaged():
     """A reflection as bright as 80 % of the stripe, parallel and over half of it: each
     of those lines keeps the stripe's centre, and counts the second line."""
     img, truth = _room_scene("red", 10.0, seed=3, reflection=0.8)
-    sp = extract_stripe_centres(img)
+    sp = extract_stripe_centres(img, options=BASE)
     err = _line_errors(sp, truth)
     assert np.median(np.abs(err)) < 0.1 and (np.abs(err) < 0.5).mean() > 0.9
     near_refl = np.abs(sp.pixels_uv @ truth["n"] - truth["c_refl"]) < 3.0
@@ -560,14 +569,14 @@ def test_isolated_peaks_are_rejected():
                            axis=-1).reshape(-1, 2) + rng.uniform(-4, 4, (28, 2)):
         img[..., 1] += 120.0 * np.exp(-0.5 * ((xx - cu) ** 2 + (yy - cv) ** 2) / 1.2 ** 2)
     img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-    sp = extract_stripe_centres(img, colour="green")
+    sp = extract_stripe_centres(img, options=BASE.replace(colour="green"))
     assert len(sp) == 0 and sp.rejected["isolated"] > 0
     # the same dots along a line, 3 px apart: a (dotted) stripe, kept
     line = img.copy().astype(np.float64)
     for cu in np.arange(10, 150, 3.0):
         line[..., 1] += 120.0 * np.exp(-0.5 * ((xx - cu) ** 2 + (yy - 60.4) ** 2) / 1.2 ** 2)
     sp = extract_stripe_centres(np.clip(np.rint(line), 0, 255).astype(np.uint8),
-                                colour="green")
+                                options=BASE.replace(colour="green"))
     assert len(sp) > 100 and np.median(np.abs(sp.v - 60.4)) < 0.1
 
 
@@ -581,7 +590,7 @@ def test_white_and_coloured_surfaces_are_not_the_laser():
     tiles[1::20] = (200, 190, 180)
     for colour in ("red", "green", "blue"):
         for frame in (tiles,):
-            sp = extract_stripe_centres(frame, colour=colour)
+            sp = extract_stripe_centres(frame, options=BASE.replace(colour=colour))
             assert len(sp) == 0, (colour, len(sp))
 
 
@@ -628,10 +637,10 @@ def test_region_of_interest_keeps_the_stripe_and_ignores_a_stronger_ridge_outsid
     v_ridge = 40.0
     img = _with_ridge(img, v_ridge, (0.1, 1.0, 0.1), 230.0)
     roi = _band_roi(truth, h, w, 30.0, 24, w - 16)
-    plain = extract_stripe_centres(img, colour="green")
+    plain = extract_stripe_centres(img, options=BASE.replace(colour="green"))
     on_ridge = np.abs(plain.v - v_ridge) < 2.0
     assert on_ridge.mean() > 0.8, on_ridge.mean()  # the test can fail without the region
-    sp = extract_stripe_centres(img, colour="green", roi=roi)
+    sp = extract_stripe_centres(img, roi=roi, options=BASE.replace(colour="green"))
     assert sp.axis == "columns"
     err = _line_errors(sp, truth)
     on_line = np.abs(err) < 1.0
@@ -643,11 +652,12 @@ def test_region_of_interest_keeps_the_stripe_and_ignores_a_stronger_ridge_outsid
     assert np.isin(lines, sp.line[on_line]).mean() >= 0.95
     assert sp.rejected["outside_roi"] == 24 + 16
     # the whole image as the region: as without one
-    full = extract_stripe_centres(img, colour="green", roi=np.ones((h, w), bool))
+    full = extract_stripe_centres(img, roi=np.ones((h, w), bool),
+                                  options=BASE.replace(colour="green"))
     np.testing.assert_array_equal(full.v, plain.v)
     assert full.rejected["outside_roi"] == 0
     with pytest.raises(ValueError, match="roi"):
-        extract_stripe_centres(img, roi=roi[:-1])
+        extract_stripe_centres(img, roi=roi[:-1], options=BASE)
 
 
 def test_laser_colour_votes_only_inside_the_region():
@@ -738,7 +748,7 @@ def test_a_ridge_where_the_other_channels_fall_is_no_laser_light():
     for others, found in ((-12.0, False), (4.0, True)):
         img = base + prof * np.array([40.0, others, others])
         sp = extract_stripe_centres(np.clip(np.rint(img), 0, 255).astype(np.uint8),
-                                    colour="red")
+                                    options=BASE.replace(colour="red"))
         if found:
             assert len(sp) > 0.9 * w - 20 and np.median(np.abs(sp.v - 40.3)) < 0.1
         else:

@@ -12,7 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import CameraModel
+from ..artefacts import (  # noqa: F401 - the three array helpers: re-exported
+    Silhouettes,
+    camera_arrays,
+    cameras_from,
+    workspace_from,
+)
 from ..errors import StageError
 
 log = logging.getLogger("robo3d.pipeline")
@@ -38,34 +43,6 @@ def reader_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
             "max_pose_gap_ns": int(round(timing.get("max_pose_gap_s", 0.05) * 1e9)),
             "stamp_source": timing.get("stamp_source", "header"),
             "image_offset_ns": int(round(timing.get("image_offset_s", 0.0) * 1e9))}
-
-
-def camera_arrays(cameras: list[CameraModel]) -> dict[str, np.ndarray]:
-    return {
-        "K": np.stack([c.K for c in cameras]) if cameras else np.zeros((0, 3, 3)),
-        "D": np.stack([c.D[:5] for c in cameras]) if cameras else np.zeros((0, 5)),
-        "image_size": np.array([[c.width, c.height] for c in cameras], dtype=np.int64
-                               ).reshape(-1, 2),
-        "frame_ids": np.array([c.frame_id for c in cameras], dtype=str),
-    }
-
-
-def cameras_from(npz: Mapping[str, np.ndarray]) -> list[CameraModel]:
-    return [CameraModel(str(f), int(s[0]), int(s[1]), k, d) for f, s, k, d in
-            zip(npz["frame_ids"], npz["image_size"], npz["K"], npz["D"], strict=True)]
-
-
-def workspace_arrays(rec) -> dict[str, np.ndarray]:
-    ws = rec.workspace
-    if ws is None:
-        return {}
-    return {"workspace_min": ws[0], "workspace_max": ws[1]}
-
-
-def workspace_from(npz: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
-    if "workspace_min" in npz:
-        return np.asarray(npz["workspace_min"]), np.asarray(npz["workspace_max"])
-    return None
 
 
 def media_type(encoding: str) -> str | None:
@@ -103,11 +80,9 @@ class Progress:
 
 
 def load_silhouettes(path: str) -> dict[str, Any]:
-    with np.load(path) as z:
-        d = {k: z[k] for k in z.files}
-    shape = tuple(d["mask_shape"])
-    d["masks"] = np.unpackbits(d["masks"], axis=-1, count=shape[-1]).astype(bool)
-    return d
+    """The arrays of a ``silhouettes.npz``, the masks unpacked (the layout of
+    :meth:`robo3d.artefacts.Silhouettes.as_arrays`)."""
+    return Silhouettes.load(path).as_arrays()
 
 
 def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -149,22 +124,21 @@ def silhouette_views(inputs: Mapping[str, str], cfg: Mapping[str, Any]):
     absolute reference; None when the recording's views cannot be matched."""
     from ..registration import SilhouetteViews
 
-    sil = load_silhouettes(inputs["silhouettes"])
-    cameras = cameras_from(sil)
+    sil = Silhouettes.load(inputs["silhouettes"])
+    cameras = sil.cameras
     if not cameras or not inputs.get("recording"):
         return None
     rec = open_recording(inputs["recording"], cfg, roles=("views",))
     by_stamp = {m.timestamp_ns: m for m in rec.views}
     images = []
-    for t in sil["stamps_ns"]:
+    for t in sil.stamps_ns:
         msg = by_stamp.get(int(t))
         if msg is None:
             log.warning("alignment: view at t=%d ns of the silhouettes is not in %s; the "
                         "silhouettes are not used as reference", int(t), inputs["recording"])
             return None
         images.append(rec.decode(msg))
-    masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cameras)]
-    return SilhouetteViews(images, masks, cameras, sil["T_base_camera"])
+    return SilhouetteViews(images, sil.view_masks(), cameras, sil.T_base_camera)
 
 
 def topic_map(topics: Mapping[str, str] | None):

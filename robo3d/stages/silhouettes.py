@@ -8,22 +8,24 @@ import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..atomic import dir_mode, save_npz, write_json
+from ..artefacts import Silhouettes
+from ..atomic import dir_mode, write_json
 from ..errors import StageError
 from .common import (
     Progress,
-    camera_arrays,
     log,
     log_image_camera,
     open_recording,
     reader_options,
     summary,
-    workspace_arrays,
 )
+
+if TYPE_CHECKING:
+    from ..silhouettes import SegmentOptions
 
 
 # ---------------------------------------------------------------------------- stages
@@ -31,103 +33,119 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
     """Segment every silhouette view (seed §3.2) and keep its camera and pose.
 
-    Outputs: ``npz`` (masks, cameras, poses, ``qa_flagged`` per view), ``report`` (per
-    view: threshold, area, components, whether the silhouette touches the ROI's or the
-    image's border, the ROI, whether an empty-scene image was subtracted, where the
-    background was sampled, whether GrabCut refined it, and ``qa``: ``flags`` of an absurd
-    mask, see :func:`robo3d.silhouettes.silhouette_qa`; ``qa_flagged_views`` lists the
-    flagged views), ``rrd`` (images with their masks at their cameras) and, when given,
+    Outputs: ``npz`` (:class:`robo3d.artefacts.Silhouettes`: masks, cameras, poses,
+    ``qa_flagged`` per view), ``report`` (per view: threshold, area, components, whether
+    the silhouette touches the ROI's or the image's border, the ROI, whether an
+    empty-scene image was subtracted, where the background was sampled, whether GrabCut
+    refined it, and ``qa``: ``flags`` of an absurd mask, see
+    :func:`robo3d.silhouettes.silhouette_qa`; ``qa_flagged_views`` lists the flagged
+    views), ``rrd`` (images with their masks at their cameras) and, when given,
     ``masks``: a folder of one PNG per view (``view_000.png``, 255 = silhouette).
     A view whose segmentation fails (empty, uniform, or covering its whole region) is
     an error naming it; a mask that is merely absurd is flagged, not dropped.
     """
-    from ..silhouettes import segment_view
-    from ..viz import log_box, log_report, rerun_log, spaced_indices
+    from ..silhouettes import SegmentOptions
 
     t0 = time.perf_counter()
     rec = open_recording(inputs["recording"], cfg, roles=("views",))
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
     cameras = [rec.camera_for(m) for m in views]
     poses = rec.camera_poses(views)
-    seg = cfg["segmentation"]
+    options = SegmentOptions.from_config(cfg["segmentation"])
     ws = rec.workspace
     backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses)
     masks, per_view = [], []
     progress = Progress("segmenting views", len(views))
     for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
-        image = rec.decode(msg)
-        background = backgrounds[i]
-        try:
-            sil, roi_source = segment_view(image, cam, T, seg, ws, background)
-        except StageError as exc:
-            raise StageError(f"{inputs['recording']}: topic {msg.topic}, view {i} "
-                             f"(t={msg.timestamp_ns} ns): {exc}") from None
-        if sil.touches_image_border:
-            log.warning("view %d (topic %s, t=%d ns): the silhouette touches the image border, "
-                        "the object is cut off in this view; with carving.outside_image=carve "
-                        "this view carves the object's hidden part away", i, msg.topic,
-                        msg.timestamp_ns)
-        elif sil.touches_border:
-            log.warning("view %d (topic %s, t=%d ns): the silhouette touches the border of its "
-                        "region of interest (%s): the object may reach beyond it and be cut "
-                        "off", i, msg.topic, msg.timestamp_ns, roi_source)
-        if sil.qa["flags"]:
-            log.warning("view %d (topic %s, t=%d ns): absurd silhouette, QA flags %s (fill "
-                        "%.2f of its region, sides touched %s); flagged in the report and in "
-                        "silhouettes.npz (qa_flagged)", i, msg.topic, msg.timestamp_ns,
-                        ", ".join(sil.qa["flags"]), sil.qa["fill_fraction"],
-                        ", ".join(sil.qa["sides_touched"]) or "none")
-        masks.append(sil.mask)
-        per_view.append({"index": i, "timestamp_ns": msg.timestamp_ns,
-                         "threshold": float(sil.threshold), "polarity": sil.polarity,
-                         "area_px": int(sil.area_px), "n_components": int(sil.n_components),
-                         "touches_border": bool(sil.touches_border),
-                         "touches_image_border": bool(sil.touches_image_border),
-                         "roi": [int(r) for r in sil.roi], "roi_source": roi_source,
-                         "centroid_uv": [float(c) for c in sil.centroid_uv],
-                         "background_subtracted": background is not None,
-                         "background_sample": sil.background_sample,
-                         "refined": sil.refined, "qa": sil.qa,
-                         "mask_png": f"view_{i:03d}.png"})
+        mask, row = _segment_one(inputs["recording"], rec, i, msg, cam, T, backgrounds[i],
+                                 ws, options)
+        masks.append(mask)
+        per_view.append(row)
         progress(i + 1)
-    sizes = {m.shape for m in masks}
-    report = {"n_views": len(views), "views": per_view,
-              "n_touching_border": sum(v["touches_border"] for v in per_view),
-              "n_touching_image_border": sum(v["touches_image_border"] for v in per_view),
-              "views_touching_image_border": [v["index"] for v in per_view
-                                              if v["touches_image_border"]],
-              "n_background_subtracted": sum(v["background_subtracted"] for v in per_view),
-              "qa_flagged_views": [v["index"] for v in per_view if v["qa"]["flags"]],
-              "n_qa_flagged": sum(bool(v["qa"]["flags"]) for v in per_view),
-              "workspace_box": None if ws is None else [ws[0].tolist(), ws[1].tolist()],
-              "seconds": round(time.perf_counter() - t0, 3)}
-    if len(sizes) == 1:
-        mask_stack = np.stack(masks)
-    else:  # cameras of different sizes: pad to the largest, sizes kept per view
-        h = max(s[0] for s in sizes)
-        w = max(s[1] for s in sizes)
-        mask_stack = np.zeros((len(masks), h, w), dtype=bool)
-        for i, m in enumerate(masks):
-            mask_stack[i, : m.shape[0], : m.shape[1]] = m
-    save_npz(outputs["npz"], masks=np.packbits(mask_stack, axis=-1),
-             mask_shape=np.array(mask_stack.shape), T_base_camera=poses,
-             stamps_ns=np.array([m.timestamp_ns for m in views], dtype=np.int64),
-             qa_flagged=np.array([bool(v["qa"]["flags"]) for v in per_view], dtype=bool),
-             **camera_arrays(cameras), **workspace_arrays(rec))
+    report = _report(per_view, ws, t0)
+    Silhouettes.from_views(masks, poses, [m.timestamp_ns for m in views], cameras,
+                           [bool(v["qa"]["flags"]) for v in per_view], ws
+                           ).save(outputs["npz"])
     if outputs.get("masks"):
         _write_mask_pngs(outputs["masks"], masks)
-    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        if ws is not None:
-            log_box(rr_stream, "base/workspace", ws[0], ws[1], label="workspace")
-        for i in spaced_indices(len(views), cfg["rerun"]["max_images"]):
-            log_image_camera(rr_stream, f"base/views/view_{i:03d}", views[i], cameras[i],
-                              poses[i], mask=masks[i])
-        log_report(rr_stream, "reports/silhouettes", report)
+    _log_rerun(outputs["rrd"], rec_name, ws, views, cameras, poses, masks, report,
+               int(cfg["rerun"]["max_images"]))
     write_json(outputs["report"], report)
     summary.info("segmented %d views in %.1f s; %d touch the image border, %d their region's",
              len(views), report["seconds"], report["n_touching_image_border"],
              report["n_touching_border"])
     return report
+
+
+def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,
+                 background: np.ndarray | None, ws,
+                 options: SegmentOptions) -> tuple[np.ndarray, dict]:
+    """View ``i`` segmented (:func:`robo3d.silhouettes.segment_view`), warned about when
+    cut off or absurd: its mask and its row of the report."""
+    from ..silhouettes import segment_view
+
+    image = rec.decode(msg)
+    try:
+        sil, roi_source = segment_view(image, cam, T, ws, background, options=options)
+    except StageError as exc:
+        raise StageError(f"{path}: topic {msg.topic}, view {i} "
+                         f"(t={msg.timestamp_ns} ns): {exc}") from None
+    if sil.touches_image_border:
+        log.warning("view %d (topic %s, t=%d ns): the silhouette touches the image border, "
+                    "the object is cut off in this view; with carving.outside_image=carve "
+                    "this view carves the object's hidden part away", i, msg.topic,
+                    msg.timestamp_ns)
+    elif sil.touches_border:
+        log.warning("view %d (topic %s, t=%d ns): the silhouette touches the border of its "
+                    "region of interest (%s): the object may reach beyond it and be cut "
+                    "off", i, msg.topic, msg.timestamp_ns, roi_source)
+    if sil.qa["flags"]:
+        log.warning("view %d (topic %s, t=%d ns): absurd silhouette, QA flags %s (fill "
+                    "%.2f of its region, sides touched %s); flagged in the report and in "
+                    "silhouettes.npz (qa_flagged)", i, msg.topic, msg.timestamp_ns,
+                    ", ".join(sil.qa["flags"]), sil.qa["fill_fraction"],
+                    ", ".join(sil.qa["sides_touched"]) or "none")
+    row = {"index": i, "timestamp_ns": msg.timestamp_ns,
+           "threshold": float(sil.threshold), "polarity": sil.polarity,
+           "area_px": int(sil.area_px), "n_components": int(sil.n_components),
+           "touches_border": bool(sil.touches_border),
+           "touches_image_border": bool(sil.touches_image_border),
+           "roi": [int(r) for r in sil.roi], "roi_source": roi_source,
+           "centroid_uv": [float(c) for c in sil.centroid_uv],
+           "background_subtracted": background is not None,
+           "background_sample": sil.background_sample,
+           "refined": sil.refined, "qa": sil.qa,
+           "mask_png": f"view_{i:03d}.png"}
+    return sil.mask, row
+
+
+def _report(per_view: list[dict], ws, t0: float) -> dict[str, Any]:
+    """The stage's report from the views' rows."""
+    return {"n_views": len(per_view), "views": per_view,
+            "n_touching_border": sum(v["touches_border"] for v in per_view),
+            "n_touching_image_border": sum(v["touches_image_border"] for v in per_view),
+            "views_touching_image_border": [v["index"] for v in per_view
+                                            if v["touches_image_border"]],
+            "n_background_subtracted": sum(v["background_subtracted"] for v in per_view),
+            "qa_flagged_views": [v["index"] for v in per_view if v["qa"]["flags"]],
+            "n_qa_flagged": sum(bool(v["qa"]["flags"]) for v in per_view),
+            "workspace_box": None if ws is None else [ws[0].tolist(), ws[1].tolist()],
+            "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def _log_rerun(path: str, rec_name: str, ws, views: list, cameras: list, poses: np.ndarray,
+               masks: list[np.ndarray], report: dict, max_images: int) -> None:
+    """The workspace box, a few evenly spaced views with their masks at their cameras and
+    the report, to rerun."""
+    from ..viz import log_box, log_report, rerun_log, spaced_indices
+
+    with rerun_log(path, rec_name) as rr_stream:
+        if ws is not None:
+            log_box(rr_stream, "base/workspace", ws[0], ws[1], label="workspace")
+        for i in spaced_indices(len(views), max_images):
+            log_image_camera(rr_stream, f"base/views/view_{i:03d}", views[i], cameras[i],
+                              poses[i], mask=masks[i])
+        log_report(rr_stream, "reports/silhouettes", report)
 
 
 def _write_mask_pngs(directory: str, masks: list[np.ndarray]) -> None:

@@ -72,9 +72,9 @@ import cv2
 import numpy as np
 
 from .camera import CameraModel, distortion_limit_r2, pixel_rays, project_points
-from .checks import check_choice, check_min_views, check_views
+from .checks import check_carve_inputs, check_choice, check_grid, check_min_views, check_views
 from .errors import StageError
-from .grid import VoxelGrid, make_grid, shell_voxels
+from .grid import VoxelGrid, carve_counts, make_grid, shell_voxels
 from .octree import carve_octree
 from .options import Options
 from .transforms import invert_transform
@@ -314,107 +314,96 @@ def carve_dense(
     R. Szeliski, CVGIP: Image Understanding 58(1), 1993; A. Laurentini, IEEE PAMI 16(2),
     1994.
     """
-    check_choice("outside_image", outside_image)
-    check_choice("behind_camera", behind_camera)
-    if not isinstance(grid, VoxelGrid):
-        raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
     if int(chunk_voxels) < 1:
         raise ValueError(f"chunk_voxels must be >= 1, got {chunk_voxels}")
-    k_bg = check_min_views(min_views_background)
-    ms, cams, T = check_views(masks, cameras, T_base_cameras)
+    k_bg, ms, cams, T = check_carve_inputs(grid, masks, cameras, T_base_cameras,
+                                           outside_image=outside_image,
+                                           behind_camera=behind_camera,
+                                           min_views_background=min_views_background)
     n_views = T.shape[0]
-    if n_views == 0:
-        raise StageError("carving needs at least one view, got none")
     t0 = time.perf_counter()
     T_cb = invert_transform(T)
     limits = [distortion_limit_r2(c) for c in cams]
     flat_masks = [np.ascontiguousarray(m).reshape(-1) for m in ms]
     keep_out = outside_image == "keep"
     keep_behind = behind_camera == "keep"
-
-    tested = np.zeros(n_views, dtype=np.int64)
-    carved = np.zeros(n_views, dtype=np.int64)
-    n_votes = np.zeros(n_views, dtype=np.int64)
-    n_out = np.zeros(n_views, dtype=np.int64)
-    n_behind = np.zeros(n_views, dtype=np.int64)
+    counts = np.zeros((len(_DENSE_COUNTS), n_views), dtype=np.int64)
     view_time = np.zeros(n_views)
-
     occ_in = grid.occupancy.reshape(-1)
     occ_out = np.zeros(occ_in.size, dtype=bool)
-    shape = grid.shape
     step = int(chunk_voxels)
     for start in range(0, occ_in.size, step):
         idx = start + np.flatnonzero(occ_in[start:start + step])
-        votes = np.zeros(idx.size, dtype=np.int32) if k_bg > 1 else None
-        for v in range(n_views):
-            if idx.size == 0:
-                break
-            tv = time.perf_counter()
-            ijk = np.unravel_index(idx, shape)
-            flat, in_img, behind = _project_indices(ijk, grid, cams[v], T_cb[v], limits[v])
-            outside = ~in_img & ~behind
-            inside_sil = flat_masks[v][flat] & in_img
-            keep = inside_sil
-            if keep_out:
-                keep = keep | outside
-            if keep_behind:
-                keep = keep | behind
-            tested[v] += idx.size
-            n_out[v] += int(np.count_nonzero(outside))
-            n_behind[v] += int(np.count_nonzero(behind))
-            n_votes[v] += idx.size - int(np.count_nonzero(keep))
-            if votes is not None:  # k-of-n: carved once k views have voted so
-                votes += ~keep
-                keep = votes < k_bg
-            n_keep = int(np.count_nonzero(keep))
-            carved[v] += idx.size - n_keep
-            if n_keep != idx.size:
-                idx = idx[keep]
-                if votes is not None:
-                    votes = votes[keep]
-            view_time[v] += time.perf_counter() - tv
+        idx = _carve_chunk(idx, grid, cams, T_cb, limits, flat_masks, keep_out, keep_behind,
+                           k_bg, counts, view_time)
         occ_out[idx] = True
 
-    out = VoxelGrid(grid.origin.copy(), grid.voxel_size, occ_out.reshape(shape), grid.frame)
-    before = grid.n_occupied
-    after = out.n_occupied
-    views = []
-    for v in range(n_views):
-        views.append({
-            "view": v,
-            "camera": cams[v].frame_id,
-            "tested": int(tested[v]),
-            "carved": int(carved[v]),
-            "after": int(tested[v] - carved[v]),
-            "votes": int(n_votes[v]),
-            "outside_image": int(n_out[v]),
-            "behind_camera": int(n_behind[v]),
-            "kept_outside_image": int(n_out[v]) if keep_out else 0,
-            "kept_behind_camera": int(n_behind[v]) if keep_behind else 0,
-            "time_s": float(view_time[v]),
-        })
+    out = VoxelGrid(grid.origin.copy(), grid.voxel_size, occ_out.reshape(grid.shape),
+                    grid.frame)
+    tested, carved, n_votes, n_out, n_behind = counts
+    views = [{"view": v, "camera": cams[v].frame_id, "tested": int(tested[v]),
+              "carved": int(carved[v]), "after": int(tested[v] - carved[v]),
+              "votes": int(n_votes[v]), "outside_image": int(n_out[v]),
+              "behind_camera": int(n_behind[v]),
+              "kept_outside_image": int(n_out[v]) if keep_out else 0,
+              "kept_behind_camera": int(n_behind[v]) if keep_behind else 0,
+              "time_s": float(view_time[v])} for v in range(n_views)]
     elapsed = time.perf_counter() - t0
-    report = {
-        "voxels_before": int(before),
-        "voxels_after": int(after),
-        "voxel_size_m": float(grid.voxel_size),
-        "volume_m3": float(out.volume_m3),
-        "outside_image": outside_image,
-        "behind_camera": behind_camera,
-        "min_views_background": int(k_bg),
-        "n_views": int(n_views),
-        "views": views,
-        "time_s": float(elapsed),
-    }
+    report = {**carve_counts(grid, out), "outside_image": outside_image,
+              "behind_camera": behind_camera, "min_views_background": int(k_bg),
+              "n_views": int(n_views), "views": views, "time_s": float(elapsed)}
     for v in views:
         if v["tested"] and v["kept_outside_image"] > 0.5 * v["tested"]:
             _log.warning("carve: view %d kept %d of %d voxels only because they project "
                          "outside its image", v["view"], v["kept_outside_image"], v["tested"])
-    if after == 0:
+    if report["voxels_after"] == 0:
         _log.warning("carve: every voxel was carved (inconsistent silhouettes or poses?)")
     _log.info("carve: %d -> %d voxels (%.3g m^3) with %d views in %.2f s",
-              before, after, out.volume_m3, n_views, elapsed)
+              report["voxels_before"], report["voxels_after"], out.volume_m3, n_views, elapsed)
     return out, report
+
+
+#: The rows of carve_dense's per-view counts (tested, carved, votes, outside the image,
+#: behind the camera).
+_DENSE_COUNTS = ("tested", "carved", "votes", "outside_image", "behind_camera")
+
+
+def _carve_chunk(idx: np.ndarray, grid: VoxelGrid, cams: list[CameraModel],
+                 T_cb: np.ndarray, limits: list[float], flat_masks: list[np.ndarray],
+                 keep_out: bool, keep_behind: bool, k_bg: int, counts: np.ndarray,
+                 view_time: np.ndarray) -> np.ndarray:
+    """Carve one chunk of the grid (flat voxel indices ``idx``) view by view, each view
+    testing the survivors of the previous ones; returns the survivors and adds to
+    ``counts`` (rows :data:`_DENSE_COUNTS`, columns views) and ``view_time``."""
+    votes = np.zeros(idx.size, dtype=np.int32) if k_bg > 1 else None
+    for v in range(len(cams)):
+        if idx.size == 0:
+            break
+        tv = time.perf_counter()
+        ijk = np.unravel_index(idx, grid.shape)
+        flat, in_img, behind = _project_indices(ijk, grid, cams[v], T_cb[v], limits[v])
+        outside = ~in_img & ~behind
+        inside_sil = flat_masks[v][flat] & in_img
+        keep = inside_sil
+        if keep_out:
+            keep = keep | outside
+        if keep_behind:
+            keep = keep | behind
+        counts[0, v] += idx.size
+        counts[3, v] += int(np.count_nonzero(outside))
+        counts[4, v] += int(np.count_nonzero(behind))
+        counts[2, v] += idx.size - int(np.count_nonzero(keep))
+        if votes is not None:  # k-of-n: carved once k views have voted so
+            votes += ~keep
+            keep = votes < k_bg
+        n_keep = int(np.count_nonzero(keep))
+        counts[1, v] += idx.size - n_keep
+        if n_keep != idx.size:
+            idx = idx[keep]
+            if votes is not None:
+                votes = votes[keep]
+        view_time[v] += time.perf_counter() - tv
+    return idx
 
 
 @dataclass(frozen=True)
@@ -942,8 +931,7 @@ def hull_to_mesh(grid: VoxelGrid, *, smooth_sigma_vox: float = 0.8
     from scipy.ndimage import gaussian_filter
     from skimage.measure import marching_cubes
 
-    if not isinstance(grid, VoxelGrid):
-        raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
+    check_grid(grid)
     if not np.isfinite(smooth_sigma_vox) or smooth_sigma_vox < 0:
         raise ValueError(f"smooth_sigma_vox must be >= 0, got {smooth_sigma_vox}")
     if grid.n_occupied == 0:
@@ -1014,8 +1002,7 @@ def resolution_report(
         smallest footprint), ``finer_than_cameras`` (bool) and ``warning`` (a sentence
         when they are, else None).
     """
-    if not isinstance(grid, VoxelGrid):
-        raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
+    check_grid(grid)
     _ms, cams, T = check_views(None, cameras, T_base_cameras, need_masks=False)
     centre = grid.centre
     T_cb = invert_transform(T)

@@ -9,6 +9,8 @@ given); the checks more than one module needs live here, under public names:
   ``(N, 4, 4)`` array;
 * :func:`check_choice` and :func:`check_min_views`: a policy string among its values,
   a vote count ``k >= 1``;
+* :func:`check_grid` and :func:`check_carve_inputs`: a :class:`~robo3d.grid.VoxelGrid`,
+  and everything the carvers (dense and octree) check alike;
 * :func:`check_points`: an ``(N, 3)`` float64 array of points;
 * :func:`check_region`: an optional ``(box_min, box_max)`` pair (a box that must be
   given and finite, as the carving box, is :func:`robo3d.grid.check_box`).
@@ -24,9 +26,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from .camera import CameraModel
+from .errors import StageError
+from .grid import VoxelGrid
 
 __all__ = ["check_views", "check_choice", "check_min_views", "check_points", "check_region",
-           "POLICIES"]
+           "check_grid", "check_carve_inputs", "POLICIES"]
 
 #: The carvers' policies for a voxel outside a view's image or behind its camera.
 POLICIES = ("keep", "carve")
@@ -131,3 +135,34 @@ def check_region(region: object, name: str = "region"
         raise ValueError(f"{name} must be (box_min (3,), box_max (3,)) with max > min, got "
                          f"{lo} and {hi}")
     return lo, hi
+
+
+def check_grid(grid: object) -> VoxelGrid:
+    """``grid`` when it is a :class:`~robo3d.grid.VoxelGrid`, else ``ValueError``."""
+    if not isinstance(grid, VoxelGrid):
+        raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
+    return grid
+
+
+def check_carve_inputs(grid: object, masks: object,
+                       cameras: CameraModel | Sequence[CameraModel], T_base_cameras: object,
+                       *, outside_image: str, behind_camera: str, min_views_background: object
+                       ) -> tuple[int, list[np.ndarray], list[CameraModel], np.ndarray]:
+    """What every carver checks: the policies (:data:`POLICIES`), the grid, ``k`` and the
+    views (:func:`check_views`); at least one view (else
+    :class:`~robo3d.errors.StageError`).
+
+    Returns
+    -------
+    k : int
+    masks, cameras, T_base_cameras
+        As :func:`check_views`.
+    """
+    check_choice("outside_image", outside_image)
+    check_choice("behind_camera", behind_camera)
+    check_grid(grid)
+    k = check_min_views(min_views_background)
+    ms, cams, T = check_views(masks, cameras, T_base_cameras)
+    if T.shape[0] == 0:
+        raise StageError("carving needs at least one view, got none")
+    return k, ms, cams, T

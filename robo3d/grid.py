@@ -28,7 +28,7 @@ import numpy as np
 
 from .atomic import atomic_path
 
-__all__ = ["VoxelGrid", "make_grid", "shell_voxels", "check_box", "MAX_VOXELS"]
+__all__ = ["VoxelGrid", "make_grid", "shell_voxels", "check_box", "carve_counts", "MAX_VOXELS"]
 
 #: Voxels a dense grid may hold (1 GiB of bool): beyond this it is a configuration mistake.
 MAX_VOXELS = 1 << 30
@@ -278,3 +278,10 @@ def make_grid(
     origin = 0.5 * (lo + hi) - 0.5 * s * (n - 1)
     return VoxelGrid(origin=origin, voxel_size=s,
                      occupancy=np.ones(tuple(int(x) for x in n), dtype=bool), frame=frame)
+
+
+def carve_counts(before: VoxelGrid, after: VoxelGrid) -> dict[str, float | int]:
+    """The figures every carver reports of its grid: ``voxels_before``,
+    ``voxels_after``, ``voxel_size_m`` and the carved ``volume_m3``."""
+    return {"voxels_before": int(before.n_occupied), "voxels_after": int(after.n_occupied),
+            "voxel_size_m": float(before.voxel_size), "volume_m3": float(after.volume_m3)}

@@ -91,9 +91,8 @@ import numpy as np
 from numba import njit
 
 from .camera import CameraModel, distortion_limit_r2
-from .checks import check_choice, check_min_views, check_views
-from .errors import StageError
-from .grid import VoxelGrid
+from .checks import check_carve_inputs, check_choice
+from .grid import VoxelGrid, carve_counts
 from .transforms import invert_transform
 
 __all__ = ["carve_octree", "warm_up", "LEAF_RULES"]
@@ -593,19 +592,14 @@ def carve_octree(
     R. Szeliski, "Rapid octree construction from image sequences", CVGIP: Image
     Understanding 58(1), 1993.
     """
-    check_choice("outside_image", outside_image)
-    check_choice("behind_camera", behind_camera)
-    if leaf_rule not in LEAF_RULES:
-        raise ValueError(f"leaf_rule must be one of {LEAF_RULES}, got {leaf_rule!r}")
-    if not isinstance(grid, VoxelGrid):
-        raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
+    check_choice("leaf_rule", leaf_rule, LEAF_RULES)
     if int(threads) != threads or threads < 0:
         raise ValueError(f"threads must be an integer >= 0, got {threads}")
-    k_bg = check_min_views(min_views_background)
-    ms, cams, T = check_views(masks, cameras, T_base_cameras)
+    k_bg, ms, cams, T = check_carve_inputs(grid, masks, cameras, T_base_cameras,
+                                           outside_image=outside_image,
+                                           behind_camera=behind_camera,
+                                           min_views_background=min_views_background)
     n_views = T.shape[0]
-    if n_views == 0:
-        raise StageError("carving needs at least one view, got none")
     t0 = time.perf_counter()
     T_cb = invert_transform(T)
     P = _view_table(grid, cams, T_cb)
@@ -613,70 +607,71 @@ def carve_octree(
     shape = grid.shape
     top = max(0, int(np.ceil(np.log2(max(shape)))))
     occ = np.zeros(shape, dtype=np.bool_)
-    keep_out = outside_image == "keep"
-    keep_behind = behind_camera == "keep"
-    conservative = leaf_rule == "conservative"
     n_threads = numba.config.NUMBA_NUM_THREADS if threads == 0 else int(threads)
     n_threads = max(1, min(n_threads, numba.config.NUMBA_NUM_THREADS))
     kernel = _carve_roots if n_threads == 1 else _carve_roots_parallel
     first_call = not kernel.signatures  # this call compiles or loads it from the cache
+    stats, carved = _run_kernel(shape, top, P, S, M, n_views, outside_image == "keep",
+                                behind_camera == "keep", leaf_rule == "conservative", k_bg,
+                                occ, n_threads)
+    if grid.n_occupied != occ.size:
+        occ &= grid.occupancy
+    out = VoxelGrid(grid.origin.copy(), grid.voxel_size, occ, grid.frame)
+    elapsed = time.perf_counter() - t0
+    report = {
+        "method": "octree", "leaf_rule": leaf_rule, **carve_counts(grid, out),
+        "outside_image": outside_image, "behind_camera": behind_camera,
+        "min_views_background": int(k_bg), "n_views": int(n_views), "levels": int(top + 1),
+        "octants": _octant_rows(stats),
+        "view_tests": int(stats[:, 4].sum()), "point_tests": int(stats[:, 5].sum()),
+        "views": [{"view": v, "camera": cams[v].frame_id, "carved": int(carved[v])}
+                  for v in range(n_views)],
+        "threads": int(n_threads), "time_s": float(elapsed),
+        "kernel_first_call": bool(first_call),
+    }
+    if report["voxels_after"] == 0:
+        _log.warning("carve: every voxel was carved (inconsistent silhouettes or poses?)")
+    _log.info("octree carve: %d -> %d voxels (%.3g m^3) with %d views, %d box tests and %d "
+              "point tests in %.3f s", report["voxels_before"], report["voxels_after"],
+              out.volume_m3, n_views, report["view_tests"], report["point_tests"], elapsed)
+    return out, report
+
+
+def _octant_rows(stats: np.ndarray) -> list[dict[str, int]]:
+    """The report's ``octants``: per level, finest first, its size in voxels and the
+    octants tested, white, black and grey, and the view tests made on them."""
+    return [{"level": int(lv), "size_vox": int(1 << lv), "tested": int(stats[lv, 0]),
+             "white": int(stats[lv, 1]), "black": int(stats[lv, 2]),
+             "grey": int(stats[lv, 3]), "view_tests": int(stats[lv, 4] + stats[lv, 5])}
+            for lv in range(len(stats))]
+
+
+def _run_kernel(shape: tuple[int, int, int], top: int, P: np.ndarray, S: np.ndarray,
+                M: np.ndarray, n_views: int, keep_out: bool, keep_behind: bool,
+                conservative: bool, k_bg: int, occ: np.ndarray, n_threads: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Run the compiled traversal into ``occ``: the whole octree in one thread, or its
+    subtrees (1/8 or 1/64 of the root, enough to balance a few threads) in
+    ``n_threads``. Returns the per-level statistics ``(top + 1, 6)`` and the voxels each
+    view carved ``(n_views,)``."""
     if n_threads == 1:
         roots = np.array([[0, 0, 0, top]], dtype=np.int64)
         stats = np.zeros((top + 1, 6), dtype=np.int64)
         carved = np.zeros(n_views, dtype=np.int64)
         _carve_roots(roots, shape[0], shape[1], shape[2], P, S, M, n_views, keep_out,
                      keep_behind, conservative, k_bg, occ, stats, carved)
-    else:
-        # subtrees of 1/8 or 1/64 of the root: enough to balance a few threads
-        root_level = max(0, top - (3 if top >= 6 else 2 if top >= 3 else 0))
-        roots = _roots(shape, top, root_level)
-        stats_r = np.zeros((len(roots), top + 1, 6), dtype=np.int64)
-        carved_r = np.zeros((len(roots), n_views), dtype=np.int64)
-        _prefer_quiet_threading_layer()
-        previous = numba.get_num_threads()
-        numba.set_num_threads(n_threads)
-        try:
-            _carve_roots_parallel(roots, shape[0], shape[1], shape[2], P, S, M, n_views,
-                                  keep_out, keep_behind, conservative, k_bg, occ, stats_r,
-                                  carved_r)
-        finally:
-            numba.set_num_threads(previous)
-        stats = stats_r.sum(axis=0)
-        carved = carved_r.sum(axis=0)
-    before = grid.n_occupied
-    if before != occ.size:
-        occ &= grid.occupancy
-    out = VoxelGrid(grid.origin.copy(), grid.voxel_size, occ, grid.frame)
-    elapsed = time.perf_counter() - t0
-    after = out.n_occupied
-    octants = [{"level": int(lv), "size_vox": int(1 << lv), "tested": int(stats[lv, 0]),
-                "white": int(stats[lv, 1]), "black": int(stats[lv, 2]),
-                "grey": int(stats[lv, 3]), "view_tests": int(stats[lv, 4] + stats[lv, 5])}
-               for lv in range(top + 1)]
-    report = {
-        "method": "octree",
-        "leaf_rule": leaf_rule,
-        "voxels_before": int(before),
-        "voxels_after": int(after),
-        "voxel_size_m": float(grid.voxel_size),
-        "volume_m3": float(out.volume_m3),
-        "outside_image": outside_image,
-        "behind_camera": behind_camera,
-        "min_views_background": int(k_bg),
-        "n_views": int(n_views),
-        "levels": int(top + 1),
-        "octants": octants,
-        "view_tests": int(stats[:, 4].sum()),
-        "point_tests": int(stats[:, 5].sum()),
-        "views": [{"view": v, "camera": cams[v].frame_id, "carved": int(carved[v])}
-                  for v in range(n_views)],
-        "threads": int(n_threads),
-        "time_s": float(elapsed),
-        "kernel_first_call": bool(first_call),
-    }
-    if after == 0:
-        _log.warning("carve: every voxel was carved (inconsistent silhouettes or poses?)")
-    _log.info("octree carve: %d -> %d voxels (%.3g m^3) with %d views, %d box tests and %d "
-              "point tests in %.3f s", before, after, out.volume_m3, n_views,
-              report["view_tests"], report["point_tests"], elapsed)
-    return out, report
+        return stats, carved
+    root_level = max(0, top - (3 if top >= 6 else 2 if top >= 3 else 0))
+    roots = _roots(shape, top, root_level)
+    stats_r = np.zeros((len(roots), top + 1, 6), dtype=np.int64)
+    carved_r = np.zeros((len(roots), n_views), dtype=np.int64)
+    _prefer_quiet_threading_layer()
+    previous = numba.get_num_threads()
+    numba.set_num_threads(n_threads)
+    try:
+        _carve_roots_parallel(roots, shape[0], shape[1], shape[2], P, S, M, n_views,
+                              keep_out, keep_behind, conservative, k_bg, occ, stats_r,
+                              carved_r)
+    finally:
+        numba.set_num_threads(previous)
+    return stats_r.sum(axis=0), carved_r.sum(axis=0)

@@ -244,12 +244,12 @@ def part_cells(base: Path, reuse: bool) -> dict[str, Any]:
 def score_cell(rec_path: Path, res: Path) -> dict[str, Any]:
     from scipy.spatial import cKDTree
 
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.config import default_config
     from robo3d.evaluate import TruthSurface
     from robo3d.meshio import read_mesh
     from robo3d.recording.reader import read_recording
     from robo3d.simulate import image_poses, stripe_truth, truth_scene
-    from robo3d.triangulation import load_clouds_npz
 
     cfg = default_config()
     rec = read_recording(rec_path)
@@ -353,10 +353,10 @@ def view_pose_limits(rec_path: Path, res: Path) -> dict[str, Any]:
     """What limits the absolute position: the silhouette views (the refinement's absolute
     reference) carry pose errors of their own; their mean at the object is a bias that no
     alignment against them can remove."""
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.recording.reader import read_recording
     from robo3d.simulate import image_poses
     from robo3d.transforms import invert_transform, rotation_angle_deg
-    from robo3d.triangulation import load_clouds_npz
 
     rec = read_recording(rec_path)
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)

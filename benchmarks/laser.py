@@ -133,12 +133,12 @@ def _stats(d_mm: np.ndarray, fp_mm: np.ndarray) -> dict:
 
 
 def accuracy_objects(objects: list[str], work: Path, log) -> dict:
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.config import default_config
     from robo3d.meshio import read_mesh
     from robo3d.pipeline import stage_stripes, stage_triangulate
     from robo3d.recording.reader import read_recording
     from robo3d.simulate import DEMOS, simulate_recording
-    from robo3d.triangulation import load_clouds_npz
 
     out: dict = {"objects": {}}
     pooled_d, pooled_fp = [], []

@@ -215,10 +215,10 @@ def frame_pose_errors(rec, res: Path, aligned) -> dict[str, Any]:
 
 
 def score(rec_path: Path, work: Path, e2e: float, cfg: dict) -> dict[str, Any]:
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.evaluate import TruthSurface, sample_surface
     from robo3d.meshio import read_mesh, read_vertex_attributes
     from robo3d.recording.reader import read_recording
-    from robo3d.triangulation import load_clouds_npz
 
     name = rec_path.stem
     res = work / "results" / name

@@ -57,7 +57,7 @@ TARGETS = {"pose_err_after_mm": 0.05, "pose_err_after_deg": 0.02, "mesh_median_m
 def _frame_depth_images(work: Path, name: str):
     """Per laser frame: (depth image (H, W) float32 metres, K, T_camera_base) from the
     aligned clouds, the corrected camera poses and the cameras of ``stripes.npz``."""
-    from robo3d.triangulation import load_clouds_npz
+    from robo3d.artefacts import load_clouds_npz
 
     res = work / "results" / name
     clouds = load_clouds_npz(res / "aligned.npz")
@@ -92,8 +92,8 @@ def _sweep_depth_images(work: Path, name: str, frames):
     frame's (corrected) camera."""
     import open3d as o3d
 
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.fusion import range_surface
-    from robo3d.triangulation import load_clouds_npz
 
     clouds = load_clouds_npz(work / "results" / name / "aligned.npz")
     out = []
@@ -168,9 +168,9 @@ def open3d_tsdf(frames, voxel_size: float, trunc_voxels: float) -> dict:
 
 
 def robo3d_tsdf(work: Path, name: str, cfg: dict) -> dict:
+    from robo3d.artefacts import load_clouds_npz
     from robo3d.carving import VoxelGrid
-    from robo3d.fusion import fuse_tsdf
-    from robo3d.triangulation import load_clouds_npz
+    from robo3d.fusion import FuseOptions, fuse_tsdf
 
     res = work / "results" / name
     clouds = load_clouds_npz(res / "aligned.npz")
@@ -181,10 +181,8 @@ def robo3d_tsdf(work: Path, name: str, cfg: dict) -> dict:
         t0 = time.process_time()
         v, f, rep = fuse_tsdf([c.points_base for c in clouds], [c.normals_base for c in clouds],
                               [c.sensor_origin_base for c in clouds],
-                              confidences=[c.confidence for c in clouds],
-                              voxel_size=fc["tsdf_voxel_m"],
-                              trunc_voxels=fc["tsdf_trunc_voxels"], hull=h,
-                              min_weight=fc["min_weight"], min_cos_view=fc["min_cos_view"])
+                              options=FuseOptions.from_config(fc),
+                              confidences=[c.confidence for c in clouds], hull=h)
         out[label] = {"cpu_s": time.process_time() - t0, "vertices": v, "faces": f,
                       "seconds": rep["seconds"], "laser_area_fraction":
                       rep["laser_area_fraction"]}

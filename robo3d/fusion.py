@@ -38,6 +38,43 @@ from the laser and from the hull. Marching cubes (Lewiner) extracts the surface.
 points outside the hull are kept (the laser is the accurate measurement; the hull may be
 eroded by a segmentation error): their count is reported.
 
+In steps (:func:`fuse_tsdf`):
+
+1. Each scan (one laser sweep) is triangulated into its range surface
+   (:func:`range_surface`).
+2. For every voxel within ``±trunc`` (``tsdf_trunc_voxels * tsdf_voxel_m``) of a scan, the
+   signed distance to that scan's range surface is measured *along the line of sight*
+   (the sight line of the nearest measured point), by casting a ray through the voxel
+   centre (Open3D / Embree): positive in front of the surface, negative behind.
+3. Its weight is ``cos(view angle)`` at the hit (grazing views count little) times the
+   points' confidence and a ramp that falls to 0 at the range surface's border,
+   tapered to 0 between ``trunc/2`` and ``trunc`` behind the surface. The TSDF is the
+   weighted mean over scans; a voxel is *observed* when its weight sum reaches
+   ``min_weight``: a single view at ``cos < min_weight`` makes no surface (the
+   minimum-weight guard).
+4. Space carving: voxels along each line of sight in front of the surface are seen
+   empty (``carve_free_space``).
+5. Hole filling (``fill_holes``, with a hull): an unobserved voxel is empty when it
+   was seen empty or lies outside the hull, and solid otherwise, so that where the
+   laser saw nothing the surface is the boundary between the space seen empty and the
+   hull; the solid/empty indicator is smoothed over one voxel for a smooth surface.
+   Without a hull no surface is made where nothing was observed.
+6. Marching cubes (Lewiner) at level 0. Each vertex gets its provenance
+   (:data:`SOURCES`): *measured* when it lies on a grid edge between two observed
+   voxels, else *inferred*: from the hull when one of the edge's voxels lies within
+   two voxels of the outside of the hull (the surface there is the hull's, moved by
+   the one-voxel smoothing), else *filled* (a gap closed between
+   the space seen empty and the solid, next to measurements). And its evidence: the
+   number of scans that observed it, their weighted mean incidence ``cos``, the TSDF
+   weight, the distance to the nearest measured point, and a ``confidence`` in
+   [0, 1] (0 for inferred vertices, see :func:`_vertex_confidence`).
+7. ``close`` chooses what is done where the laser saw nothing: ``hull`` closes every
+   hole (step 5, watertight); ``free_space`` closes only what lies within
+   ``max_fill_distance_mm`` of a measured point and leaves the mesh open farther away
+   (an inferred patch that far is invention; in the other modes it is kept and
+   marked ``far_from_measured``); ``none`` keeps only measured surface.
+   Inferred surface never moves measured surface: observed voxels keep their TSDF.
+
 Why not Open3D's own TSDF: its integration takes depth images from pinhole cameras and
 weighs every observation 1 (no view-angle weights); a laser sweep is a push-broom scan
 whose lines of sight change along the sweep, and a single stripe image is a one-pixel
@@ -60,14 +97,17 @@ IEEE PAMI 16(2).
 from __future__ import annotations
 
 import logging
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 
 from .errors import StageError
+from .options import Options
 
-__all__ = ["fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull", "remove_vertices",
-           "SOURCES", "CLOSE_MODES", "face_source", "source_area_fractions", "keep_vertices"]
+__all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull",
+           "remove_vertices", "SOURCES", "CLOSE_MODES", "face_source", "source_area_fractions",
+           "keep_vertices"]
 
 #: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
 #: its index here. ``measured``: on the laser's observed surface; ``hull``: inferred, the
@@ -79,6 +119,69 @@ MEASURED, HULL, FILLED = 0, 1, 2
 _FAR = 4
 #: What fusion does where the laser saw nothing (``fusion.close``).
 CLOSE_MODES: tuple[str, ...] = ("hull", "free_space", "none")
+
+
+@dataclass(frozen=True)
+class FuseOptions(Options):
+    """The parameters of :func:`fuse_tsdf` and :func:`fuse_poisson` (config section
+    ``fusion``; ``method`` and ``crop_to_hull`` are the stage's: they choose the
+    algorithm and whether it gets the hull), and the recording's seed.
+
+    Attributes
+    ----------
+    tsdf_voxel_m : float, metres
+        The TSDF grid's voxel.
+    tsdf_trunc_voxels : int
+        Half-width of the band around each range surface, in voxels.
+    min_weight : float
+        Least weight sum of an observed voxel.
+    min_cos_view : float
+        Points and range triangles seen more obliquely are not used.
+    fill_holes : bool
+        With a hull: unobserved space inside it and not seen empty is solid (step 5).
+    close : {"hull", "free_space", "none"}
+        Where the laser saw nothing: close from the hull, close only near measurements,
+        or leave open (step 7).
+    max_fill_distance_mm : float, millimetres
+        Inferred surface farther than this from every measured point is marked
+        ``far_from_measured`` (and, with ``close="free_space"``, left out).
+    carve_depth_m : float, metres
+        How far in front of the surface the lines of sight carve at the grid's
+        resolution.
+    carve_full_line : bool
+        Beyond ``carve_depth_m`` the lines of sight carve on to the sensor or the grid's
+        border, on a grid 4 times coarser (a cup's opening: the lines that saw its
+        inside pass through it; the hull would close it). Only where the laser observed
+        nothing is carved space used, so a coarse voxel carved beside a line moves
+        inferred surface only (by at most 1.5 fine voxels).
+    carve_free_space : bool
+        The lines of sight carve the space in front of the surface (step 4).
+    hull_margin_voxels : int
+        Dilation of the hull (hull voxels) before use (both methods).
+    poisson_depth : int
+        Octree depth of screened Poisson.
+    density_quantile : float in [0, 1)
+        Low-density Poisson vertices trimmed.
+    seed : int
+        The recording's seed (config ``seed``; both methods are deterministic).
+    """
+
+    section = "fusion"
+    not_in_config = ("seed",)
+    tsdf_voxel_m: float = 0.0004
+    tsdf_trunc_voxels: int = 4
+    min_weight: float = 0.15
+    min_cos_view: float = 0.1
+    fill_holes: bool = True
+    close: Literal["hull", "free_space", "none"] = "hull"
+    max_fill_distance_mm: float = 3.0
+    carve_depth_m: float = 0.02
+    carve_full_line: bool = True
+    carve_free_space: bool = True
+    hull_margin_voxels: int = 0
+    poisson_depth: int = 9
+    density_quantile: float = 0.02
+    seed: int = 0
 
 log = logging.getLogger(__name__)
 
@@ -216,15 +319,12 @@ def fuse_poisson(
     points: np.ndarray | list[np.ndarray],
     normals: np.ndarray | list[np.ndarray],
     *,
-    depth: int = 9,
-    density_quantile: float = 0.02,
+    options: FuseOptions = FuseOptions(),
     hull: Any = None,
-    hull_margin_voxels: int = 1,
     max_outside_fraction: float = 0.05,
     scale: float = 1.1,
     linear_fit: bool = False,
     n_threads: int = 1,
-    seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Screened Poisson surface from oriented points, trimmed by density and by the hull.
 
@@ -234,14 +334,13 @@ def fuse_poisson(
         Aligned laser points in ``base``.
     normals : (N, 3) float64, or a list like ``points``
         Outward unit normals.
-    depth : int
-        Octree depth: the finest cells are ``scale * extent / 2**depth`` wide.
-    density_quantile : float in [0, 1)
-        Vertices whose support density is below this quantile are removed (0 keeps all).
+    options : FuseOptions
+        ``poisson_depth`` (octree depth: the finest cells are ``scale * extent /
+        2**depth`` wide), ``density_quantile`` (vertices whose support density is below
+        this quantile are removed, 0 keeps all) and ``hull_margin_voxels`` (dilation of
+        the hull before the cut).
     hull : VoxelGrid-like, optional
         ``origin``, ``voxel_size``, ``occupancy``: surface outside it is cut away.
-    hull_margin_voxels : int
-        Dilation of the hull before the cut.
     max_outside_fraction : float
         The cut is skipped (and the report says why) when more than this fraction of the
         input points lie outside the dilated hull: hull and laser then disagree.
@@ -251,8 +350,6 @@ def fuse_poisson(
         Place iso-vertices by linear interpolation (more accurate on smooth surfaces).
     n_threads : int
         Poisson solver threads; 1 (default) is reproducible bit for bit, -1 uses all cores.
-    seed : int
-        Unused by the solver (deterministic); accepted for a uniform stage signature.
 
     Returns
     -------
@@ -275,6 +372,7 @@ def fuse_poisson(
     """
     import open3d as o3d
 
+    depth, density_quantile = options.poisson_depth, options.density_quantile
     p = _stack("points", points)
     n = _stack("normals", normals)
     if n.shape != p.shape:
@@ -308,7 +406,8 @@ def fuse_poisson(
 
     report.update(hull_cut="no hull", n_vertices_outside_hull=0)
     if hull is not None:
-        v, f = _cut_to_hull(v, f, p, hull, hull_margin_voxels, max_outside_fraction, report)
+        v, f = _cut_to_hull(v, f, p, hull, options.hull_margin_voxels, max_outside_fraction,
+                            report)
     report.update(n_vertices=int(len(v)), n_faces=int(len(f)))
     log.info("Poisson fusion: %d points -> %d vertices, %d faces (%d low density, %d outside "
              "hull)", len(p), len(v), len(f), report["n_vertices_low_density"],
@@ -449,66 +548,21 @@ def fuse_tsdf(
     normals: np.ndarray | list[np.ndarray],
     sensor_origins: np.ndarray | list[np.ndarray],
     *,
-    voxel_size: float = 0.4e-3,
-    trunc_voxels: int = 4,
+    options: FuseOptions = FuseOptions(),
     confidences: np.ndarray | list[np.ndarray] | None = None,
     hull: Any = None,
-    hull_margin_voxels: int = 0,
+    threads: int = 1,
+    return_attributes: bool = False,
     hull_smooth_vox: float = 0.8,
-    fill_holes: bool = True,
-    carve_free_space: bool = True,
-    min_weight: float = 0.15,
-    min_cos_view: float = 0.1,
     max_edge_factor: float = 2.0,
     border_ramp_m: float = 1.0e-3,
-    carve_depth_m: float = 0.02,
-    carve_full_line: bool = True,
     interp_sigma_m: float = 0.0,
     interp_floor: float = 0.05,
     max_voxels: int = 64_000_000,
-    threads: int = 1,
-    close: str = "hull",
-    max_fill_distance_m: float = 0.003,
-    return_attributes: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | tuple[np.ndarray, np.ndarray,
                                                            dict[str, Any], dict[str, np.ndarray]]:
     """Volumetric fusion of range scans after Curless & Levoy (1996), bounded and closed by
-    the visual hull.
-
-    1. Each scan (one laser sweep) is triangulated into its range surface
-       (:func:`range_surface`).
-    2. For every voxel within ``±trunc`` (``trunc_voxels * voxel_size``) of a scan, the
-       signed distance to that scan's range surface is measured *along the line of sight*
-       (the sight line of the nearest measured point), by casting a ray through the voxel
-       centre (Open3D / Embree): positive in front of the surface, negative behind.
-    3. Its weight is ``cos(view angle)`` at the hit (grazing views count little) times the
-       points' confidence and a ramp that falls to 0 at the range surface's border,
-       tapered to 0 between ``trunc/2`` and ``trunc`` behind the surface. The TSDF is the
-       weighted mean over scans; a voxel is *observed* when its weight sum reaches
-       ``min_weight``: a single view at ``cos < min_weight`` makes no surface (the
-       minimum-weight guard).
-    4. Space carving: voxels along each line of sight in front of the surface are seen
-       empty (``carve_free_space``).
-    5. Hole filling (``fill_holes``, with a hull): an unobserved voxel is empty when it
-       was seen empty or lies outside the hull, and solid otherwise, so that where the
-       laser saw nothing the surface is the boundary between the space seen empty and the
-       hull; the solid/empty indicator is smoothed over one voxel for a smooth surface.
-       Without a hull no surface is made where nothing was observed.
-    6. Marching cubes (Lewiner) at level 0. Each vertex gets its provenance
-       (:data:`SOURCES`): *measured* when it lies on a grid edge between two observed
-       voxels, else *inferred*: from the hull when one of the edge's voxels lies within
-       two voxels of the outside of the hull (the surface there is the hull's, moved by
-       the one-voxel smoothing), else *filled* (a gap closed between
-       the space seen empty and the solid, next to measurements). And its evidence: the
-       number of scans that observed it, their weighted mean incidence ``cos``, the TSDF
-       weight, the distance to the nearest measured point, and a ``confidence`` in
-       [0, 1] (0 for inferred vertices, see :func:`_vertex_confidence`).
-    7. ``close`` chooses what is done where the laser saw nothing: ``hull`` closes every
-       hole (step 5, watertight); ``free_space`` closes only what lies within
-       ``max_fill_distance_m`` of a measured point and leaves the mesh open farther away
-       (an inferred patch that far is invention; in the other modes it is kept and
-       marked ``far_from_measured``); ``none`` keeps only measured surface.
-       Inferred surface never moves measured surface: observed voxels keep their TSDF.
+    the visual hull: the steps 1-7 of the module docstring.
 
     Parameters
     ----------
@@ -519,35 +573,22 @@ def fuse_tsdf(
         range surface's own normals).
     sensor_origins : like ``points``
         Sensor position when each point was measured.
-    voxel_size : float, metres
-    trunc_voxels : int
-        Half-width of the band around each range surface, in voxels.
+    options : FuseOptions
+        The ``fusion`` section's parameters (:class:`FuseOptions`): ``tsdf_voxel_m``,
+        ``tsdf_trunc_voxels`` (half-width of the band around each range surface, in
+        voxels), ``hull_margin_voxels``, ``fill_holes``, ``carve_free_space``,
+        ``min_weight``, ``min_cos_view``, ``carve_depth_m``, ``carve_full_line``,
+        ``close`` and ``max_fill_distance_mm`` (steps 2-7).
     confidences : (N,) float in [0, 1] or list, optional
         Per-point confidence (default 1); 0 removes a point.
     hull : VoxelGrid-like, optional
         ``origin``, ``voxel_size``, ``occupancy``: bounds and closes the surface.
-    hull_margin_voxels : int
-        Dilation of the hull (hull voxels) before use.
     hull_smooth_vox : float
         Gaussian smoothing of the hull's occupancy (hull voxels) before its 0.5 level.
-    fill_holes, carve_free_space : bool
-    min_weight : float
-        Least weight sum of an observed voxel.
-    min_cos_view : float
-        Points and range triangles seen more obliquely are not used.
     max_edge_factor : float
         Range-surface depth-jump threshold (:func:`range_surface`).
     border_ramp_m : float, metres
         Width of the weight ramp at range-surface borders.
-    carve_depth_m : float, metres
-        How far in front of the surface the lines of sight carve at the grid's
-        resolution.
-    carve_full_line : bool
-        Beyond ``carve_depth_m`` the lines of sight carve on to the sensor or the grid's
-        border, on a grid 4 times coarser (a cup's opening: the lines that saw its
-        inside pass through it; the hull would close it). Only where the laser observed
-        nothing is carved space used, so a coarse voxel carved beside a line moves
-        inferred surface only (by at most 1.5 fine voxels).
     interp_sigma_m, interp_floor : float
         Weight of a range-surface hit falls as ``floor + (1 - floor) exp(-(d / sigma)^2)``
         with its distance ``d`` to the nearest measured point of its triangle: between
@@ -557,12 +598,6 @@ def fuse_tsdf(
         Largest grid allowed (memory: about 10 bytes per voxel).
     threads : int
         Ray-casting and nearest-neighbour threads (results do not depend on it).
-    close : {"hull", "free_space", "none"}
-        Where the laser saw nothing: close from the hull, close only near measurements,
-        or leave open (step 7).
-    max_fill_distance_m : float, metres
-        With ``close="free_space"``: inferred surface farther than this from every
-        measured point is left out.
     return_attributes : bool
         Also return the per-vertex attributes (step 6).
 
@@ -574,7 +609,7 @@ def fuse_tsdf(
     attributes : dict of str to (V,) array, with ``return_attributes``
         ``source`` (uint8, :data:`SOURCES`), ``n_obs`` (uint16), ``incidence``,
         ``tsdf_weight``, ``dist_measured_m``, ``confidence`` (float32), and
-        ``far_from_measured`` (uint8: inferred and farther than ``max_fill_distance_m``
+        ``far_from_measured`` (uint8: inferred and farther than ``max_fill_distance_mm``
         from every measured point).
     report : dict
         ``n_points``, ``n_points_used``, ``n_scans``, ``voxel_size``, ``trunc``,
@@ -599,52 +634,87 @@ def fuse_tsdf(
     """
     import time
 
-    import open3d as o3d
-    from scipy import ndimage
-    from scipy.spatial import cKDTree
-    from skimage import measure
-
-    clock = {}
+    clock: dict[str, float] = {}
     t_start = time.perf_counter()
-    P = _as_list("points", points, 2)
-    N = _as_list("normals", normals, 2)
-    O = _as_list("sensor_origins", sensor_origins, 2)
-    if not (len(P) == len(N) == len(O)) or any(
-            n.shape != p.shape or o.shape != p.shape for p, n, o in zip(P, N, O, strict=True)):
-        raise ValueError("normals and sensor_origins must match points (per scan), got "
-                         f"{[p.shape for p in P]}, {[n.shape for n in N]} and "
-                         f"{[o.shape for o in O]}")
-    Cf = ([np.ones(len(p)) for p in P] if confidences is None
-          else _as_list("confidences", confidences, 1))
-    if len(Cf) != len(P) or any(len(c) != len(p) or np.any(c < 0) for c, p in zip(Cf, P,
-                                                                              strict=True)):
-        raise ValueError("confidences must hold one value >= 0 per point, like points")
-    if not voxel_size > 0 or trunc_voxels < 1:
-        raise ValueError(f"voxel_size must be > 0 and trunc_voxels >= 1, got {voxel_size} "
-                         f"and {trunc_voxels}")
-    if not min_weight > 0:
-        raise ValueError(f"min_weight must be > 0, got {min_weight}")
-    if close not in CLOSE_MODES:
-        raise ValueError(f"close must be one of {CLOSE_MODES}, got {close!r}")
-    n_total = int(sum(len(p) for p in P))
-    # points seen from the front only (normals toward the sensor), with confidence
-    for k in range(len(P)):
-        los = O[k] - P[k]
-        los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
-        nl = np.linalg.norm(N[k], axis=1)
-        cos = np.einsum("ij,ij->i", N[k], los) / np.maximum(nl, 1e-12)
-        ok = (cos >= min_cos_view) & (Cf[k] > 0)
-        P[k], N[k], O[k], Cf[k] = P[k][ok], N[k][ok], O[k][ok], Cf[k][ok]
+    o = options
+    voxel_size, trunc_voxels = o.tsdf_voxel_m, o.tsdf_trunc_voxels
+    P, N, O, Cf, n_total = _tsdf_inputs(points, normals, sensor_origins, confidences, o)
     n_used = int(sum(len(p) for p in P))
     report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used, n_scans=len(P),
                                   voxel_size=float(voxel_size))
     if n_used == 0:
         raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
-                         f"cos(view angle) >= {min_cos_view} with confidence > 0)")
+                         f"cos(view angle) >= {o.min_cos_view} with confidence > 0)")
     trunc = trunc_voxels * voxel_size
     allp = np.concatenate(P)
+    origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc, max_voxels)
+    report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
+    clock["setup"] = time.perf_counter() - t_start
+    acc, scans = _integrate_scans(P, O, Cf, origin, shape, shift, o, threads, clock,
+                                  max_edge_factor=max_edge_factor, border_ramp_m=border_ramp_m,
+                                  interp_sigma_m=interp_sigma_m, interp_floor=interp_floor)
+    ta = time.perf_counter()
+    tsdf, observed, inside, filled = _tsdf_field(acc, shape, trunc, hull, origin, voxel_size,
+                                                 hull_smooth_vox, o, scans, report)
+    clock["field"] = time.perf_counter() - ta
+    ta = time.perf_counter()
+    v, f, attrs = _extract_surface(tsdf, observed, inside, filled, acc, shape, origin, allp,
+                                   voxel_size, threads, o, report)
+    clock["marching_cubes"] = time.perf_counter() - ta
+    lf = _laser_area_fraction(v, f, attrs["source"] == MEASURED)
+    report.update(laser_area_fraction=lf, hull_area_fraction=(1.0 - lf) if len(f) else 0.0,
+                  n_vertices=int(len(v)), n_faces=int(len(f)),
+                  seconds={k: round(t, 3) for k, t in clock.items()})
+    report.update(source_area_fraction=source_area_fractions(v, f, attrs["source"]))
+    log.info("TSDF fusion: %d scans, %d points, grid %s, %d observed voxels -> %d faces "
+             "(%.1f%% of the area from the laser)", len(P), n_used, shape,
+             report["n_voxels_observed"], len(f), 100 * lf)
+    if return_attributes:
+        return v, f, report, attrs
+    return v, f, report
+
+
+def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):
+    """The scans' points, normals, origins and confidences, checked, keeping the points
+    seen from the front (normal toward the sensor at ``cos >= min_cos_view``) with
+    confidence > 0; and the number of points given."""
+    P = _as_list("points", points, 2)
+    N = _as_list("normals", normals, 2)
+    O = _as_list("sensor_origins", sensor_origins, 2)
+    if not (len(P) == len(N) == len(O)) or any(
+            n.shape != p.shape or o_.shape != p.shape for p, n, o_ in zip(P, N, O,
+                                                                         strict=True)):
+        raise ValueError("normals and sensor_origins must match points (per scan), got "
+                         f"{[p.shape for p in P]}, {[n.shape for n in N]} and "
+                         f"{[o_.shape for o_ in O]}")
+    Cf = ([np.ones(len(p)) for p in P] if confidences is None
+          else _as_list("confidences", confidences, 1))
+    if len(Cf) != len(P) or any(len(c) != len(p) or np.any(c < 0) for c, p in zip(Cf, P,
+                                                                              strict=True)):
+        raise ValueError("confidences must hold one value >= 0 per point, like points")
+    if not o.tsdf_voxel_m > 0 or o.tsdf_trunc_voxels < 1:
+        raise ValueError(f"tsdf_voxel_m must be > 0 and tsdf_trunc_voxels >= 1, got "
+                         f"{o.tsdf_voxel_m} and {o.tsdf_trunc_voxels}")
+    if not o.min_weight > 0:
+        raise ValueError(f"min_weight must be > 0, got {o.min_weight}")
+    if o.close not in CLOSE_MODES:
+        raise ValueError(f"close must be one of {CLOSE_MODES}, got {o.close!r}")
+    n_total = int(sum(len(p) for p in P))
+    for k in range(len(P)):
+        los = O[k] - P[k]
+        los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
+        nl = np.linalg.norm(N[k], axis=1)
+        cos = np.einsum("ij,ij->i", N[k], los) / np.maximum(nl, 1e-12)
+        ok = (cos >= o.min_cos_view) & (Cf[k] > 0)
+        P[k], N[k], O[k], Cf[k] = P[k][ok], N[k][ok], O[k][ok], Cf[k][ok]
+    return P, N, O, Cf, n_total
+
+
+def _tsdf_grid(allp: np.ndarray, hull: Any, voxel_size: float, trunc: float,
+               max_voxels: int) -> tuple[np.ndarray, tuple[int, int, int], np.ndarray]:
+    """The fusion grid around the points and the hull: (origin, shape, the centre of
+    their box, about which the rays are cast in float32)."""
     lo, hi = allp.min(axis=0), allp.max(axis=0)
-    h_origin = h_vs = h_occ = None
     if hull is not None:
         h_origin, h_vs, h_occ = _hull_arrays(hull)
         if h_occ.any():
@@ -659,103 +729,172 @@ def fuse_tsdf(
     if n_vox > max_voxels:
         raise StageError(f"TSDF grid {shape} has {n_vox} voxels > max_voxels {max_voxels}; "
                          "use a larger voxel_size")
-    report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
-    sum_w = np.zeros(n_vox, dtype=np.float32)
-    sum_wd = np.zeros(n_vox, dtype=np.float32)
-    sum_wc = np.zeros(n_vox, dtype=np.float32)  # weight x cos: the mean incidence
-    n_obs = np.zeros(n_vox, dtype=np.uint16)  # scans that reached the voxel
-    seen_empty = np.zeros(n_vox, dtype=bool)
-    carve_far = bool(carve_free_space and carve_full_line)
-    far_shape = tuple(-(-n // _FAR) for n in shape)
-    far_empty = np.zeros(int(np.prod(far_shape)) if carve_far else 0, dtype=bool)
     shift = 0.5 * (lo + hi)  # float32 ray casting in a frame centred on the object
+    return origin, shape, shift
+
+
+@dataclass
+class _Accumulator:
+    """What the scans add up on the fusion grid (flat arrays): weight, weight x signed
+    distance, weight x cos (the mean incidence), scans that reached the voxel, seen
+    empty, and seen empty on the coarse far grid."""
+
+    sum_w: np.ndarray
+    sum_wd: np.ndarray
+    sum_wc: np.ndarray
+    n_obs: np.ndarray
+    seen_empty: np.ndarray
+    far_empty: np.ndarray
+    far_shape: tuple[int, ...]
+    carve_far: bool
+
+    @classmethod
+    def empty(cls, shape: tuple[int, ...], carve_far: bool) -> _Accumulator:
+        n_vox = int(np.prod(shape))
+        far_shape = tuple(-(-n // _FAR) for n in shape)
+        return cls(np.zeros(n_vox, dtype=np.float32), np.zeros(n_vox, dtype=np.float32),
+                   np.zeros(n_vox, dtype=np.float32), np.zeros(n_vox, dtype=np.uint16),
+                   np.zeros(n_vox, dtype=bool),
+                   np.zeros(int(np.prod(far_shape)) if carve_far else 0, dtype=bool),
+                   far_shape, carve_far)
+
+
+def _integrate_scans(P, O, Cf, origin: np.ndarray, shape: tuple[int, ...], shift: np.ndarray,
+                     o: FuseOptions, threads: int, clock: dict[str, float], *,
+                     max_edge_factor: float, border_ramp_m: float, interp_sigma_m: float,
+                     interp_floor: float) -> tuple[_Accumulator, list[dict[str, Any]]]:
+    """Steps 1-4 for every scan: its range surface, its signed distances and weights
+    added up, its lines of sight carved; (the sums, each range surface's report);
+    ``clock`` gets the time of each step."""
+    import time
+
+    voxel_size, trunc_voxels = o.tsdf_voxel_m, o.tsdf_trunc_voxels
+    trunc = trunc_voxels * voxel_size
+    acc = _Accumulator.empty(shape, bool(o.carve_free_space and o.carve_full_line))
     scans = []
-    clock["setup"] = time.perf_counter() - t_start
     t_rs = t_rays = t_carve = 0.0
     for k in range(len(P)):
-        p, o, conf = P[k], O[k], Cf[k]
         ta = time.perf_counter()
-        faces, rs = range_surface(p, o, max_edge_factor=max_edge_factor,
-                                  min_cos_view=min_cos_view)
+        faces, rs = range_surface(P[k], O[k], max_edge_factor=max_edge_factor,
+                                  min_cos_view=o.min_cos_view)
         scans.append(rs)
         t_rs += time.perf_counter() - ta
         if len(faces) == 0:
             continue
         ta = time.perf_counter()
-        vw = conf * _boundary_ramp(p, faces, border_ramp_m)
-        # the band: voxels within trunc of the range surface (surface samples dilated)
-        v0, v1, v2 = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
-        samples = np.concatenate([p, (v0 + v1 + v2) / 3, (v0 + v1) / 2, (v1 + v2) / 2,
-                                  (v2 + v0) / 2])
-        occ = np.zeros(shape, dtype=bool)
-        ii = np.round((samples - origin) / voxel_size).astype(np.int64)
-        occ[ii[:, 0], ii[:, 1], ii[:, 2]] = True
-        band = ndimage.maximum_filter(occ, size=2 * trunc_voxels + 1)
-        lin = np.flatnonzero(band)
-        x = origin + np.stack(np.unravel_index(lin, shape), axis=1) * voxel_size
-        _, nb = cKDTree(p).query(x, k=1, workers=int(threads))
-        d = p[nb] - o[nb]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))
-        scene.add_triangles(o3d.core.Tensor((p - shift).astype(np.float32)),
-                            o3d.core.Tensor(faces.astype(np.uint32)))
-        rays = np.hstack([x - shift - trunc * d, d]).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))
-        t_hit = hit["t_hit"].numpy().astype(np.float64)
-        good = t_hit <= 2 * trunc
-        prim = hit["primitive_ids"].numpy()
-        uvh = hit["primitive_uvs"].numpy().astype(np.float64)
-        nh = hit["primitive_normals"].numpy().astype(np.float64)
-        cos = -np.einsum("ij,ij->i", nh, d)  # range triangles face their sensor
-        good &= cos > 0
-        lin, t_hit, d, cos, x = lin[good], t_hit[good], d[good], cos[good], x[good]
-        prim, uvh = prim[good], uvh[good]
-        tri = faces[prim.astype(np.int64)]
-        wv = (vw[tri[:, 0]] * (1 - uvh[:, 0] - uvh[:, 1]) + vw[tri[:, 1]] * uvh[:, 0]
-              + vw[tri[:, 2]] * uvh[:, 1])
-        sdf = t_hit - trunc
-        if interp_sigma_m > 0:
-            # interpolated range is less certain than measured range: the weight falls
-            # with the hit's distance to the nearest measured point of its triangle
-            hp = x - trunc * d + t_hit[:, None] * d
-            dv = np.min(np.stack([np.linalg.norm(hp - p[tri[:, m]], axis=1)
-                                  for m in range(3)]), axis=0)
-            wv = wv * (interp_floor + (1 - interp_floor) * np.exp(-(dv / interp_sigma_m) ** 2))
-        w = cos * wv * np.clip((sdf + trunc) / (0.5 * trunc), 0.0, 1.0)
-        keep = w > 0
-        np.add.at(sum_w, lin[keep], w[keep].astype(np.float32))
-        np.add.at(sum_wd, lin[keep], (w * sdf)[keep].astype(np.float32))
-        np.add.at(sum_wc, lin[keep], (w * cos)[keep].astype(np.float32))
-        n_obs[lin[keep]] += 1  # the band's voxels are unique within one scan
-        seen_empty[lin[sdf > 0.5 * voxel_size]] = True
+        _integrate_scan(acc, P[k], O[k], Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m),
+                        faces, origin, shape, shift, voxel_size, trunc_voxels,
+                        interp_sigma_m, interp_floor, threads)
         t_rays += time.perf_counter() - ta
-        if carve_free_space:
+        if o.carve_free_space:
             ta = time.perf_counter()
-            # from the range surface's vertices and triangle centres (dense enough that,
-            # dilated by one voxel, the carved lines leave no gaps between profiles)
-            cen = (v0 + v1 + v2) / 3
-            o_c = (o[faces[:, 0]] + o[faces[:, 1]] + o[faces[:, 2]]) / 3
-            _carve_lines_of_sight(seen_empty, np.concatenate([p, cen]),
-                                  np.concatenate([o, o_c]), origin, voxel_size, shape,
-                                  start=trunc + voxel_size, depth=carve_depth_m)
-            if carve_far:  # beyond carve_depth_m, to the grid's border, on a coarse grid
-                _carve_lines_of_sight(far_empty, p, o, origin + 0.5 * (_FAR - 1) * voxel_size,
-                                      _FAR * voxel_size, far_shape, start=carve_depth_m,
-                                      depth=np.inf)
+            _carve_scan(acc, P[k], O[k], faces, origin, shape, voxel_size, trunc,
+                        o.carve_depth_m)
             t_carve += time.perf_counter() - ta
     clock.update(range_surfaces=t_rs, rays=t_rays, carve=t_carve)
-    ta = time.perf_counter()
-    if carve_free_space:
+    return acc, scans
+
+
+def _integrate_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, vw: np.ndarray,
+                    faces: np.ndarray, origin: np.ndarray, shape: tuple[int, ...],
+                    shift: np.ndarray, voxel_size: float, trunc_voxels: int,
+                    interp_sigma_m: float, interp_floor: float, threads: int) -> None:
+    """Steps 2-3 for one scan: the signed distance along the line of sight of every
+    voxel within the band around its range surface ``faces`` (rays cast through the
+    voxel centres, Open3D / Embree), weighted by cos, the vertex weights ``vw`` and
+    the taper behind the surface, added to ``acc`` (in place)."""
+    import open3d as o3d
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    trunc = trunc_voxels * voxel_size
+    # the band: voxels within trunc of the range surface (surface samples dilated)
+    v0, v1, v2 = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+    samples = np.concatenate([p, (v0 + v1 + v2) / 3, (v0 + v1) / 2, (v1 + v2) / 2,
+                              (v2 + v0) / 2])
+    occ = np.zeros(shape, dtype=bool)
+    ii = np.round((samples - origin) / voxel_size).astype(np.int64)
+    occ[ii[:, 0], ii[:, 1], ii[:, 2]] = True
+    band = ndimage.maximum_filter(occ, size=2 * trunc_voxels + 1)
+    lin = np.flatnonzero(band)
+    x = origin + np.stack(np.unravel_index(lin, shape), axis=1) * voxel_size
+    _, nb = cKDTree(p).query(x, k=1, workers=int(threads))
+    d = p[nb] - o[nb]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))
+    scene.add_triangles(o3d.core.Tensor((p - shift).astype(np.float32)),
+                        o3d.core.Tensor(faces.astype(np.uint32)))
+    rays = np.hstack([x - shift - trunc * d, d]).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit = hit["t_hit"].numpy().astype(np.float64)
+    good = t_hit <= 2 * trunc
+    prim = hit["primitive_ids"].numpy()
+    uvh = hit["primitive_uvs"].numpy().astype(np.float64)
+    nh = hit["primitive_normals"].numpy().astype(np.float64)
+    cos = -np.einsum("ij,ij->i", nh, d)  # range triangles face their sensor
+    good &= cos > 0
+    lin, t_hit, d, cos, x = lin[good], t_hit[good], d[good], cos[good], x[good]
+    prim, uvh = prim[good], uvh[good]
+    tri = faces[prim.astype(np.int64)]
+    wv = (vw[tri[:, 0]] * (1 - uvh[:, 0] - uvh[:, 1]) + vw[tri[:, 1]] * uvh[:, 0]
+          + vw[tri[:, 2]] * uvh[:, 1])
+    sdf = t_hit - trunc
+    if interp_sigma_m > 0:
+        # interpolated range is less certain than measured range: the weight falls
+        # with the hit's distance to the nearest measured point of its triangle
+        hp = x - trunc * d + t_hit[:, None] * d
+        dv = np.min(np.stack([np.linalg.norm(hp - p[tri[:, m]], axis=1)
+                              for m in range(3)]), axis=0)
+        wv = wv * (interp_floor + (1 - interp_floor) * np.exp(-(dv / interp_sigma_m) ** 2))
+    w = cos * wv * np.clip((sdf + trunc) / (0.5 * trunc), 0.0, 1.0)
+    keep = w > 0
+    np.add.at(acc.sum_w, lin[keep], w[keep].astype(np.float32))
+    np.add.at(acc.sum_wd, lin[keep], (w * sdf)[keep].astype(np.float32))
+    np.add.at(acc.sum_wc, lin[keep], (w * cos)[keep].astype(np.float32))
+    acc.n_obs[lin[keep]] += 1  # the band's voxels are unique within one scan
+    acc.seen_empty[lin[sdf > 0.5 * voxel_size]] = True
+
+
+def _carve_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, faces: np.ndarray,
+                origin: np.ndarray, shape: tuple[int, ...], voxel_size: float, trunc: float,
+                carve_depth_m: float) -> None:
+    """Step 4 for one scan: the lines of sight carve the space in front of the surface
+    (to ``carve_depth_m`` at the grid's resolution, then on to the sensor or the grid's
+    border on the coarse grid), in ``acc`` (in place)."""
+    # from the range surface's vertices and triangle centres (dense enough that,
+    # dilated by one voxel, the carved lines leave no gaps between profiles)
+    v0, v1, v2 = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+    cen = (v0 + v1 + v2) / 3
+    o_c = (o[faces[:, 0]] + o[faces[:, 1]] + o[faces[:, 2]]) / 3
+    _carve_lines_of_sight(acc.seen_empty, np.concatenate([p, cen]),
+                          np.concatenate([o, o_c]), origin, voxel_size, shape,
+                          start=trunc + voxel_size, depth=carve_depth_m)
+    if acc.carve_far:  # beyond carve_depth_m, to the grid's border, on a coarse grid
+        _carve_lines_of_sight(acc.far_empty, p, o, origin + 0.5 * (_FAR - 1) * voxel_size,
+                              _FAR * voxel_size, acc.far_shape, start=carve_depth_m,
+                              depth=np.inf)
+
+
+def _tsdf_field(acc: _Accumulator, shape: tuple[int, ...], trunc: float, hull: Any,
+                origin: np.ndarray, voxel_size: float, hull_smooth_vox: float,
+                o: FuseOptions, scans: list[dict[str, Any]], report: dict[str, Any]):
+    """Steps 4-5: the TSDF of the observed voxels and, with a hull and ``fill_holes``,
+    the solid/empty indicator elsewhere: (tsdf, observed, inside the hull or None,
+    whether holes were filled); ``report`` updated."""
+    from scipy import ndimage
+
+    seen_empty = acc.seen_empty
+    if o.carve_free_space:
         seen_empty = ndimage.binary_dilation(seen_empty.reshape(shape)).ravel()
-        if carve_far:
-            up = far_empty.reshape(far_shape)
+        if acc.carve_far:
+            up = acc.far_empty.reshape(acc.far_shape)
             for ax in range(3):
                 up = np.repeat(up, _FAR, axis=ax)
             seen_empty |= up[: shape[0], : shape[1], : shape[2]].ravel()
             report["n_voxels_seen_empty_far"] = int(np.count_nonzero(up))
-    observed = sum_w >= min_weight
-    tsdf = np.full(n_vox, trunc, dtype=np.float32)
-    tsdf[observed] = sum_wd[observed] / sum_w[observed]
+    observed = acc.sum_w >= o.min_weight
+    tsdf = np.full(len(acc.sum_w), trunc, dtype=np.float32)
+    tsdf[observed] = acc.sum_wd[observed] / acc.sum_w[observed]
     observed = observed.reshape(shape)
     tsdf = tsdf.reshape(shape)
     seen_empty = seen_empty.reshape(shape) & ~observed
@@ -763,10 +902,9 @@ def fuse_tsdf(
         seen_empty.sum()), range_surfaces=scans)
     filled = False
     inside = None
-    if close == "none":
-        fill_holes = False
+    fill_holes = o.fill_holes and o.close != "none"
     if hull is not None:
-        inside = _hull_field(hull, origin, voxel_size, shape, hull_margin_voxels,
+        inside = _hull_field(hull, origin, voxel_size, shape, o.hull_margin_voxels,
                              hull_smooth_vox)
         report["n_observed_voxels_outside_hull"] = int(np.count_nonzero(
             observed & (tsdf < 0) & ~inside))
@@ -781,9 +919,21 @@ def fuse_tsdf(
             report["hull_fill"] = "disabled"
     else:
         report["hull_fill"] = "no hull: no surface where the laser saw nothing"
-    clock["field"] = time.perf_counter() - ta
-    ta = time.perf_counter()
-    sum_w, sum_wc, n_obs = (x.reshape(shape) for x in (sum_w, sum_wc, n_obs))
+    return tsdf, observed, inside, filled
+
+
+def _extract_surface(tsdf: np.ndarray, observed: np.ndarray, inside: np.ndarray | None,
+                     filled: bool, acc: _Accumulator, shape: tuple[int, ...],
+                     origin: np.ndarray, allp: np.ndarray, voxel_size: float, threads: int,
+                     o: FuseOptions, report: dict[str, Any]):
+    """Steps 6-7: marching cubes (Lewiner) at level 0, each vertex's provenance and
+    evidence, and what ``close`` leaves: (vertices, faces, attributes); ``report``
+    updated."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+    from skimage import measure
+
+    sum_w, sum_wc, n_obs = (x.reshape(shape) for x in (acc.sum_w, acc.sum_wc, acc.n_obs))
     # the hull's boundary as the inferred surface sees it: within 2 voxels of outside (the
     # solid indicator is smoothed over one voxel, which moves the crossing by about one)
     near_out = None if inside is None else ndimage.binary_dilation(~inside, iterations=2)
@@ -808,35 +958,28 @@ def fuse_tsdf(
                                                                                    ].astype(np.float32)
     else:
         attrs["dist_measured_m"] = np.zeros(0, np.float32)
-    far = (attrs["source"] != MEASURED) & (attrs["dist_measured_m"] > max_fill_distance_m)
+    far = ((attrs["source"] != MEASURED)
+           & (attrs["dist_measured_m"] > 1e-3 * o.max_fill_distance_mm))
     attrs["far_from_measured"] = far.astype(np.uint8)
     n_far = 0
-    if filled and close == "free_space":
+    if filled and o.close == "free_space":
         n_far = int(far.sum())
         v, f, attrs = keep_vertices(v, f, attrs, ~far)
     attrs["confidence"] = _vertex_confidence(attrs, voxel_size)
-    report["close"] = close
+    report["close"] = o.close
     report["n_vertices_left_open_far_from_measured"] = n_far
-    clock["marching_cubes"] = time.perf_counter() - ta
-    laser_v = attrs["source"] == MEASURED
-    if len(f):
-        area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
-                                    axis=1)
-        from_laser = np.all(laser_v[f], axis=1)
-        total = float(area.sum())
-        lf = float(area[from_laser].sum() / total) if total > 0 else 0.0
-    else:
-        lf = 0.0
-    report.update(laser_area_fraction=lf, hull_area_fraction=(1.0 - lf) if len(f) else 0.0,
-                  n_vertices=int(len(v)), n_faces=int(len(f)),
-                  seconds={k: round(t, 3) for k, t in clock.items()})
-    report.update(source_area_fraction=source_area_fractions(v, f, attrs["source"]))
-    log.info("TSDF fusion: %d scans, %d points, grid %s, %d observed voxels -> %d faces "
-             "(%.1f%% of the area from the laser)", len(P), n_used, shape,
-             report["n_voxels_observed"], len(f), 100 * lf)
-    if return_attributes:
-        return v, f, report, attrs
-    return v, f, report
+    return v, f, attrs
+
+
+def _laser_area_fraction(v: np.ndarray, f: np.ndarray, laser_v: np.ndarray) -> float:
+    """Share of the mesh's area on faces whose three vertices are measured."""
+    if not len(f):
+        return 0.0
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]),
+                                axis=1)
+    from_laser = np.all(laser_v[f], axis=1)
+    total = float(area.sum())
+    return float(area[from_laser].sum() / total) if total > 0 else 0.0
 
 
 def _vertex_attributes(lo_i: np.ndarray, hi_i: np.ndarray, observed: np.ndarray,

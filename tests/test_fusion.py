@@ -7,7 +7,10 @@ import numpy as np
 import pytest
 
 from robo3d.errors import StageError
-from robo3d.fusion import crop_mesh_to_hull, fuse_poisson, remove_vertices
+from robo3d.fusion import FuseOptions, crop_mesh_to_hull, fuse_poisson, remove_vertices
+
+#: Poisson with the margin its tests were written for (one hull voxel; the config's is 0)
+POISSON = FuseOptions(hull_margin_voxels=1)
 
 R = 0.03
 C = np.array([0.5, 0.1, 0.1])
@@ -40,7 +43,7 @@ def _hull(keep_upper_only: bool, vs=2e-3):
 
 def test_poisson_sphere_accuracy():
     p, n = _sphere_points()
-    v, f, rep = fuse_poisson(p, n, depth=7)
+    v, f, rep = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=7))
     err = _radial_error(v)
     assert err.mean() < 0.1e-3  # measured ~0.01 mm
     assert err.max() < 0.3e-3
@@ -61,8 +64,10 @@ def test_density_trim_removes_unsupported_surface():
     def area_below(v, f):
         return _area(v, f[v[f].mean(axis=1)[:, 2] < C[2] - 5e-3])
 
-    v0, f0, rep0 = fuse_poisson(p[up], n[up], depth=6, density_quantile=0.0)
-    v1, f1, rep1 = fuse_poisson(p[up], n[up], depth=6, density_quantile=0.1)
+    v0, f0, rep0 = fuse_poisson(p[up], n[up], options=POISSON.replace(poisson_depth=6,
+                                                                    density_quantile=0.0))
+    v1, f1, rep1 = fuse_poisson(p[up], n[up], options=POISSON.replace(poisson_depth=6,
+                                                                    density_quantile=0.1))
     assert area_below(v0, f0) > 0.05 * cap_area and rep0["n_vertices_low_density"] == 0
     assert area_below(v1, f1) == 0.0 and rep1["n_vertices_low_density"] > 0
     assert _area(v1, f1) > 0.95 * cap_area  # the measured cap stays
@@ -72,7 +77,7 @@ def test_hull_cut_removes_surface_outside_hull():
     p, n = _sphere_points()
     hull = _hull(keep_upper_only=True)
     # half the points lie outside this hull: forced cut (the guard is tested below)
-    v, f, rep = fuse_poisson(p, n, depth=6, hull=hull, hull_margin_voxels=1,
+    v, f, rep = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6), hull=hull,
                              max_outside_fraction=1.0)
     assert rep["hull_cut"] == "applied"
     # nothing below the upper half-space dilated by one voxel (+ half a voxel rounding)
@@ -82,7 +87,8 @@ def test_hull_cut_removes_surface_outside_hull():
     assert _area(v, f) == pytest.approx(2 * np.pi * R**2, rel=0.1)
     assert rep["n_vertices_outside_hull"] > 0.4 * rep["n_vertices_poisson"]
     # a full hull cuts nothing
-    _, _, rep_full = fuse_poisson(p, n, depth=6, hull=_hull(keep_upper_only=False))
+    _, _, rep_full = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6),
+                                  hull=_hull(keep_upper_only=False))
     assert rep_full["n_vertices_outside_hull"] == 0
     assert rep_full["hull_points_outside_fraction"] == 0.0
 
@@ -91,12 +97,13 @@ def test_hull_cut_trims_extrapolation_and_is_guarded():
     p, n = _sphere_points(8000, seed=1)
     up = p[:, 2] > C[2] + 2e-3  # measured: the upper cap; Poisson extrapolates below
     hull = _hull(keep_upper_only=True)
-    v, f, rep = fuse_poisson(p[up], n[up], depth=6, density_quantile=0.0, hull=hull)
+    v, f, rep = fuse_poisson(p[up], n[up], options=POISSON.replace(
+        poisson_depth=6, density_quantile=0.0), hull=hull)
     assert rep["hull_cut"] == "applied" and rep["hull_points_outside_fraction"] == 0.0
     assert v[:, 2].min() >= C[2] - 1.5 * hull["voxel_size"]
     assert rep["n_vertices_outside_hull"] > 0
     # the guard: when the laser points disagree with the hull, the hull does not cut
-    v2, f2, rep2 = fuse_poisson(p, n, depth=6, hull=hull)
+    v2, f2, rep2 = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6), hull=hull)
     assert rep2["hull_cut"].startswith("skipped")
     assert rep2["hull_points_outside_fraction"] == pytest.approx(0.5, abs=0.03)
     assert rep2["n_vertices"] == rep2["n_vertices_poisson"] - rep2["n_vertices_low_density"]
@@ -128,8 +135,9 @@ def test_remove_vertices_renumbers():
 
 def test_lists_reproducible_and_errors():
     p, n = _sphere_points(3000)
-    a = fuse_poisson([p[:1000], p[1000:]], [n[:1000], n[1000:]], depth=6)
-    b = fuse_poisson(p, n, depth=6)
+    a = fuse_poisson([p[:1000], p[1000:]], [n[:1000], n[1000:]],
+                     options=POISSON.replace(poisson_depth=6))
+    b = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6))
     np.testing.assert_array_equal(a[0], b[0])  # single-threaded Poisson: bit-identical
     np.testing.assert_array_equal(a[1], b[1])
     with pytest.raises(StageError, match="at least 10"):
@@ -137,9 +145,9 @@ def test_lists_reproducible_and_errors():
     with pytest.raises(ValueError, match="normals must match"):
         fuse_poisson(p, n[:10])
     with pytest.raises(ValueError, match="hull must have"):
-        fuse_poisson(p, n, depth=5, hull={"origin": C})
+        fuse_poisson(p, n, options=POISSON.replace(poisson_depth=5), hull={"origin": C})
     with pytest.raises(ValueError, match="density_quantile"):
-        fuse_poisson(p, n, density_quantile=1.0)
+        fuse_poisson(p, n, options=FuseOptions(density_quantile=1.0))
 
 
 def _views_of_sphere(n_per_view=15000, axes=None, seed=0):
@@ -178,10 +186,11 @@ def _edge_uses(f):
 
 
 def test_tsdf_sphere_from_six_views():
-    from robo3d.fusion import fuse_tsdf
+    from robo3d.fusion import FuseOptions, fuse_tsdf
 
     pts, nrm, org = _views_of_sphere()
-    v, f, rep = fuse_tsdf(pts, nrm, org, voxel_size=1e-3, trunc_voxels=3, max_edge_factor=3.0)
+    v, f, rep = fuse_tsdf(pts, nrm, org, max_edge_factor=3.0,
+                          options=FuseOptions(tsdf_voxel_m=1e-3, tsdf_trunc_voxels=3))
     err = _radial_error(v)
     assert err.mean() < 0.03e-3  # measured 0.019 mm with 1 mm voxels
     assert err.max() < 0.25e-3  # measured 0.18 mm
@@ -195,11 +204,11 @@ def test_tsdf_sphere_from_six_views():
 
 
 def test_tsdf_invents_no_surface_where_nothing_was_seen():
-    from robo3d.fusion import fuse_tsdf
+    from robo3d.fusion import FuseOptions, fuse_tsdf
 
     # one sensor above: only the upper cap is seen (grazing parts dropped by min_cos_view)
     pts, nrm, org = _views_of_sphere(20000, axes=[[0.0, 0.0, 1.0]])
-    v, f, rep = fuse_tsdf(pts, nrm, org, voxel_size=0.5e-3, min_cos_view=0.3)
+    v, f, rep = fuse_tsdf(pts, nrm, org, options=FuseOptions(tsdf_voxel_m=0.5e-3, min_cos_view=0.3))
     assert _radial_error(v).mean() < 0.02e-3  # measured 0.006 mm
     # cos >= 0.3 keeps roughly z > 0.3 R: nothing below
     assert v[:, 2].min() > C[2] + 0.2 * R
@@ -208,11 +217,11 @@ def test_tsdf_invents_no_surface_where_nothing_was_seen():
     # zero confidence removes a view entirely: the bottom cap, which only the -z view
     # sees at cos >= 0.3, opens
     pts6, nrm6, org6 = _views_of_sphere(8000)
-    v1, _, _ = fuse_tsdf(pts6, nrm6, org6, voxel_size=1e-3, min_cos_view=0.3)
+    opts = FuseOptions(tsdf_voxel_m=1e-3, min_cos_view=0.3)
+    v1, _, _ = fuse_tsdf(pts6, nrm6, org6, options=opts)
     assert v1[:, 2].min() < C[2] - 0.99 * R
     conf = [np.full(len(p), 1.0 if k != 5 else 0.0) for k, p in enumerate(pts6)]
-    v2, _, rep2 = fuse_tsdf(pts6, nrm6, org6, voxel_size=1e-3, min_cos_view=0.3,
-                            confidences=conf)
+    v2, _, rep2 = fuse_tsdf(pts6, nrm6, org6, options=opts, confidences=conf)
     assert v2[:, 2].min() > C[2] - 0.97 * R
     assert rep2["n_points_used"] < rep2["n_points"] - len(pts6[5]) * 0.99
 
@@ -220,7 +229,7 @@ def test_tsdf_invents_no_surface_where_nothing_was_seen():
 def test_tsdf_single_grazing_view_makes_no_surface():
     """The minimum-weight guard: one view of a plane at cos 0.2 stays below min_weight
     0.3 everywhere; with a lower guard the same view makes surface."""
-    from robo3d.fusion import fuse_tsdf
+    from robo3d.fusion import FuseOptions, fuse_tsdf
 
     rng = np.random.default_rng(0)
     n = 20000
@@ -228,19 +237,19 @@ def test_tsdf_single_grazing_view_makes_no_surface():
     nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
     ang = np.arccos(0.2)
     o = np.tile(C + 0.3 * np.array([np.sin(ang), 0.0, np.cos(ang)]), (n, 1))
-    v, f, rep = fuse_tsdf([p], [nrm], [o], voxel_size=0.5e-3, min_weight=0.3)
+    v, f, rep = fuse_tsdf([p], [nrm], [o], options=FuseOptions(tsdf_voxel_m=0.5e-3, min_weight=0.3))
     assert len(f) == 0 and rep["n_voxels_observed"] == 0
-    v, f, _ = fuse_tsdf([p], [nrm], [o], voxel_size=0.5e-3, min_weight=0.1)
+    v, f, _ = fuse_tsdf([p], [nrm], [o], options=FuseOptions(tsdf_voxel_m=0.5e-3, min_weight=0.1))
     assert len(f) > 1000 and np.abs(v[:, 2] - C[2]).max() < 0.05e-3
 
 
 def test_tsdf_holes_closed_from_the_hull():
     """Seen from above only, with the sphere's hull: a closed mesh, the seen cap from the
     laser (exact), the rest from the hull (within its 2 mm voxels)."""
-    from robo3d.fusion import fuse_tsdf
+    from robo3d.fusion import FuseOptions, fuse_tsdf
 
     pts, nrm, org = _views_of_sphere(20000, axes=[[0.0, 0.0, 1.0]])
-    v, f, rep = fuse_tsdf(pts, nrm, org, voxel_size=1e-3, hull=_exact_hull(),
+    v, f, rep = fuse_tsdf(pts, nrm, org, options=FuseOptions(tsdf_voxel_m=1e-3), hull=_exact_hull(),
                           max_edge_factor=3.0)
     assert np.all(_edge_uses(f) == 2)  # watertight
     err = _radial_error(v)
@@ -273,31 +282,31 @@ def test_range_surface_cuts_depth_jumps():
 
 
 def test_tsdf_errors():
-    from robo3d.fusion import fuse_tsdf
+    from robo3d.fusion import FuseOptions, fuse_tsdf
 
     pts, nrm, org = _views_of_sphere(500, axes=[[0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="sensor_origins"):
         fuse_tsdf(pts, nrm, [o[:10] for o in org])
     with pytest.raises(StageError, match="max_voxels"):
-        fuse_tsdf(pts, nrm, org, voxel_size=1e-5, max_voxels=1000)
+        fuse_tsdf(pts, nrm, org, options=FuseOptions(tsdf_voxel_m=1e-5), max_voxels=1000)
     with pytest.raises(StageError, match="no point is usable"):
         fuse_tsdf(pts, [-n for n in nrm], org)  # normals facing away from the sensor
     with pytest.raises(ValueError, match="min_weight"):
-        fuse_tsdf(pts, nrm, org, min_weight=0.0)
+        fuse_tsdf(pts, nrm, org, options=FuseOptions(min_weight=0.0))
 
 
 def test_tsdf_provenance_per_vertex_and_close_modes():
     """Seen from above only, with the sphere's hull: every vertex says where it came
     from; the measured cap is the laser's (and identical whatever is done below it); the
     hull's part is labelled, far from any measurement, and left out on request."""
-    from robo3d.fusion import CLOSE_MODES, HULL, MEASURED, face_source, fuse_tsdf
+    from robo3d.fusion import CLOSE_MODES, HULL, MEASURED, FuseOptions, face_source, fuse_tsdf
 
     pts, nrm, org = _views_of_sphere(20000, axes=[[0.0, 0.0, 1.0]])
     out = {}
     for close in CLOSE_MODES:
-        out[close] = fuse_tsdf(pts, nrm, org, voxel_size=1e-3, hull=_exact_hull(),
-                               max_edge_factor=3.0, close=close, max_fill_distance_m=3e-3,
-                               return_attributes=True)
+        out[close] = fuse_tsdf(pts, nrm, org, options=FuseOptions(
+            tsdf_voxel_m=1e-3, close=close, max_fill_distance_mm=3.0), hull=_exact_hull(),
+            max_edge_factor=3.0, return_attributes=True)
     v, f, rep, a = out["hull"]
     assert set(a) == {"source", "n_obs", "incidence", "tsdf_weight", "dist_measured_m",
                       "confidence", "far_from_measured"}
@@ -333,7 +342,7 @@ def test_tsdf_provenance_per_vertex_and_close_modes():
         common = np.isin(m.round(9).view("f8,f8,f8"), v[meas].round(9).view("f8,f8,f8"))
         assert common.mean() > 0.95
     with pytest.raises(ValueError, match="close"):
-        fuse_tsdf(pts, nrm, org, close="everything")
+        fuse_tsdf(pts, nrm, org, options=FuseOptions(close="everything"))
 
 
 def test_tsdf_lines_of_sight_open_a_deep_cavity_the_hull_closes():
@@ -341,7 +350,7 @@ def test_tsdf_lines_of_sight_open_a_deep_cavity_the_hull_closes():
     and the pocket's floor; the hull (the views cannot see into the pocket) is the full
     block. The lines of sight that saw the floor pass through the opening: carved to
     their end they keep the pocket open; carved 20 mm only, the hull's lid closes it."""
-    from robo3d.fusion import MEASURED, fuse_tsdf
+    from robo3d.fusion import MEASURED, FuseOptions, fuse_tsdf
 
     rng = np.random.default_rng(1)
     top, floor, half, pocket = 0.05, 0.01, 0.03, 0.015  # z of top and floor; half sizes
@@ -363,9 +372,9 @@ def test_tsdf_lines_of_sight_open_a_deep_cavity_the_hull_closes():
     hull = {"origin": origin, "voxel_size": vs, "occupancy": occ}
     lid = {}
     for full in (True, False):
-        v, f, rep, a = fuse_tsdf([p], [nrm], [o], voxel_size=1.5e-3, hull=hull,
-                                 carve_depth_m=0.02, carve_full_line=full,
-                                 return_attributes=True)
+        v, f, rep, a = fuse_tsdf([p], [nrm], [o], options=FuseOptions(
+            tsdf_voxel_m=1.5e-3, carve_depth_m=0.02, carve_full_line=full), hull=hull,
+            return_attributes=True)
         inside = np.all(np.abs(v[:, :2]) < pocket - 3e-3, axis=1)
         lid[full] = int(np.count_nonzero(inside & (v[:, 2] > floor + 0.01)))
         meas = a["source"] == MEASURED

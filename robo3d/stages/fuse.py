@@ -24,22 +24,24 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     The report says what fraction of the surface came from the laser and from the hull.
     """
+    from ..artefacts import load_clouds_npz
     from ..carving import VoxelGrid, hull_to_mesh
     from ..fusion import (
         HULL,
         MEASURED,
         SOURCES,
+        FuseOptions,
         fuse_poisson,
         fuse_tsdf,
         keep_vertices,
         source_area_fractions,
     )
     from ..meshio import write_mesh
-    from ..triangulation import load_clouds_npz
     from ..viz import log_mesh, log_report, rerun_log
 
     t0 = time.perf_counter()
     fc = cfg["fusion"]
+    opts = FuseOptions.from_config(fc, seed=cfg["seed"])
     hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
@@ -47,15 +49,9 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         if fc["method"] == "tsdf":
             V, F, fuse_report, attrs = fuse_tsdf(
                 [c.points_base for c in clouds], [c.normals_base for c in clouds],
-                [c.sensor_origin_base for c in clouds],
-                confidences=[c.confidence for c in clouds], voxel_size=fc["tsdf_voxel_m"],
-                trunc_voxels=int(fc["tsdf_trunc_voxels"]), hull=crop,
-                hull_margin_voxels=fc["hull_margin_voxels"], fill_holes=fc["fill_holes"],
-                carve_free_space=fc["carve_free_space"], min_weight=fc["min_weight"],
-                min_cos_view=fc["min_cos_view"], threads=stage_threads(threads),
-                close=fc["close"], max_fill_distance_m=1e-3 * fc["max_fill_distance_mm"],
-                carve_depth_m=fc["carve_depth_m"], carve_full_line=fc["carve_full_line"],
-                return_attributes=True)
+                [c.sensor_origin_base for c in clouds], options=opts,
+                confidences=[c.confidence for c in clouds], hull=crop,
+                threads=stage_threads(threads), return_attributes=True)
             source = "laser (TSDF)" + {
                 "hull": ", holes closed from the hull",
                 "free_space": ", holes near measurements closed, far ones left open",
@@ -64,11 +60,9 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         else:
             pts = np.concatenate([c.points_base for c in clouds])
             nrm = np.concatenate([c.normals_base for c in clouds])
-            V, F, fuse_report = fuse_poisson(pts, nrm, depth=fc["poisson_depth"],
-                                             density_quantile=fc["density_quantile"],
-                                             hull=crop, seed=cfg["seed"])
-            attrs = _poisson_provenance(V, pts, fc["tsdf_voxel_m"],
-                                        1e-3 * fc["max_fill_distance_mm"])
+            V, F, fuse_report = fuse_poisson(pts, nrm, options=opts, hull=crop)
+            attrs = _poisson_provenance(V, pts, opts.tsdf_voxel_m,
+                                        1e-3 * opts.max_fill_distance_mm)
             source = "laser (screened Poisson)"
             if crop is not None:
                 cut = str(fuse_report.get("hull_cut", "applied"))

@@ -59,8 +59,9 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     from ..viz import log_points, log_report, rerun_log
 
     t0 = time.perf_counter()
-    with np.load(inputs["stripes"]) as z:
-        s = {k: z[k] for k in z.files}
+    from ..artefacts import Stripes
+
+    s = Stripes.load(inputs["stripes"]).as_arrays()  # the file's arrays, checked
     cameras = cameras_from(s)
     stamps = s["stamps_ns"]
     tc = cfg["triangulation"]

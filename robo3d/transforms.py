@@ -276,29 +276,28 @@ class TransformBuffer:
             seen.add(parent)
         return chain
 
+    def _fail_at(self, bad: np.ndarray, times: np.ndarray, link: _Link, message: str) -> None:
+        """Raise ``message`` as a :class:`TransformError` at the first query time where
+        ``bad`` holds (nothing when it holds nowhere)."""
+        if np.any(bad):
+            raise TransformError(message, path=self.path, topic=link.topic,
+                                 time_ns=int(times[np.argmax(bad)]))
+
     def _link_at(self, link: _Link, times: np.ndarray, what: str) -> np.ndarray:
         if link.static or len(link.stamps_ns) == 1:
             if not link.static and len(link.stamps_ns) == 1:
                 # one sample on /tf: only usable exactly at its stamp or within the gap
                 dt = np.abs(times - link.stamps_ns[0])
-                bad = dt > self.max_gap_ns
-                if np.any(bad):
-                    t_bad = int(times[np.argmax(bad)])
-                    raise TransformError(
-                        f"{what}: link {link.parent} -> {link.child} has a single sample "
-                        f"at {link.stamps_ns[0]} ns, too far from the query",
-                        path=self.path, topic=link.topic, time_ns=t_bad)
+                self._fail_at(dt > self.max_gap_ns, times, link,
+                              f"{what}: link {link.parent} -> {link.child} has a single "
+                              f"sample at {link.stamps_ns[0]} ns, too far from the query")
             t = make_transform(link.quats[0], link.translations[0])
             return np.broadcast_to(t, times.shape + (4, 4)).copy()
         s = link.stamps_ns
         idx = np.searchsorted(s, times, side="right")
-        outside = (times < s[0]) | (times > s[-1])
-        if np.any(outside):
-            t_bad = int(times[np.argmax(outside)])
-            raise TransformError(
-                f"{what}: time outside the samples of {link.parent} -> {link.child} "
-                f"({s[0]} .. {s[-1]} ns)",
-                path=self.path, topic=link.topic, time_ns=t_bad)
+        self._fail_at((times < s[0]) | (times > s[-1]), times, link,
+                      f"{what}: time outside the samples of {link.parent} -> {link.child} "
+                      f"({s[0]} .. {s[-1]} ns)")
         i1 = np.clip(idx, 1, len(s) - 1)
         i0 = i1 - 1
         gap = s[i1] - s[i0]
@@ -306,11 +305,10 @@ class TransformBuffer:
         bad = (gap > self.max_gap_ns) & ~exact & (times != s[i1])
         if np.any(bad):
             k = int(np.argmax(bad))
-            raise TransformError(
-                f"{what}: the samples of {link.parent} -> {link.child} around this time "
-                f"are {gap[k] / 1e6:.1f} ms apart, more than max_pose_gap "
-                f"{self.max_gap_ns / 1e6:.1f} ms",
-                path=self.path, topic=link.topic, time_ns=int(times[k]))
+            self._fail_at(bad, times, link,
+                          f"{what}: the samples of {link.parent} -> {link.child} around this "
+                          f"time are {gap[k] / 1e6:.1f} ms apart, more than max_pose_gap "
+                          f"{self.max_gap_ns / 1e6:.1f} ms")
         alpha = (times - s[i0]).astype(np.float64) / np.maximum(gap, 1).astype(np.float64)
         alpha = np.clip(alpha, 0.0, 1.0)
         tr = link.translations[i0] * (1 - alpha[:, None]) + link.translations[i1] * alpha[:, None]

@@ -37,15 +37,58 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from .meshio import check_mesh
+from .options import Options
 
-__all__ = ["clean_mesh", "simplify_mesh", "hausdorff_distance", "transfer_vertex_attributes"]
+__all__ = ["SimplifyOptions", "clean_mesh", "simplify_mesh", "hausdorff_distance",
+           "transfer_vertex_attributes"]
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SimplifyOptions(Options):
+    """The parameters of :func:`clean_mesh` and :func:`simplify_mesh` (config section
+    ``simplify``; ``export`` and ``export_unit`` are the stage's), and the recording's
+    seed.
+
+    Attributes
+    ----------
+    target_faces : int or None
+        Decimate to at most this many faces (unless the error bound forbids it); None
+        (not from the config): no face target.
+    max_error_m : float or None, metres
+        The fewest faces whose two-sided Hausdorff distance to the input stays within
+        this (None: only ``hausdorff_tolerance_m`` bounds it).
+    hausdorff_tolerance_m : float or None, metres
+        The simplified mesh must stay within this of the input: the error bound is the
+        smaller of this and ``max_error_m``. None (not from the config): no bound.
+    min_component_fraction : float in [0, 1)
+        :func:`clean_mesh`: connected components with fewer faces than this fraction of
+        all faces are removed (0 keeps every component).
+    seed : int
+        The recording's seed (config ``seed``): the search's area samples.
+    """
+
+    section = "simplify"
+    not_in_config = ("seed",)
+    target_faces: int | None = 20000
+    max_error_m: float | None = None
+    hausdorff_tolerance_m: float | None = 0.0002
+    min_component_fraction: float = 0.01
+    seed: int = 0
+
+    @property
+    def error_bound_m(self) -> float | None:
+        """The error bound of the simplification: the smaller of
+        ``hausdorff_tolerance_m`` and ``max_error_m`` (None: neither)."""
+        bounds = [b for b in (self.hausdorff_tolerance_m, self.max_error_m) if b is not None]
+        return min(bounds) if bounds else None
 
 
 def _check_mesh(vertices: object, faces: object) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +114,7 @@ def clean_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
     *,
-    min_component_fraction: float = 0.01,
+    options: SimplifyOptions = SimplifyOptions(),
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Remove duplicates, degenerate faces, unreferenced vertices and small components.
 
@@ -79,9 +122,9 @@ def clean_mesh(
     ----------
     vertices : (V, 3) float64, metres
     faces : (F, 3) int
-    min_component_fraction : float in [0, 1)
-        Connected components with fewer faces than this fraction of all faces are removed
-        (0 keeps every component).
+    options : SimplifyOptions
+        ``min_component_fraction``: connected components with fewer faces than this
+        fraction of all faces are removed (0 keeps every component).
 
     Returns
     -------
@@ -94,6 +137,7 @@ def clean_mesh(
         ``n_faces``.
     """
     v, f = _check_mesh(vertices, faces)
+    min_component_fraction = options.min_component_fraction
     if not 0 <= min_component_fraction < 1:
         raise ValueError(f"min_component_fraction must be in [0, 1), got "
                          f"{min_component_fraction}")
@@ -239,17 +283,68 @@ class _Distance:
         return float(max(a.max(), b.max()))
 
 
+def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float,
+                     preserve_boundary: bool, preserve_normal: bool, tolerance: float,
+                     n_samples: int, seed: int):
+    """The error-bounded mode of :func:`simplify_mesh`: progressive halving to
+    ``target``, the last step within ``max_error`` (bisection over the steps), then a
+    log-scale search between it and the next; (vertices, faces, the search's distance
+    of the result, trials)."""
+    n_trials = 0
+    dist = _Distance(v, f, n_samples, seed)
+    good = (v, f.astype(np.int64), 0.0)
+    steps = [(v, f)]
+    n = len(f)
+    while n > target:  # progressive halving from the previous result
+        n = max(target, n // 2)
+        steps.append(_decimate(*steps[-1], n, preserve_boundary, preserve_normal))
+        n_trials += 1
+    # steps[0] is the input itself. Measure the last step first (usually within the
+    # bound: one check instead of one per step); if it is not, bisect over the steps
+    # for the last one within it (the error grows with every halving)
+    bad_n = None
+    lo_k, hi_k = 0, len(steps) - 1
+    d_good = 0.0
+    d = dist(*steps[hi_k])
+    if d <= max_error:
+        lo_k, d_good = hi_k, d
+    else:
+        while hi_k - lo_k > 1:
+            k = (lo_k + hi_k) // 2
+            d = dist(*steps[k])
+            if d <= max_error:
+                lo_k, d_good = k, d
+            else:
+                hi_k = k
+        bad_n = len(steps[hi_k][1])
+    good = (steps[lo_k][0], np.asarray(steps[lo_k][1], dtype=np.int64), d_good)
+    del steps
+    if bad_n is not None:  # search between the last good count and the failing one
+        lo, hi = bad_n, len(good[1])
+        base_v, base_f = good[0], good[1]
+        while hi > lo * (1.0 + tolerance) and hi - lo > 1:
+            mid = int(round(math.sqrt(lo * hi)))
+            mid = min(max(mid, lo + 1), hi - 1)
+            cand_v, cand_f = _decimate(base_v, base_f, mid, preserve_boundary,
+                                       preserve_normal)
+            n_trials += 1
+            d = dist(cand_v, cand_f)
+            if d <= max_error:
+                good, hi = (cand_v, cand_f, d), mid
+            else:
+                lo = mid
+    return good[0], good[1], good[2], n_trials
+
+
 def simplify_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
     *,
-    target_faces: int | None = None,
-    max_error: float | None = None,
+    options: SimplifyOptions = SimplifyOptions(),
     preserve_boundary: bool = True,
     preserve_normal: bool = True,
     tolerance: float = 0.1,
     n_samples: int = 200_000,
-    seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Quadric edge-collapse decimation to a face count and/or within an error bound.
 
@@ -257,20 +352,20 @@ def simplify_mesh(
     ----------
     vertices : (V, 3) float64, metres
     faces : (F, 3) int
-    target_faces : int, optional
-        Decimate to at most this many faces (unless ``max_error`` forbids it).
-    max_error : float, metres, optional
-        Largest allowed two-sided Hausdorff distance between input and result: the fewest
-        faces, not below ``target_faces``, whose distance stays within it (progressive
-        decimation and a log-scale search, see the module notes).
+    options : SimplifyOptions
+        ``target_faces``: decimate to at most this many faces (unless the error bound
+        forbids it); the error bound (:attr:`SimplifyOptions.error_bound_m`, the smaller
+        of ``hausdorff_tolerance_m`` and ``max_error_m``): the largest allowed two-sided
+        Hausdorff distance between input and result, i.e. the fewest faces, not below
+        ``target_faces``, whose distance stays within it (progressive decimation and a
+        log-scale search, see the module notes); ``seed``.
     preserve_boundary, preserve_normal : bool
         Quadric options: keep open borders in place; refuse collapses that flip a face.
     tolerance : float
         Relative precision of the face-count search (stop when hi / lo < 1 + tolerance).
     n_samples : int
-        Area samples of the input for the search's distance checks (plus its vertices).
-    seed : int
-        Seed of those samples.
+        Area samples of the input for the search's distance checks (plus its vertices),
+        seeded with ``options.seed``.
 
     Returns
     -------
@@ -286,19 +381,21 @@ def simplify_mesh(
     Raises
     ------
     ValueError
-        When neither ``target_faces`` nor ``max_error`` is given, or they are not positive.
+        When there is neither a face target nor an error bound, or they are not positive.
 
     References
     ----------
     Garland & Heckbert (1997); Cignoni, Rocchini & Scopigno (1998).
     """
     v, f = _check_mesh(vertices, faces)
+    target_faces, max_error, seed = options.target_faces, options.error_bound_m, options.seed
     if target_faces is None and max_error is None:
-        raise ValueError("give target_faces, max_error, or both")
+        raise ValueError("give target_faces, max_error_m or hausdorff_tolerance_m, or both")
     if target_faces is not None and int(target_faces) < 1:
         raise ValueError(f"target_faces must be >= 1, got {target_faces}")
     if max_error is not None and not max_error > 0:
-        raise ValueError(f"max_error must be > 0 metres, got {max_error}")
+        raise ValueError(f"max_error_m and hausdorff_tolerance_m must be > 0 metres, got "
+                         f"{max_error}")
     report: dict[str, Any] = dict(n_faces_in=int(len(f)), n_vertices_in=int(len(v)),
                                   target_faces=target_faces, max_error_m=max_error)
     if len(f) == 0:
@@ -313,49 +410,9 @@ def simplify_mesh(
                   if target < len(f) else (v, f.astype(np.int64)))
         n_trials = 1
     else:
-        dist = _Distance(v, f, n_samples, seed)
-        good = (v, f.astype(np.int64), 0.0)
-        steps = [(v, f)]
-        n = len(f)
-        while n > target:  # progressive halving from the previous result
-            n = max(target, n // 2)
-            steps.append(_decimate(*steps[-1], n, preserve_boundary, preserve_normal))
-            n_trials += 1
-        # steps[0] is the input itself. Measure the last step first (usually within the
-        # bound: one check instead of one per step); if it is not, bisect over the steps
-        # for the last one within it (the error grows with every halving)
-        bad_n = None
-        lo_k, hi_k = 0, len(steps) - 1
-        d_good = 0.0
-        d = dist(*steps[hi_k])
-        if d <= max_error:
-            lo_k, d_good = hi_k, d
-        else:
-            while hi_k - lo_k > 1:
-                k = (lo_k + hi_k) // 2
-                d = dist(*steps[k])
-                if d <= max_error:
-                    lo_k, d_good = k, d
-                else:
-                    hi_k = k
-            bad_n = len(steps[hi_k][1])
-        good = (steps[lo_k][0], np.asarray(steps[lo_k][1], dtype=np.int64), d_good)
-        del steps
-        if bad_n is not None:  # search between the last good count and the failing one
-            lo, hi = bad_n, len(good[1])
-            base_v, base_f = good[0], good[1]
-            while hi > lo * (1.0 + tolerance) and hi - lo > 1:
-                mid = int(round(math.sqrt(lo * hi)))
-                mid = min(max(mid, lo + 1), hi - 1)
-                cand_v, cand_f = _decimate(base_v, base_f, mid, preserve_boundary,
-                                           preserve_normal)
-                n_trials += 1
-                d = dist(cand_v, cand_f)
-                if d <= max_error:
-                    good, hi = (cand_v, cand_f, d), mid
-                else:
-                    lo = mid
-        ov, of, search_d = good
+        ov, of, search_d, n_trials = _decimate_within(v, f, target, max_error,
+                                                      preserve_boundary, preserve_normal,
+                                                      tolerance, n_samples, seed)
     hd = (hausdorff_distance(v, f, ov, of, n_samples=min(len(v) + n_samples, 2_000_000))
           if len(of) < len(f) else {"a_to_b": _zero(), "b_to_a": _zero(), "max": 0.0})
     report.update(n_faces=int(len(of)), n_vertices=int(len(ov)), n_trials=n_trials,

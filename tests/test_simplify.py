@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from robo3d.evaluate import TruthSurface, sample_surface
-from robo3d.simplify import clean_mesh, hausdorff_distance, simplify_mesh
+from robo3d.simplify import SimplifyOptions, clean_mesh, hausdorff_distance, simplify_mesh
+
+#: No error bound (the config's hausdorff_tolerance_m is one): a face target alone
+FACES = SimplifyOptions(hausdorff_tolerance_m=None)
+#: No face target: an error bound alone
+BOUND = SimplifyOptions(target_faces=None, hausdorff_tolerance_m=None)
 
 R = 0.03
 C = np.array([0.4, -0.1, 0.12])
@@ -29,7 +34,7 @@ def _independent_hausdorff(va, fa, vb, fb, n=20000):
 
 def test_simplify_to_target_faces():
     v, f = _uv_sphere()
-    v2, f2, rep = simplify_mesh(v, f, target_faces=800)
+    v2, f2, rep = simplify_mesh(v, f, options=FACES.replace(target_faces=800))
     assert 0.9 * 800 <= len(f2) <= 800
     assert rep["n_faces"] == len(f2) and rep["n_faces_in"] == len(f)
     assert rep["hausdorff_max_m"] == rep["hausdorff_m"]["max"]
@@ -48,16 +53,18 @@ def test_simplify_to_target_faces():
 def test_simplify_within_max_error():
     v, f = _uv_sphere()
     bound = 0.2e-3
-    v2, f2, rep = simplify_mesh(v, f, max_error=bound)
+    v2, f2, rep = simplify_mesh(v, f, options=BOUND.replace(max_error_m=bound))
     assert rep["hausdorff_m"]["max"] <= bound
     assert _independent_hausdorff(v, f, v2, f2) <= bound * 1.1
     assert len(f2) < 0.5 * len(f)  # and it did simplify
     assert rep["n_trials"] >= 2
     # a face floor that the bound overrides
-    v3, f3, rep3 = simplify_mesh(v, f, target_faces=50, max_error=bound)
+    v3, f3, rep3 = simplify_mesh(v, f, options=BOUND.replace(target_faces=50,
+                                                                 max_error_m=bound))
     assert len(f3) > 50 and rep3["hausdorff_m"]["max"] <= bound
     # a floor the bound allows is reached in one trial
-    v4, f4, rep4 = simplify_mesh(v, f, target_faces=len(f) // 2, max_error=bound)
+    v4, f4, rep4 = simplify_mesh(v, f, options=BOUND.replace(
+        target_faces=len(f) // 2, max_error_m=bound))
     assert rep4["n_trials"] == 1 and len(f4) <= len(f) // 2
 
 
@@ -79,7 +86,7 @@ def test_clean_mesh_removes_defects():
     island = np.array([[1.0, 1.0, 1.0], [1.001, 1.0, 1.0], [1.0, 1.001, 1.0]])
     v_all = np.vstack([v_dup, island, np.zeros((2, 3))])  # + 2 unreferenced vertices
     f_all = np.vstack([f_dup, [[1, 1, 2]], [[len(v_dup), len(v_dup) + 1, len(v_dup) + 2]]])
-    v2, f2, rep = clean_mesh(v_all, f_all, min_component_fraction=0.01)
+    v2, f2, rep = clean_mesh(v_all, f_all, options=SimplifyOptions(min_component_fraction=0.01))
     assert len(f2) == n_faces
     assert len(v2) == len(v)
     assert rep["n_duplicate_vertices"] >= 1
@@ -95,9 +102,9 @@ def test_empty_and_bad_inputs():
     v, f, rep = clean_mesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     assert len(v) == 0 and rep["n_faces"] == 0
     with pytest.raises(ValueError, match="target_faces, max_error"):
-        simplify_mesh(*_uv_sphere(10))
+        simplify_mesh(*_uv_sphere(10), options=BOUND)
     with pytest.raises(ValueError, match="max_error"):
-        simplify_mesh(*_uv_sphere(10), max_error=-1.0)
+        simplify_mesh(*_uv_sphere(10), options=SimplifyOptions(max_error_m=-1.0))
     with pytest.raises(ValueError, match="faces index"):
         clean_mesh(np.zeros((3, 3)), np.array([[0, 1, 5]]))
 
@@ -107,8 +114,8 @@ def test_decimation_does_not_depend_on_units():
     in millimetres must simplify alike (measured before the fix: 2.3 mm vs 0.4 mm on a
     100 mm fused mesh at 20 000 faces)."""
     v, f = _uv_sphere(60)
-    v_m, f_m, rep_m = simplify_mesh(v, f, target_faces=600)
-    v_mm, f_mm, rep_mm = simplify_mesh(v * 1e3, f, target_faces=600)
+    v_m, f_m, rep_m = simplify_mesh(v, f, options=FACES.replace(target_faces=600))
+    v_mm, f_mm, rep_mm = simplify_mesh(v * 1e3, f, options=FACES.replace(target_faces=600))
     assert len(f_m) == len(f_mm)
     assert rep_m["hausdorff_max_m"] * 1e3 == pytest.approx(rep_mm["hausdorff_max_m"], rel=0.1)
     assert rep_m["hausdorff_max_m"] < 0.5e-3  # a 30 mm sphere in 600 faces
@@ -119,12 +126,12 @@ def test_simplification_keeps_the_vertex_provenance():
     sphere labelled measured above its equator and inferred below stays so."""
     import open3d as o3d
 
-    from robo3d.simplify import simplify_mesh, transfer_vertex_attributes
+    from robo3d.simplify import transfer_vertex_attributes
 
     m = o3d.geometry.TriangleMesh.create_sphere(radius=0.03, resolution=60)
     v, f = np.asarray(m.vertices), np.asarray(m.triangles)
     attrs = {"source": (v[:, 2] < 0).astype(np.uint8), "confidence": (v[:, 2] > 0) * 0.9}
-    v2, f2, _ = simplify_mesh(v, f, target_faces=len(f) // 8)
+    v2, f2, _ = simplify_mesh(v, f, options=FACES.replace(target_faces=len(f) // 8))
     a2 = transfer_vertex_attributes(v, attrs, v2)
     assert set(a2) == set(attrs) and all(len(x) == len(v2) for x in a2.values())
     assert a2["source"].dtype == np.uint8

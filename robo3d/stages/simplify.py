@@ -22,20 +22,17 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ``ply`` and, when given, ``stl`` / ``obj`` outputs."""
     from ..fusion import source_area_fractions
     from ..meshio import read_mesh, read_vertex_attributes, write_mesh
-    from ..simplify import clean_mesh, simplify_mesh, transfer_vertex_attributes
+    from ..simplify import SimplifyOptions, clean_mesh, simplify_mesh, transfer_vertex_attributes
     from ..viz import log_mesh, log_report, rerun_log
 
     t0 = time.perf_counter()
     sc = cfg["simplify"]
+    opts = SimplifyOptions.from_config(sc, seed=cfg["seed"])
     V, F = read_mesh(inputs["fused"])
     attrs_in = read_vertex_attributes(inputs["fused"])
     V0 = V
-    V, F, clean_report = clean_mesh(V, F, min_component_fraction=sc["min_component_fraction"])
-    bound = sc["hausdorff_tolerance_m"]
-    if sc["max_error_m"] is not None:
-        bound = min(bound, sc["max_error_m"])
-    V2, F2, simp_report = simplify_mesh(V, F, target_faces=sc["target_faces"], max_error=bound,
-                                        seed=cfg["seed"])
+    V, F, clean_report = clean_mesh(V, F, options=opts)
+    V2, F2, simp_report = simplify_mesh(V, F, options=opts)
     haus = simp_report.get("hausdorff_max_m")
     within = haus is None or haus <= sc["hausdorff_tolerance_m"]
     if not within:

@@ -1,7 +1,27 @@
 """The pinhole camera with plumb_bob (Brown–Conrady) distortion.
 
-Camera frames are optical: +x right, +y down, +z forward. Pixel ``(u, v)`` is (column,
-row) with the origin at the centre of the top-left pixel, as OpenCV and ROS use.
+:class:`CameraModel` holds one camera's intrinsics (``K``, ``D``, image size, optical
+frame) and projects, distorts, undistorts and casts rays; :func:`project_points` and
+:func:`pixel_rays` do the same from and to the ``base`` frame at a camera pose.
+
+Choices:
+
+* Camera frames are optical: +x right, +y down, +z forward. Pixel ``(u, v)`` is
+  (column, row) with the origin at the centre of the top-left pixel, as OpenCV and ROS
+  use. A point is in front of the camera when ``z > 1e-12`` m.
+* The lens model is ROS's ``plumb_bob`` (``k1 k2 p1 p2 k3``); a ``rational_polynomial``
+  calibration is accepted only when its ``k4..k6`` are zero (then it is plumb_bob).
+* Undistortion is OpenCV's fixed-point iteration (``undistortPoints``), vectorised;
+  OpenCV is the independent oracle of the tests.
+* Beyond the radius where the radial term stops being monotonic
+  (:func:`distortion_limit_r2`) the model folds back onto pixels inside the image: the
+  carvers and the regions of interest count such points as outside the image.
+
+References
+----------
+D. C. Brown, "Decentering distortion of lenses", Photogrammetric Engineering 32(3),
+1966. Z. Zhang, "A flexible new technique for camera calibration", IEEE PAMI 22(11),
+2000 (OpenCV's model).
 """
 
 from __future__ import annotations

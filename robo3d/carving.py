@@ -34,8 +34,11 @@ Choices where the seed is silent (all written here so that a result can be expla
 * **Mesh.** :func:`hull_to_mesh` runs marching cubes at level 0.5 on the occupancy,
   padded with empty voxels (so the surface closes) and lightly Gaussian-smoothed (so the
   staircase becomes a smooth surface rather than a field of cube faces). It uses the
-  classic (Lorensen) case table of scikit-image: its Lewiner variant makes non-manifold
-  edges where voxels touch along an edge.
+  classic (Lorensen) case table of scikit-image, not its Lewiner variant (which makes
+  non-manifold edges where voxels touch along an edge).
+* **Options.** :class:`CarveOptions` (method, leaf rule, threads, policies, ``k``) and
+  :class:`AgreementOptions` (the ``qa_*`` thresholds) are made from the config's
+  ``carving`` section by name (:mod:`robo3d.options`).
 * **Resolution** (eq. 7–8): the voxel size against the pixel footprint ``w / f`` at the
   grid centre's depth in each view; voxels finer than the best view resolves are flagged.
 * **k of n** (``min_views_background``): the seed's hull removes a voxel as soon as one
@@ -605,9 +608,9 @@ def view_agreement(
         in their image for it to count as hull rather than unknown. Where few views see
         a region (the object cut off by most frames, as in DTU), their hull there is
         the intersection of few cones, much fatter than the object: scoring a mask
-        against it would call a correct mask "missing". 0.3 was measured on DTU scan 24
-        with its published masks (64^3 grid): the worst view then misses 6 % of the
-        others' hull, 15 % with 0.15, 27 % when any 2 views suffice.
+        against it would call a correct mask "missing". The default 0.3 was chosen on
+        DTU scan 24 (the figures: ``benchmarks/README.md``, "Notes moved from
+        robo3d/carving.py").
 
     Returns
     -------
@@ -953,8 +956,8 @@ def hull_to_mesh(grid: VoxelGrid, *, smooth_sigma_vox: float = 0.8
     # keep values off the iso-level exactly, so that no vertex lands on a grid point
     vol[np.abs(vol - 0.5) < 1e-6] = 0.5 - 1e-6
     # The classic table: on binary volumes (voxels touching along an edge) skimage's
-    # Lewiner variant shares vertices between sheets and yields non-manifold edges; the
-    # classic one gave closed, consistently oriented 2-manifolds in our tests.
+    # Lewiner variant shares vertices between sheets and yields non-manifold edges
+    # (benchmarks/README.md, "Notes moved from robo3d/carving.py").
     verts, faces, _normals, _values = marching_cubes(vol, level=0.5, method="lorensen",
                                                      gradient_direction="descent")
     verts = grid.origin + grid.voxel_size * (verts.astype(np.float64) + (lo - pad))

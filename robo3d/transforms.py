@@ -9,6 +9,10 @@ does: moving links are interpolated at the query time (linear for translation, s
 rotation); static links are constant. A gap between two samples wider than
 ``max_gap_ns``, a time outside a link's samples, or a chain with a missing link is a
 :class:`~robo3d.errors.TransformError` that says which.
+
+References
+----------
+K. Shoemake, "Animating rotation with quaternion curves", SIGGRAPH 1985 (slerp).
 """
 
 from __future__ import annotations

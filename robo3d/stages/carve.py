@@ -1,6 +1,13 @@
 """The ``carve`` stage: the visual hull from the silhouettes (seed §3.1-3.5;
 :mod:`robo3d.carving`, :mod:`robo3d.octree`), after each view's agreement with the others'
 hull.
+
+It reads ``silhouettes.npz``, places the carving box (the recording's workspace box, else
+the silhouettes' centroid rays), scores the views against each other
+(:class:`~robo3d.carving.AgreementOptions`), carves with the views that agree
+(:class:`~robo3d.carving.CarveOptions`, both from the ``carving`` section by name), and
+writes ``hull.npz`` (a :class:`~robo3d.grid.VoxelGrid`), ``hull.ply``,
+``reports/carve.json`` and ``carve.rrd``.
 """
 
 from __future__ import annotations

@@ -1,33 +1,34 @@
 """Fine alignment of laser sweeps: symmetric point-to-plane ICP between overlapping sweeps,
 then a pose graph (multiway registration) that spreads the pairwise constraints over all
-sweeps.
+sweeps, then a joint refinement in the sensor's motion model with the silhouettes as
+absolute reference.
 
 The robot's poses already place every sweep in ``base`` to within its positioning error
 (typically a few tenths of a millimetre); alignment removes the remaining misfit between
-sweeps. It never replaces the robot's poses: it computes one small rigid *correction*
-``C[s]`` per sweep, applied on the left, ``points_aligned = C[s] @ points_base`` (the
-points of sweep ``s`` as the robot's poses placed them).
+sweeps. It never replaces the robot's poses: it computes one small *correction* per sweep
+(rigid, ``C[s]`` applied on the left, ``points_aligned = C[s] @ points_base``; after the
+refinement the sensor turned about its position and shifted, :func:`apply_correction`).
+The parameters are :class:`AlignOptions` (config section ``alignment``); the record of
+what was measured when these choices were made is in ``benchmarks/README.md`` ("Notes
+moved from robo3d/registration.py").
 
 Method
 ------
-1. Each sweep is thinned on a voxel grid (``voxel_size``) by keeping *one measured point
+1. Each sweep is thinned on a voxel grid (``voxel_size_m``) by keeping *one measured point
    per voxel* with its own normal, and, past ``max_points`` points, randomly subsampled
-   with ``seed``. Averaging the points of a voxel (Open3D's ``voxel_down_sample``) was
-   measured to bias the result: averaged points leave a curved surface.
+   with ``seed``. Choice: selecting, not averaging a voxel's points (Open3D's
+   ``voxel_down_sample``): averaged points leave a curved surface and bias ICP.
 2. For every pair of sweeps the *overlap* is the larger of the two fractions of points with
-   a partner within ``max_corr_dist`` in the other sweep, at the robot's poses. Pairs with
-   ``overlap >= min_overlap`` are registered from the identity (the robot's relative pose)
-   by Open3D's *symmetric* point-to-plane ICP (Rusinkiewicz 2019), coarse to fine: the
-   correspondence distance is halved from ``max_corr_dist`` down to
-   ``max(voxel_size, max_corr_dist / 4)`` (at most three levels). Both choices were
-   measured on the bumpy test surface of ``tests/test_registration.py``: plain
-   point-to-plane ICP at a single distance left 0.1–0.5 degree errors (source points past
-   the edge of the overlap pair with the target's border and pull; the point-to-plane
-   residual between differently sampled curved surfaces is biased), the symmetric,
-   coarse-to-fine variant 0.001–0.003 degree. A pairwise result is rejected if ICP has not
+   a partner within ``max_corr_dist_m`` in the other sweep, at the robot's poses. Pairs
+   with ``overlap >= min_overlap`` are registered from the identity (the robot's relative
+   pose) by Open3D's *symmetric* point-to-plane ICP (Rusinkiewicz 2019), coarse to fine:
+   the correspondence distance is halved from ``max_corr_dist_m`` down to
+   ``max(voxel_size_m, max_corr_dist_m / 4)`` (at most three levels); plain
+   point-to-plane ICP at a single distance is biased where the overlap ends and between
+   differently sampled curved surfaces. A pairwise result is rejected if ICP has not
    converged (one more iteration at the finest distance still moves it by more than 1 % of
-   ``voxel_size`` or 0.005 degrees), if its fitness falls below ``min_overlap``, or if the
-   relative correction exceeds twice the per-sweep bounds.
+   ``voxel_size_m`` or 0.005 degrees), if its fitness falls below ``min_overlap``, or if
+   the relative correction exceeds twice the per-sweep bounds.
 3. ``method="pose_graph"``: the accepted pairs form the edges of an Open3D pose graph
    (nodes = sweep corrections, initial value identity; edges weighted by the information
    matrix of their correspondences), optimised by Levenberg–Marquardt (Choi, Zhou & Koltun
@@ -50,40 +51,31 @@ Method
    connected to the reference through accepted pairs, are flagged the same way. A flagged
    sweep is never bent into place.
 
-6. Refinement (``refine=True``, the pipeline's default; :func:`refine_sweeps`). The pose
+6. Refinement (``refine``, the pipeline's default; :func:`refine_sweeps`). The pose
    graph corrects each sweep rigidly; but the robot's error is a constant pose error of
    the moving sensor, and turning a sensor that translates along a sweep shears the
-   sweep's points (``rotation error x travel``: measured up to 0.15 mm, 0.03-0.06 mm on
-   average, on the demos), which no rigid transform undoes. All sweeps are therefore
-   refined jointly in that motion model (the sensor turned about its own position at
-   every frame, and shifted: :func:`apply_correction`), by Gauss-Newton on the
-   point-to-plane distances of every overlapping pair, the distance of each silhouette
-   view's contour-generator points to that view's image edge, and a prior on each
-   correction (the robot's expected error). Relative ICP cannot say where the object
-   is: with the pose graph's reference gauge the gauge sweep keeps its own robot error
-   (measured: worst sweep 1.3-1.7 mm off at the flange). The silhouette views are
-   taken at rest, their poses about ten times more accurate than a moving sweep's: they
-   are the absolute reference (measured on the demos: every sweep within 0.02-0.04 mm
-   of its true pose at the object, 0.02-0.03 degrees). Without views the sweeps' priors
-   hold the gauge (no sweep is fixed: the solution averages the sweeps' robot errors).
-   Contour points come from the laser clouds
+   sweep's points (``rotation error x travel``), which no rigid transform undoes. All
+   sweeps are therefore refined jointly in that motion model (the sensor turned about its
+   own position at every frame, and shifted: :func:`apply_correction`), by Gauss-Newton
+   on the point-to-plane distances of every overlapping pair, the distance of each
+   silhouette view's contour-generator points to that view's image edge, and a prior on
+   each correction (the robot's expected error, ``prior_mm``, ``prior_deg``). Relative
+   ICP cannot say where the object is: with the pose graph's reference gauge the gauge
+   sweep keeps its own robot error. The silhouette views are taken at rest, their poses
+   about ten times more accurate than a moving sweep's: they are the absolute reference.
+   Without views the sweeps' priors hold the gauge (no sweep is fixed: the solution
+   averages the sweeps' robot errors). Contour points come from the laser clouds
    (extremal points of each laser profile whose normal is perpendicular to the line of
    sight, the profile continuing on both sides), their residual from the grey image's
-   own edge (the largest gradient along the silhouette's normal), not from the
-   segmented mask: measured, the masks are eroded by 0.15-0.25 px (more on shaded
-   sides), which biased the absolute position by 0.1-0.3 mm; the image edges by
-   0.02-0.04 mm. The pair term's normals are principal axes over three adjacent
-   profiles (:func:`_pair_normals`), points whose grid normal disagrees left out; a
-   correspondence whose two normals differ by more than 60 degrees is left out too (the
-   two sides of a thin wall lie within the correspondence distance; measured on the
-   simulated 2.5 mm cup, 4 sweeps: the top sweep, seeing the inner wall, was pulled
-   onto the outer one, 4.3 mm / 0.76 degrees off, 0.43 mm / 0.06 degrees with the test);
-   the silhouette term weighs three times its robust scale. Measured with the true poses on
-   the demos (laser profiles 1.1 mm apart) and two held-out scans: worst sweep
-   0.013-0.017 degrees, 0.017-0.047 mm at the object. When the correspondences cycle
-   near the optimum the steps are shortened and the cycle's mean taken (``settle_tol``).
-   The bounds are checked again on the refined corrections; if the refinement does not
-   converge, every sweep stays at its robot pose, flagged.
+   own edge (the largest gradient along the silhouette's normal), not from the segmented
+   mask (which is eroded by a fraction of a pixel, more on shaded sides). The pair term's
+   normals are principal axes over three adjacent profiles (:func:`_pair_normals`),
+   points whose grid normal disagrees left out; a correspondence whose two normals differ
+   by more than 60 degrees is left out too (the two sides of a thin wall lie within the
+   correspondence distance); the silhouette term weighs ``rim_weight`` times its robust
+   scale. When the correspondences cycle near the optimum the steps are shortened and
+   the cycle's mean taken. The bounds are checked again on the refined corrections; if
+   the refinement does not converge, every sweep stays at its robot pose, flagged.
 
 7. Directions the data do not constrain (issue 11: flat faces, symmetric bodies, few
    sweeps). Both the pairwise ICP and the refinement whiten their normal equations by
@@ -92,29 +84,23 @@ Method
    ``degenerate_ratio`` (refinement) / ``pair_degenerate_ratio`` (pairs) are taken out
    of the data's equations and held at the robot's pose (:func:`_solve_held`,
    :func:`_held_icp`; Zhang, Kaess & Singh 2016). The threshold is not 1: point-to-plane
-   information is overstated by the noise of the normals (a sphere's turns about its
-   centre, exactly free, show 0.1-70 times the prior's information on 320 x 240 scans,
-   260-800 on 640 x 480 ones, because a noisy normal is never parallel to the radius)
-   and by residuals that are correlated along a profile. Measured choice: 200 in the
-   refinement (320 x 240 scans: held 0.1-70, constrained 450 and more; the demos'
-   least eigenvalue is 2500-5000, so nothing is held there) and 10 for pairs (the
-   bumpy test surface's diagonal pairs carry 39). Known limit: on the 640 x 480 sphere
-   only one of each sweep's three free turns falls below 200. A pair with a held
-   direction, or whose ICP slid off the overlap, is registered by :func:`_held_icp`
-   from the robot's relative pose; its convergence is judged on the held step. So is a
-   pair that sees the two sides of a thin wall (more than 2 % of its points' nearest
-   partners within ``max_corr_dist`` with an opposed normal, :func:`_opposed_fraction`;
-   the demos' pairs: at most 0.5 %): Open3D's ICP pairs the two faces (measured on the
-   simulated 1.8 mm fin: one sweep pulled 1.7 mm onto the other's face), _held_icp
-   leaves correspondences whose normals differ by more than 60 degrees out. With
-   silhouette views a sweep with no accepted pair still takes part in the refinement
-   (against the views, with its overlapping pairs): sparse 320 x 240 scans otherwise
-   left every sweep at its robot pose. Each sweep's report (``per_sweep``) gives
-   ``constrained`` (translation along / rotation about the principal axes of its
-   points: fixed by the data or not), ``unconstrained`` (the held directions in plain
-   words: a rotation about an axis through a point, base mm, or a translation) and
-   ``information`` (its block's whitened eigenvalues); each pair ``held_directions``
-   and ``min_information``.
+   information is overstated by the noise of the normals (a noisy normal is never
+   parallel to a sphere's radius, so the sphere's exactly free turns show information)
+   and by residuals that are correlated along a profile; the thresholds were chosen
+   between the information of held and constrained directions on simulated scans. A pair
+   with a held direction, or whose ICP slid off the overlap, is registered by
+   :func:`_held_icp` from the robot's relative pose; its convergence is judged on the
+   held step. So is a pair that sees the two sides of a thin wall (more than 2 % of its
+   points' nearest partners within ``max_corr_dist_m`` with an opposed normal,
+   :func:`_opposed_fraction`): Open3D's ICP pairs the two faces, _held_icp leaves
+   correspondences whose normals differ by more than 60 degrees out. With silhouette
+   views a sweep with no accepted pair still takes part in the refinement (against the
+   views, with its overlapping pairs). Each sweep's report (``per_sweep``) gives
+   ``constrained`` (translation along / rotation about the principal axes of its points:
+   fixed by the data or not), ``unconstrained`` (the held directions in plain words: a
+   rotation about an axis through a point, base mm, or a translation) and
+   ``information`` (its block's whitened eigenvalues); each pair ``held_directions`` and
+   ``min_information``.
 
 All computations run in a frame centred on the centroid of all points (better conditioned
 than ``base``, whose origin may be half a metre away); results are returned in ``base``.
@@ -1442,9 +1428,9 @@ def _pair_normals(p: np.ndarray, n: np.ndarray, profile: np.ndarray, m: int, max
     """Normals for the pair term, and which points may take part in it.
 
     The triangulation's normals come from tangents on the profile grid and are accurate
-    to a few tenths of a degree on most of a surface, but off by 10 degrees and more
-    where a neighbouring profile is broken (occlusion, a crease, the first and last
-    profiles over a face): 10 % of the points on the demo block's flat top. A
+    to a few tenths of a degree on most of a surface, but off by far more where a
+    neighbouring profile is broken (occlusion, a crease, the first and last profiles
+    over a face; ``benchmarks/README.md``). A
     point-to-plane residual carries the normal's error times the distance to the
     neighbour (up to half the profile spacing), so such points bias the sweep's
     rotation. Here each point's normal is the least principal axis (Hoppe et al. 1992)

@@ -17,10 +17,9 @@ it, then searches between that step and the next (bisection on a log scale, each
 decimating the kept step). The reported
 Hausdorff distance of the result is pymeshlab's (Cignoni et al. 1998).
 
-Units: pymeshlab's quadric collapse has absolute thresholds inside (measured: a 100 mm
-mesh given in metres decimated to 20 000 faces departed 2.3 mm from its input, the same
-mesh given in millimetres 0.4 mm), so meshes are scaled to a 100-unit bounding box
-diagonal before every pymeshlab filter and scaled back after.
+Units: pymeshlab's quadric collapse has absolute thresholds inside (a mesh decimates
+differently in metres and in millimetres, ``benchmarks/README.md``), so meshes are scaled
+to a 100-unit bounding box diagonal before every pymeshlab filter and scaled back after.
 
 The Hausdorff distance reported is measured on samples (all vertices plus points on the
 faces), so it is a slight underestimate of the exact maximum; reported in metres.

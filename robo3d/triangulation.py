@@ -51,8 +51,7 @@ when the intersection is behind the camera (``t <= 0``), or outside
 The undistortion and the intersection run in one compiled kernel (Numba, ``nogil``,
 cached on disk) over all the pixels of a sweep: the same fixed-point inverse of plumb_bob
 as :meth:`CameraModel.undistort_normalized` (20 iterations at most, stopping when the
-update falls below 1e-15), equal to ``CameraModel.rays`` to 1e-12; about 0.1 ms for the
-1280 centres of a 1280 x 960 frame.
+update falls below 1e-15), equal to ``CameraModel.rays`` to 1e-12.
 
 Sweep clouds
 ------------
@@ -68,8 +67,7 @@ difference ``(-3 P0 + 4 P1 - P2) / 2`` (no chord bias at the first and last prof
 sweep or the ends of a profile on a curved surface), else the first-order one. The
 normals, oriented toward the camera, are then averaged over ``(2 normal_smooth + 1)²``
 grid cells taken in mirrored pairs only, so that the average adds no first-order bias on
-a curved surface (with 0.03 px of stripe noise the median error on a plane falls from
-~3° to ~0.6°; on a noise-free cylinder it is < 0.1°, < 1° up to 45° of slope). A
+a curved surface (what this gains is recorded in ``benchmarks/README.md``). A
 neighbour further than ``normal_jump`` times the sweep's median spacing is a depth jump,
 not a neighbour. Points without both tangents (isolated points, holes) get a PCA normal
 of their k nearest neighbours instead (Hoppe et al.); every normal is oriented toward the

@@ -753,3 +753,30 @@ def test_shadow_and_marker_rims_are_background():
     assert _iou(sil.mask, truth) >= 0.99
     near = cv2.dilate(truth.view(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert not (sil.mask & shadow & ~near).any()   # none of it beyond the outline's blur
+
+
+def test_silhouettes_artefact_pads_views_and_reads_back(tmp_path):
+    """silhouettes.npz (robo3d.artefacts.Silhouettes): masks of cameras of two sizes are
+    padded to the larger and cropped back exactly; a file that is not one names itself."""
+    from robo3d.artefacts import ArtefactError, Silhouettes
+    from robo3d.stages.common import load_silhouettes
+
+    rng = np.random.default_rng(5)
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    cams = [CameraModel("a", 101, 80, K), CameraModel("b", 64, 90, K)]
+    masks = [rng.random((c.height, c.width)) > 0.5 for c in cams]
+    poses = np.stack([np.eye(4), look_at(np.array([0.3, 0.0, 0.2]), np.zeros(3))])
+    art = Silhouettes.from_views(masks, poses, [3, 9], cams, [False, True])
+    assert art.masks.shape == (2, 90, 101)
+    art.save(tmp_path / "silhouettes.npz")
+    back = Silhouettes.load(tmp_path / "silhouettes.npz")
+    for m, b in zip(masks, back.view_masks(), strict=True):
+        assert b.shape == m.shape and np.array_equal(b, m)
+    assert not back.masks[0, 80:].any() and not back.masks[1, :, 64:].any()
+    assert back.qa_flagged.tolist() == [False, True] and back.workspace is None
+    assert np.array_equal(back.T_base_camera, poses) and back.stamps_ns.tolist() == [3, 9]
+    old = load_silhouettes(str(tmp_path / "silhouettes.npz"))  # the former dict
+    assert np.array_equal(old["masks"], back.masks) and list(old["frame_ids"]) == ["a", "b"]
+    np.savez(tmp_path / "other.npz", masks=np.packbits(art.masks, axis=-1))
+    with pytest.raises(ArtefactError, match=r"other\.npz: no mask_shape"):
+        Silhouettes.load(tmp_path / "other.npz")

@@ -753,3 +753,39 @@ def test_a_ridge_where_the_other_channels_fall_is_no_laser_light():
             assert len(sp) > 0.9 * w - 20 and np.median(np.abs(sp.v - 40.3)) < 0.1
         else:
             assert len(sp) == 0, len(sp)
+
+
+def test_stripes_artefact_round_trip_and_damage(tmp_path):
+    """stripes.npz as the stage writes it (robo3d.artefacts.Stripes): read back array for
+    array; a file without the centres, or with offsets that do not fit, names itself."""
+    from robo3d.artefacts import ArtefactError, Stripes
+    from robo3d.camera import CameraModel
+
+    frames = [_stripe_image(_centres(), sigma=1.6), np.zeros((H, W), np.uint8)]
+    found = [extract_stripe_centres(f, options=BASE) for f in frames]
+    assert len(found[0]) > 0.9 * W and len(found[1]) == 0
+    cam = CameraModel("camera", W, H, np.array([[100.0, 0, W / 2], [0, 100.0, H / 2],
+                                                 [0, 0, 1]]))
+    poses = np.stack([np.eye(4), np.eye(4)])
+    box = (np.zeros(3), np.ones(3))
+    art = Stripes.from_frames(found, [5, 7], poses, poses, [cam, cam], box)
+    assert list(art.counts) == [len(found[0]), 0]
+    art.save(tmp_path / "stripes.npz")
+    back = Stripes.load(tmp_path / "stripes.npz")
+    a, b = art.as_arrays(), back.as_arrays()
+    assert list(a) == list(b)
+    for k in a:
+        assert a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes(), k
+    assert [(c.frame_id, c.width, c.height) for c in back.cameras] == [("camera", W, H)] * 2
+    assert np.array_equal(back.cameras[1].K, cam.K) and back.workspace[1].tolist() == [1] * 3
+    assert np.array_equal(back.v[: len(found[0])], found[0].v)
+    no_u = {k: v for k, v in a.items() if k != "u"}
+    np.savez(tmp_path / "bad.npz", **no_u)
+    with pytest.raises(ArtefactError, match=r"bad\.npz: no u"):
+        Stripes.load(tmp_path / "bad.npz")
+    np.savez(tmp_path / "short.npz", **{**a, "offsets": a["offsets"][:-1]})
+    with pytest.raises(ArtefactError, match="offsets"):
+        Stripes.load(tmp_path / "short.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(ArtefactError, match=r"junk\.npz: not a readable stripes\.npz"):
+        Stripes.load(tmp_path / "junk.npz")

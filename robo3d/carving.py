@@ -649,19 +649,8 @@ def view_agreement(
     ijk = np.argwhere(cand.occupancy)
     T_cb = invert_transform(T)
     limits = [distortion_limit_r2(c) for c in cams]
-    n_c = len(ijk)
-    votes = np.zeros((n, n_c), dtype=bool)
-    seen = np.zeros((n, n_c), dtype=bool)
-    for v in range(n):  # a loop over views; each is one vectorised pass over voxels
-        flat, in_img, behind = _project_indices(tuple(ijk.T), cand, cams[v], T_cb[v],
-                                                limits[v])
-        keep = ms[v].reshape(-1)[flat] & in_img
-        if outside_image == "keep":
-            keep |= ~in_img & ~behind
-        if behind_camera == "keep":
-            keep |= behind
-        votes[v] = ~keep
-        seen[v] = in_img
+    votes, seen = _votes_and_sight(ijk, cand, ms, cams, T_cb, limits, outside_image,
+                                   behind_camera)
     ref_votes = votes[ref].sum(axis=0)
     ref_seen = seen[ref].sum(axis=0)
     n_ref = int(ref.sum())
@@ -691,31 +680,54 @@ def view_agreement(
         un = unknown[sel] & valid
         hull_px = _splat_voxels(u[h], vv[h], half[h], cam.width, cam.height)
         unk_px = _splat_voxels(u[un], vv[un], half[un], cam.width, cam.height) & ~hull_px
-        scored = ~unk_px
-        m = ms[i] & scored
-        n_mask = int(np.count_nonzero(m))
-        n_hull = int(np.count_nonzero(hull_px))
-        inter = int(np.count_nonzero(m & hull_px))
-        union = n_mask + n_hull - inter
         # disagreement beyond one voxel footprint of the other's edge: the grid cannot
         # place an outline closer, and a thin band would dominate small silhouettes
         tol = int(np.ceil(2.0 * np.median(half[h]))) if h.any() else 1
-        near_mask = cv2.distanceTransform((~m).view(np.uint8), cv2.DIST_L2, 3) <= tol
-        near_hull = cv2.distanceTransform((~hull_px).view(np.uint8), cv2.DIST_L2, 3) <= tol
-        n_missing = int(np.count_nonzero(hull_px & ~near_mask))
-        n_spurious = int(np.count_nonzero(m & ~near_hull))
-        out.append({
-            "view": i,
-            "iou": float(inter / union) if union else None,
+        out.append({"view": i, **_mask_scores(ms[i], hull_px, unk_px, tol),
+                    "reference": bool(ref[i])})
+    return out
+
+
+def _votes_and_sight(ijk: np.ndarray, grid: VoxelGrid, masks: list[np.ndarray],
+                     cams: list[CameraModel], T_cb: np.ndarray, limits: list[float],
+                     outside_image: str, behind_camera: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each view's vote to carve each voxel ``ijk`` (M, 3), and whether the voxel's centre
+    is in its image: two (N views, M) bool arrays (one vectorised pass per view)."""
+    votes = np.zeros((len(cams), len(ijk)), dtype=bool)
+    seen = np.zeros((len(cams), len(ijk)), dtype=bool)
+    for v in range(len(cams)):
+        flat, in_img, behind = _project_indices(tuple(ijk.T), grid, cams[v], T_cb[v],
+                                                limits[v])
+        keep = masks[v].reshape(-1)[flat] & in_img
+        if outside_image == "keep":
+            keep |= ~in_img & ~behind
+        if behind_camera == "keep":
+            keep |= behind
+        votes[v] = ~keep
+        seen[v] = in_img
+    return votes, seen
+
+
+def _mask_scores(mask: np.ndarray, hull_px: np.ndarray, unknown_px: np.ndarray, tol: int
+                 ) -> dict[str, float | int | None]:
+    """One mask against the other views' projected hull, on the pixels not unknown:
+    ``iou``, ``spurious_fraction`` and ``missing_fraction`` (beyond ``tol`` pixels of
+    the other's outline; None when there is nothing to divide), the pixel counts and
+    ``tolerance_px``."""
+    m = mask & ~unknown_px
+    n_mask = int(np.count_nonzero(m))
+    n_hull = int(np.count_nonzero(hull_px))
+    inter = int(np.count_nonzero(m & hull_px))
+    union = n_mask + n_hull - inter
+    near_mask = cv2.distanceTransform((~m).view(np.uint8), cv2.DIST_L2, 3) <= tol
+    near_hull = cv2.distanceTransform((~hull_px).view(np.uint8), cv2.DIST_L2, 3) <= tol
+    n_missing = int(np.count_nonzero(hull_px & ~near_mask))
+    n_spurious = int(np.count_nonzero(m & ~near_hull))
+    return {"iou": float(inter / union) if union else None,
             "spurious_fraction": float(n_spurious / n_mask) if n_mask else None,
             "missing_fraction": float(n_missing / n_hull) if n_hull else None,
-            "mask_px": n_mask,
-            "hull_px": n_hull,
-            "unknown_px": int(np.count_nonzero(unk_px)),
-            "tolerance_px": tol,
-            "reference": bool(ref[i]),
-        })
-    return out
+            "mask_px": n_mask, "hull_px": n_hull,
+            "unknown_px": int(np.count_nonzero(unknown_px)), "tolerance_px": tol}
 
 
 def flag_disagreeing_views(

@@ -90,6 +90,8 @@ References
 Curless, B. & Levoy, M. (1996). A volumetric method for building complex models from range
 images. SIGGRAPH.
 Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+Lewiner, T. et al. (2003). Efficient implementation of marching cubes' cases with
+topological guarantees. Journal of Graphics Tools 8(2).
 Laurentini, A. (1994). The visual hull concept for silhouette-based image understanding.
 IEEE PAMI 16(2).
 """
@@ -590,10 +592,8 @@ def fuse_tsdf(
     border_ramp_m : float, metres
         Width of the weight ramp at range-surface borders.
     interp_sigma_m, interp_floor : float
-        Weight of a range-surface hit falls as ``floor + (1 - floor) exp(-(d / sigma)^2)``
-        with its distance ``d`` to the nearest measured point of its triangle: between
-        two laser profiles the range surface is a chord, so where sweeps cross, measured
-        points outweigh interpolated ones (0 disables).
+        Weight of a hit falls as ``floor + (1 - floor) exp(-(d / sigma)^2)`` with its
+        distance ``d`` to the nearest measured point of its triangle (0 disables).
     max_voxels : int
         Largest grid allowed (memory: about 10 bytes per voxel).
     threads : int
@@ -625,12 +625,8 @@ def fuse_tsdf(
 
     References
     ----------
-    Curless, B. & Levoy, M. (1996). A volumetric method for building complex models from
-    range images. SIGGRAPH.
-    Lewiner, T. et al. (2003). Efficient implementation of marching cubes' cases with
-    topological guarantees. Journal of Graphics Tools 8(2).
-    Laurentini, A. (1994). The visual hull concept for silhouette-based image
-    understanding. IEEE PAMI 16(2).
+    Curless & Levoy (1996); Lewiner et al. (2003), marching cubes with topological
+    guarantees; Laurentini (1994): the module's references.
     """
     import time
 

@@ -502,6 +502,13 @@ def _ms(x: float | None, digits: int = 1) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
 
 
+def _titled(lines: list[str], title: str, rows: list[str]) -> None:
+    """Append a titled block to ``lines``: a blank line, ``title``, the rows indented by
+    two spaces; nothing when there are no rows."""
+    if rows:
+        lines += ["", title] + [f"  {r}" for r in rows]
+
+
 def format_info(info: Mapping[str, Any]) -> str:
     """The dict of :func:`inspect_recording` as text for a terminal."""
     L: list[str] = []
@@ -540,36 +547,26 @@ def format_info(info: Mapping[str, Any]) -> str:
         if fr["roles_missing"]:
             add(f"  roles not in the tree: {', '.join(fr['roles_missing'])} (config frames: "
                 + ", ".join(f"{k}={v}" for k, v in fr["mapping"].items()) + ")")
-    if info.get("calibrations"):
-        add("")
-        add("calibration")
-        for c in info["calibrations"]:
-            add(f"  {c['frame_id']}: {c['width']}x{c['height']}, fx {c['fx']:.1f} fy "
-                f"{c['fy']:.1f} cx {c['cx']:.1f} cy {c['cy']:.1f}, {c['distortion']}, "
-                f"fov {c['hfov_deg']:.1f}x{c['vfov_deg']:.1f} deg, {c['images']} images")
-    if info.get("pose_stream"):
-        add("")
-        add("pose stream")
-        for p in info["pose_stream"]:
-            add(f"  {p['link']}: {p['samples']} samples, {_ms(p.get('rate_hz'))} Hz, period "
-                f"{_ms(p.get('period_median_ms'), 2)} ms (jitter {_ms(p.get('jitter_ms'), 2)} "
-                f"ms), widest gap {_ms(p.get('max_gap_ms'))} ms, "
-                f"{p.get('gaps_over_max_pose_gap', 0)} gaps over max_pose_gap (where no image "
-                f"falls, harmless)")
-    if info.get("clock"):
-        add("")
-        add("clocks (stamp - log time)")
-        for c in info["clock"]:
-            add(f"  {c['topic']}: {c['offset_median_ms']:+.2f} ms (range "
-                f"{c['offset_min_ms']:+.2f} .. {c['offset_max_ms']:+.2f}), drift "
-                f"{c['drift_ppm']:+.1f} ppm")
-    if info.get("pairing"):
-        add("")
-        add("images and poses")
-        for role, p in info["pairing"].items():
-            add(f"  {role} ({p['topic']}): {p['images']} images, nearest pose sample at most "
-                f"{_ms(p['worst_offset_ms'], 2)} ms away (t={p['worst_offset_at_ns']}), median "
-                f"{_ms(p['median_offset_ms'], 2)} ms; {p['without_pose']} without a pose")
+    _titled(L, "calibration", [
+        f"{c['frame_id']}: {c['width']}x{c['height']}, fx {c['fx']:.1f} fy {c['fy']:.1f} "
+        f"cx {c['cx']:.1f} cy {c['cy']:.1f}, {c['distortion']}, fov {c['hfov_deg']:.1f}x"
+        f"{c['vfov_deg']:.1f} deg, {c['images']} images"
+        for c in info.get("calibrations") or []])
+    _titled(L, "pose stream", [
+        f"{p['link']}: {p['samples']} samples, {_ms(p.get('rate_hz'))} Hz, period "
+        f"{_ms(p.get('period_median_ms'), 2)} ms (jitter {_ms(p.get('jitter_ms'), 2)} ms), "
+        f"widest gap {_ms(p.get('max_gap_ms'))} ms, {p.get('gaps_over_max_pose_gap', 0)} "
+        "gaps over max_pose_gap (where no image falls, harmless)"
+        for p in info.get("pose_stream") or []])
+    _titled(L, "clocks (stamp - log time)", [
+        f"{c['topic']}: {c['offset_median_ms']:+.2f} ms (range {c['offset_min_ms']:+.2f} .. "
+        f"{c['offset_max_ms']:+.2f}), drift {c['drift_ppm']:+.1f} ppm"
+        for c in info.get("clock") or []])
+    _titled(L, "images and poses", [
+        f"{role} ({p['topic']}): {p['images']} images, nearest pose sample at most "
+        f"{_ms(p['worst_offset_ms'], 2)} ms away (t={p['worst_offset_at_ns']}), median "
+        f"{_ms(p['median_offset_ms'], 2)} ms; {p['without_pose']} without a pose"
+        for role, p in (info.get("pairing") or {}).items()])
     if info.get("sweeps"):
         s = info["sweeps"]
         add(f"  laser sweeps: {s['count']} ({', '.join(map(str, s['frames']))} frames)")
@@ -577,11 +574,7 @@ def format_info(info: Mapping[str, Any]) -> str:
     if js:
         add(f"  joint states ({js['topic']}): {js['count']} messages, "
             f"{_ms(js['rate_hz'])} Hz, joints {', '.join(js['names'])}")
-    if info.get("warnings"):
-        add("")
-        add("warnings")
-        for w in info["warnings"]:
-            add(f"  - {w}")
+    _titled(L, "warnings", [f"- {w}" for w in info.get("warnings") or []])
     add("")
     add("stages")
     groups: dict[tuple[str, tuple[str, ...]], list[str]] = {}

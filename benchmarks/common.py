@@ -12,12 +12,15 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run_workflow(recording: Path, work: Path, targets: tuple[str, ...] = ("all",)) -> float:
-    """One Snakemake run on one recording in ``work`` with the default config, its output
-    kept in ``work/snakemake.log``; the wall time in seconds."""
+def run_workflow(recording: Path | list[Path], work: Path, targets: tuple[str, ...] = ("all",),
+                 cores: int = 2) -> float:
+    """One Snakemake run on one recording (or a list) in ``work`` with the default config,
+    on ``cores`` cores, its output kept in ``work/snakemake.log``; the wall time in
+    seconds."""
+    recs = recording if isinstance(recording, list) else [recording]
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--cores", "2", *targets, "--quiet", "all",
-           "--config", f"recordings=[{recording}]"]
+           str(work), "--cores", str(cores), *targets, "--quiet", "all",
+           "--config", f"recordings=[{','.join(str(r) for r in recs)}]"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     dt = time.perf_counter() - t0

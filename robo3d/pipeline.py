@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from typing import Any
 from .errors import Robo3dError
 from .stages.align import stage_align
 from .stages.carve import stage_carve
-from .stages.common import code_version, log, topic_map
+from .stages.common import OPEN3D_STAGES, code_version, log, pin_open3d_threads, topic_map
 from .stages.evaluate import stage_evaluate
 from .stages.fuse import stage_fuse
 from .stages.silhouettes import stage_silhouettes
@@ -52,6 +53,8 @@ __all__ = [
     "stage_config",
     "code_version",
     "run_from_snakemake",
+    "TIMING_KEYS",
+    "without_timings",
 ]
 
 
@@ -217,6 +220,22 @@ def stage_config(cfg: Mapping[str, Any], stage: str) -> dict[str, Any]:
     return {k: cfg[k] for k in STAGE_CONFIG[stage] if k in cfg}
 
 
+#: the keys of metrics.json (at any depth) that measure the machine, not the scan:
+#: wall-clock and CPU times, frames per second
+TIMING_KEYS = re.compile(r"seconds|(^|_)time_s$|(^|_)fps$|^timings$")
+
+
+def without_timings(metrics: Any) -> Any:
+    """``metrics`` (a run's metrics.json) without its :data:`TIMING_KEYS`: what two runs of
+    the same recording and config must agree on exactly."""
+    if isinstance(metrics, dict):
+        return {k: without_timings(v) for k, v in metrics.items()
+                if not TIMING_KEYS.search(str(k))}
+    if isinstance(metrics, list):
+        return [without_timings(v) for v in metrics]
+    return metrics
+
+
 def run_from_snakemake(stage: str, smk: Any) -> None:
     """Run one stage from a Snakemake ``script:`` job (``smk`` is the injected object).
 
@@ -244,6 +263,8 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
     # the stage sees only those, so a section it reads but does not declare is a bug
     params = getattr(smk, "params", None)
     cfg = params.cfg if params is not None and hasattr(params, "cfg") else smk.config
+    if stage in OPEN3D_STAGES:  # byte-identical results whatever the thread timing
+        pin_open3d_threads()
     try:
         fn(inputs, outputs, cfg, rec, **kwargs)
     except Robo3dError as exc:

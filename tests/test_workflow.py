@@ -27,9 +27,9 @@ SMALL = dict(width=480, height=360, views=12, sweeps=3, sweep_spacing=0.003)
 TIMEOUT = 1800
 
 
-def _command(workdir: Path, *args: str, quiet: bool = True) -> list[str]:
+def _command(workdir: Path, *args: str, quiet: bool = True, cores: int = 2) -> list[str]:
     return [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-            str(workdir), "--cores", "2", *(["--quiet", "all"] if quiet else []), *args]
+            str(workdir), "--cores", str(cores), *(["--quiet", "all"] if quiet else []), *args]
 
 
 def _check(proc: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
@@ -67,7 +67,7 @@ RECORDINGS = (
 def runs(tmp_path_factory) -> tuple[Path, Path]:
     """Two working directories: a batch of three recordings (a full scan, a views-only
     set, a laser-only scan) and, for the determinism check, a separate run of the same
-    laser-only file with the same config.
+    laser-only file with the same config on one core (the batch runs on two).
 
     The recordings are simulated in two processes, and the separate run is a second
     Snakemake started as soon as its file exists, concurrently with the batch: the two
@@ -83,7 +83,8 @@ def runs(tmp_path_factory) -> tuple[Path, Path]:
                 for name, obj, kw in RECORDINGS]
         jobs[0].result()
         shutil.copy(recs / "laser_only.mcap", again_recs / "laser_only.mcap")
-        second = subprocess.Popen(_command(again, "--config", f"recordings={again_recs}"),
+        second = subprocess.Popen(_command(again, "--config", f"recordings={again_recs}",
+                                           cores=1),
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                   start_new_session=True)
         try:
@@ -181,31 +182,31 @@ def test_bad_config_fails_before_any_job(tmp_path):
 
 
 def test_deterministic_outputs(runs):
-    """Same recording and config give the same results (a separate run in its own working
-    directory, concurrently with the batch, see the ``runs`` fixture).
+    """Same recording and config give the same results, whatever the number of cores: a
+    separate run on one core in its own working directory, concurrently with the batch on
+    two (see the ``runs`` fixture).
 
-    Byte for byte up to the triangulated clouds. The alignment's result differs between
-    two processes that run at the same time by about 1e-16 m (measured: 1e-16 m in
-    aligned.npz; the same in two runs one after another in one process, so a library's
-    thread-timing-dependent reduction, not yet pinned down: not Open3D's OpenMP, which
-    differs with OMP_NUM_THREADS=1 too), and quadric decimation turns such a difference
-    into another triangulation of the same surface: the mesh's accuracy agrees to 1e-3
-    mm (measured 5e-5 mm), which is what is asserted past the clouds."""
+    Every result file byte for byte, and metrics.json without its wall-clock and CPU
+    times. (Before Open3D was pinned to one thread, :func:`robo3d.stages.common.
+    pin_open3d_threads`, the alignment differed between two processes by 1e-16 m and
+    quadric decimation made another triangulation of it.)"""
+    from robo3d.pipeline import without_timings
+
     batch, again = runs
     assert (again / "recs" / "laser_only.mcap").read_bytes() == \
         (batch / "recs" / "laser_only.mcap").read_bytes()
     res_a, res_b = batch / "results" / "laser_only", again / "results" / "laser_only"
-    with np.load(res_a / "stripes.npz") as za, np.load(res_b / "stripes.npz") as zb:
-        for k in za.files:
-            assert np.array_equal(za[k], zb[k], equal_nan=za[k].dtype.kind == "f"), k
-    assert (res_a / "clouds.npz").read_bytes() == (res_b / "clouds.npz").read_bytes()
-    with np.load(res_a / "aligned.npz") as za, np.load(res_b / "aligned.npz") as zb:
-        np.testing.assert_allclose(za["points_base"], zb["points_base"], rtol=0, atol=1e-9)
-    ma = _metrics(batch, "laser_only")["evaluation"]
-    mb = _metrics(again, "laser_only")["evaluation"]
-    for key in ("aligned", "mesh"):
-        for stat in ("median_mm", "p95_mm", "mean_mm"):
-            assert abs(ma[key][stat] - mb[key][stat]) < 1e-3, (key, stat)
+    compared = 0
+    for f in ("stripes.npz", "clouds.npz", "aligned.npz", "aligned.ply", "fused.ply",
+              "measured.ply", "mesh.ply", "mesh.stl"):
+        if (res_a / f).exists() or (res_b / f).exists():
+            assert (res_a / f).read_bytes() == (res_b / f).read_bytes(), f
+            compared += 1
+    assert compared >= 7
+    ma = without_timings(_metrics(batch, "laser_only"))
+    mb = without_timings(_metrics(again, "laser_only"))
+    assert ma["evaluation"]["mesh"]["median_mm"] > 0  # scored, not an empty comparison
+    assert ma == mb
 
 
 def test_measured_surface_is_labelled_and_scored_apart(batch):

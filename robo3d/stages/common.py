@@ -113,6 +113,28 @@ def stage_threads(threads: int | None) -> int:
     return n
 
 
+#: the stages whose algorithms run Open3D (ICP, KD-trees, decimation, mesh distances)
+OPEN3D_STAGES = frozenset({"align", "fuse", "simplify", "evaluate"})
+
+
+def pin_open3d_threads() -> None:
+    """Let Open3D use one CPU thread in this process, so that its results do not depend on
+    thread timing.
+
+    Open3D parallelises with oneTBB, whose reductions add the partial sums in the order
+    the threads finish (``OMP_NUM_THREADS`` does not reach it). Measured on the demo vase's
+    alignment: two processes with the same input gave aligned points 1e-16 m apart (the
+    symmetric ICP's transform differs in the last bits), and quadric decimation turned that
+    into another triangulation of the same surface. With one thread the aligned points are
+    byte-identical from run to run; the align stage took 57 s instead of 79 s wall (once, on
+    a loaded 2-core machine: TBB's threads only competed with other jobs). Our own kernels
+    (numba, thread pools over frames) give the same result at any thread count.
+    """
+    import open3d as o3d
+
+    o3d.utility.set_max_threads(1)
+
+
 def sweep_color(k: int) -> list[int]:
     palette = [[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
                [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212], [0, 128, 128]]

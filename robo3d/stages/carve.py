@@ -21,6 +21,7 @@ import numpy as np
 
 from ..atomic import write_json
 from ..errors import StageError
+from ..grid import VoxelGrid
 from .common import cameras_from, load_silhouettes, log, mesh_volume, summary, workspace_from
 
 
@@ -125,7 +126,7 @@ def _carving_box(workspace: tuple[np.ndarray, np.ndarray] | None, masks: list,
     return box_min, box_max, box_report
 
 
-def _hull_report(grid: Any, vertices: np.ndarray, faces: np.ndarray, cameras: list,
+def _hull_report(grid: VoxelGrid, vertices: np.ndarray, faces: np.ndarray, cameras: list,
                  poses: np.ndarray, *, box: tuple, method: str, n_views: int,
                  used: list[int], left_out_rows: list[dict], agreement: dict[str, Any],
                  carve_report: dict[str, Any]) -> dict[str, Any]:
@@ -154,7 +155,7 @@ def _hull_report(grid: Any, vertices: np.ndarray, faces: np.ndarray, cameras: li
                      "volume_m3": mesh_volume(vertices, faces)}}
 
 
-def _log_hull(rrd: str, rec_name: str, grid: Any, vertices: np.ndarray, faces: np.ndarray,
+def _log_hull(rrd: str, rec_name: str, grid: VoxelGrid, vertices: np.ndarray, faces: np.ndarray,
               report: dict[str, Any], box_min: np.ndarray, box_max: np.ndarray,
               cameras: list, poses: np.ndarray, masks: list, used: list[int],
               left_out_rows: list[dict]) -> None:

@@ -1,15 +1,17 @@
-"""The pipeline's stages as plain functions: read inputs, call the algorithms, write outputs.
+"""The workflow's side of the library: which recordings a batch holds, which config
+sections each stage reads, and running one stage from a Snakemake rule.
 
-Each ``stage_<name>`` takes its input and output paths (dicts keyed as in the Snakemake
-rules), the validated configuration and the recording's name; it writes every output
-atomically, logs what it made to rerun and writes a JSON report of what it measured. The
-workflow's scripts are one call to :func:`run_from_snakemake`; the command line and the
-tests call the stages directly.
+- :func:`find_recordings` turns the config's ``recordings`` (a folder or a list) into
+  the batch, and says what a folder held when it yields no recording.
+- :data:`STAGE_CONFIG` / :func:`stage_config`: the config sections of each stage, the
+  rules' ``params:`` (a changed parameter re-runs exactly the stages that read it), with
+  :func:`code_version` (a hash of the library's code: an upgrade re-runs too).
+- :func:`run_from_snakemake`: a rule's script in one call: logging to the job's log and
+  the terminal, stale temporaries removed, Open3D pinned to one thread where a stage runs
+  it (:func:`robo3d.stages.common.pin_open3d_threads`), a robo3d error as one clear line.
 
-Intermediate files (``results/<rec>/``): ``silhouettes.npz`` (masks, cameras, poses),
-``hull.npz`` (occupancy grid), ``stripes.npz`` (stripe pixels per laser frame with camera,
-pose and laser transform), ``clouds.npz`` (one cloud per sweep), ``aligned.npz`` (the same
-after ICP), and ``reports/<stage>.json``.
+The stages themselves live in :mod:`robo3d.stages` (one module per rule, re-exported here
+as ``stage_<name>``); the artefacts they hand each other in :mod:`robo3d.artefacts`.
 """
 
 from __future__ import annotations

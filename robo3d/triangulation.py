@@ -95,8 +95,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-# SweepCloud and its file live in robo3d.artefacts; importable from here too
-from .artefacts import SweepCloud, load_clouds_npz, save_clouds_npz
+from .artefacts import SweepCloud
 from .camera import CameraModel
 from .errors import StageError
 from .options import Options
@@ -105,7 +104,6 @@ from .transforms import euler_to_matrix
 
 __all__ = [
     "DROP_REASONS",
-    "SweepCloud",
     "TriangulateOptions",
     "laser_transform_from_params",
     "laser_params_from_transform",
@@ -116,8 +114,6 @@ __all__ = [
     "triangulate_pixels_eq17",
     "split_sweeps",
     "triangulate_sweep",
-    "save_clouds_npz",
-    "load_clouds_npz",
 ]
 
 log = logging.getLogger(__name__)

@@ -149,10 +149,10 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
     before and after the alignment, accuracy and completeness of the fused, final and
     measured meshes, and the sweeps' pose errors (``metrics["skipped"]["poses"]`` when
     ``ground_truth/tf.json`` is missing or cannot be used)."""
+    from ..artefacts import load_clouds_npz
     from ..evaluate import cloud_accuracy, completeness, mesh_accuracy, volume_iou
     from ..grid import VoxelGrid
     from ..meshio import read_mesh
-    from ..triangulation import load_clouds_npz
 
     ev = cfg["evaluation"]
     rec_path = inputs["recording"]
@@ -315,9 +315,9 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
     the displacement of the sweep's centroid by the pose error, what the error does to
     the scan).
     """
+    from ..artefacts import load_clouds_npz
     from ..evaluate import pose_error
     from ..recording.reader import read_ground_truth_tf
-    from ..triangulation import load_clouds_npz
 
     truth_tf = read_ground_truth_tf(rec)
     clouds = load_clouds_npz(inputs["clouds"])

@@ -8,7 +8,7 @@ authors' implementation as shipped in Open3D) of the oriented points, followed b
    of input samples that supported it; vertices whose density is below the
    ``density_quantile`` quantile are removed with the triangles that use them.
 2. **Hull cut.** Where a visual hull is given, surface outside the hull dilated by
-   ``hull_margin_voxels`` voxels is removed: the true surface lies inside the hull
+   ``cut_margin_voxels`` voxels is removed: the true surface lies inside the hull
    (Laurentini 1994), so anything outside is an extrapolation. A vertex is outside when the
    voxel whose centre is nearest to it is empty in the dilated hull, or lies off the grid.
    The dilation absorbs the hull's half-voxel discretisation and calibration error.
@@ -159,7 +159,7 @@ class FuseOptions(Options):
     carve_free_space : bool
         The lines of sight carve the space in front of the surface (step 4).
     hull_margin_voxels : int
-        Dilation of the hull (hull voxels) before use (both methods).
+        Dilation of the hull (hull voxels) before the TSDF uses it.
     poisson_depth : int
         Octree depth of screened Poisson.
     density_quantile : float in [0, 1)
@@ -323,6 +323,7 @@ def fuse_poisson(
     *,
     options: FuseOptions = FuseOptions(),
     hull: Any = None,
+    cut_margin_voxels: int = 1,
     max_outside_fraction: float = 0.05,
     scale: float = 1.1,
     linear_fit: bool = False,
@@ -338,11 +339,15 @@ def fuse_poisson(
         Outward unit normals.
     options : FuseOptions
         ``poisson_depth`` (octree depth: the finest cells are ``scale * extent /
-        2**depth`` wide), ``density_quantile`` (vertices whose support density is below
-        this quantile are removed, 0 keeps all) and ``hull_margin_voxels`` (dilation of
-        the hull before the cut).
+        2**depth`` wide) and ``density_quantile`` (vertices whose support density is
+        below this quantile are removed, 0 keeps all).
     hull : VoxelGrid-like, optional
         ``origin``, ``voxel_size``, ``occupancy``: surface outside it is cut away.
+    cut_margin_voxels : int
+        Dilation of the hull before the cut. Not the config's ``hull_margin_voxels``
+        (the TSDF's, whose hull is smoothed and taken at its 0.5 level): the cut tests
+        the nearest voxel of the hull as carved and needs a voxel of slack
+        (``benchmarks/README.md``).
     max_outside_fraction : float
         The cut is skipped (and the report says why) when more than this fraction of the
         input points lie outside the dilated hull: hull and laser then disagree.
@@ -408,8 +413,7 @@ def fuse_poisson(
 
     report.update(hull_cut="no hull", n_vertices_outside_hull=0)
     if hull is not None:
-        v, f = _cut_to_hull(v, f, p, hull, options.hull_margin_voxels, max_outside_fraction,
-                            report)
+        v, f = _cut_to_hull(v, f, p, hull, cut_margin_voxels, max_outside_fraction, report)
     report.update(n_vertices=int(len(v)), n_faces=int(len(f)))
     log.info("Poisson fusion: %d points -> %d vertices, %d faces (%d low density, %d outside "
              "hull)", len(p), len(v), len(f), report["n_vertices_low_density"],

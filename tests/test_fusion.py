@@ -9,9 +9,6 @@ import pytest
 from robo3d.errors import StageError
 from robo3d.fusion import FuseOptions, crop_mesh_to_hull, fuse_poisson, remove_vertices
 
-#: Poisson with the margin its tests were written for (one hull voxel; the config's is 0)
-POISSON = FuseOptions(hull_margin_voxels=1)
-
 R = 0.03
 C = np.array([0.5, 0.1, 0.1])
 
@@ -43,7 +40,7 @@ def _hull(keep_upper_only: bool, vs=2e-3):
 
 def test_poisson_sphere_accuracy():
     p, n = _sphere_points()
-    v, f, rep = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=7))
+    v, f, rep = fuse_poisson(p, n, options=FuseOptions(poisson_depth=7))
     err = _radial_error(v)
     assert err.mean() < 0.1e-3  # measured ~0.01 mm
     assert err.max() < 0.3e-3
@@ -64,9 +61,9 @@ def test_density_trim_removes_unsupported_surface():
     def area_below(v, f):
         return _area(v, f[v[f].mean(axis=1)[:, 2] < C[2] - 5e-3])
 
-    v0, f0, rep0 = fuse_poisson(p[up], n[up], options=POISSON.replace(poisson_depth=6,
+    v0, f0, rep0 = fuse_poisson(p[up], n[up], options=FuseOptions(poisson_depth=6,
                                                                     density_quantile=0.0))
-    v1, f1, rep1 = fuse_poisson(p[up], n[up], options=POISSON.replace(poisson_depth=6,
+    v1, f1, rep1 = fuse_poisson(p[up], n[up], options=FuseOptions(poisson_depth=6,
                                                                     density_quantile=0.1))
     assert area_below(v0, f0) > 0.05 * cap_area and rep0["n_vertices_low_density"] == 0
     assert area_below(v1, f1) == 0.0 and rep1["n_vertices_low_density"] > 0
@@ -77,8 +74,8 @@ def test_hull_cut_removes_surface_outside_hull():
     p, n = _sphere_points()
     hull = _hull(keep_upper_only=True)
     # half the points lie outside this hull: forced cut (the guard is tested below)
-    v, f, rep = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6), hull=hull,
-                             max_outside_fraction=1.0)
+    v, f, rep = fuse_poisson(p, n, options=FuseOptions(poisson_depth=6), hull=hull,
+                             cut_margin_voxels=1, max_outside_fraction=1.0)
     assert rep["hull_cut"] == "applied"
     # nothing below the upper half-space dilated by one voxel (+ half a voxel rounding)
     assert v[:, 2].min() >= C[2] - 1.5 * hull["voxel_size"]
@@ -87,7 +84,7 @@ def test_hull_cut_removes_surface_outside_hull():
     assert _area(v, f) == pytest.approx(2 * np.pi * R**2, rel=0.1)
     assert rep["n_vertices_outside_hull"] > 0.4 * rep["n_vertices_poisson"]
     # a full hull cuts nothing
-    _, _, rep_full = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6),
+    _, _, rep_full = fuse_poisson(p, n, options=FuseOptions(poisson_depth=6),
                                   hull=_hull(keep_upper_only=False))
     assert rep_full["n_vertices_outside_hull"] == 0
     assert rep_full["hull_points_outside_fraction"] == 0.0
@@ -97,13 +94,13 @@ def test_hull_cut_trims_extrapolation_and_is_guarded():
     p, n = _sphere_points(8000, seed=1)
     up = p[:, 2] > C[2] + 2e-3  # measured: the upper cap; Poisson extrapolates below
     hull = _hull(keep_upper_only=True)
-    v, f, rep = fuse_poisson(p[up], n[up], options=POISSON.replace(
+    v, f, rep = fuse_poisson(p[up], n[up], options=FuseOptions(
         poisson_depth=6, density_quantile=0.0), hull=hull)
     assert rep["hull_cut"] == "applied" and rep["hull_points_outside_fraction"] == 0.0
     assert v[:, 2].min() >= C[2] - 1.5 * hull["voxel_size"]
     assert rep["n_vertices_outside_hull"] > 0
     # the guard: when the laser points disagree with the hull, the hull does not cut
-    v2, f2, rep2 = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6), hull=hull)
+    v2, f2, rep2 = fuse_poisson(p, n, options=FuseOptions(poisson_depth=6), hull=hull)
     assert rep2["hull_cut"].startswith("skipped")
     assert rep2["hull_points_outside_fraction"] == pytest.approx(0.5, abs=0.03)
     assert rep2["n_vertices"] == rep2["n_vertices_poisson"] - rep2["n_vertices_low_density"]
@@ -136,8 +133,8 @@ def test_remove_vertices_renumbers():
 def test_lists_reproducible_and_errors():
     p, n = _sphere_points(3000)
     a = fuse_poisson([p[:1000], p[1000:]], [n[:1000], n[1000:]],
-                     options=POISSON.replace(poisson_depth=6))
-    b = fuse_poisson(p, n, options=POISSON.replace(poisson_depth=6))
+                     options=FuseOptions(poisson_depth=6))
+    b = fuse_poisson(p, n, options=FuseOptions(poisson_depth=6))
     np.testing.assert_array_equal(a[0], b[0])  # single-threaded Poisson: bit-identical
     np.testing.assert_array_equal(a[1], b[1])
     with pytest.raises(StageError, match="at least 10"):
@@ -145,7 +142,7 @@ def test_lists_reproducible_and_errors():
     with pytest.raises(ValueError, match="normals must match"):
         fuse_poisson(p, n[:10])
     with pytest.raises(ValueError, match="hull must have"):
-        fuse_poisson(p, n, options=POISSON.replace(poisson_depth=5), hull={"origin": C})
+        fuse_poisson(p, n, options=FuseOptions(poisson_depth=5), hull={"origin": C})
     with pytest.raises(ValueError, match="density_quantile"):
         fuse_poisson(p, n, options=FuseOptions(density_quantile=1.0))
 

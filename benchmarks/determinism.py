@@ -2,8 +2,8 @@
 
 Each run works in its own folder with the default config on the demo recordings
 (``recordings/*.mcap``, written by ``./run.sh demo`` or ``robo3d simulate --demo``). The
-two runs' ``metrics.json`` are compared with every wall-clock and CPU-time figure taken
-out (keys naming seconds or frames per second: they measure the machine, not the scan),
+two runs' ``metrics.json`` are compared with every wall-clock and CPU-time figure and
+the stages' thread counts taken out (they describe the run, not the scan),
 and every result file (arrays, clouds, meshes) is compared byte for byte.
 
 Writes ``benchmarks/results/determinism.json``: ``identical_metrics``,
@@ -26,7 +26,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, run_workflow  # noqa: E402
 
-from robo3d.pipeline import TIMING_KEYS, without_timings  # noqa: E402
+from robo3d.pipeline import RUN_DETAIL_KEYS, without_run_details  # noqa: E402
 
 #: the result files compared byte for byte
 RESULT_FILES = ("silhouettes.npz", "hull.npz", "hull.ply", "stripes.npz", "clouds.npz",
@@ -52,8 +52,8 @@ def differences(a: Any, b: Any, path: str = "") -> list[str]:
 def compare(run_a: Path, run_b: Path, name: str) -> dict[str, Any]:
     """What differs between two runs' results of one recording."""
     ra, rb = run_a / "results" / name, run_b / "results" / name
-    ma = without_timings(json.loads((ra / "metrics.json").read_text()))
-    mb = without_timings(json.loads((rb / "metrics.json").read_text()))
+    ma = without_run_details(json.loads((ra / "metrics.json").read_text()))
+    mb = without_run_details(json.loads((rb / "metrics.json").read_text()))
     files = [f for f in RESULT_FILES if (ra / f).exists() or (rb / f).exists()]
     differ = [f for f in files if not ((ra / f).exists() and (rb / f).exists()
                                       and (ra / f).read_bytes() == (rb / f).read_bytes())]
@@ -88,8 +88,8 @@ def main() -> None:
         "recordings": per, "wall_s": {f"cores_{k}": round(v, 1) for k, v in walls.items()},
         "data": "simulated (the demo recordings, default config)",
         "date": time.strftime("%Y-%m-%d"),
-        "notes": "metrics.json compared without its wall-clock and CPU-time keys "
-                 f"(pattern {TIMING_KEYS.pattern!r}); result files byte for byte.",
+        "notes": "metrics.json compared without its times and thread counts "
+                 f"(pattern {RUN_DETAIL_KEYS.pattern!r}); result files byte for byte.",
     }
     print(f"identical metrics: {result['identical_metrics']}, identical files: "
           f"{result['identical_files']}")

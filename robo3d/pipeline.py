@@ -55,8 +55,8 @@ __all__ = [
     "stage_config",
     "code_version",
     "run_from_snakemake",
-    "TIMING_KEYS",
-    "without_timings",
+    "RUN_DETAIL_KEYS",
+    "without_run_details",
 ]
 
 
@@ -222,19 +222,20 @@ def stage_config(cfg: Mapping[str, Any], stage: str) -> dict[str, Any]:
     return {k: cfg[k] for k in STAGE_CONFIG[stage] if k in cfg}
 
 
-#: the keys of metrics.json (at any depth) that measure the machine, not the scan:
-#: wall-clock and CPU times, frames per second
-TIMING_KEYS = re.compile(r"seconds|(^|_)time_s$|(^|_)fps$|^timings$")
+#: the keys of metrics.json (at any depth) that describe the run, not the scan: wall-clock
+#: and CPU times, frames per second, the threads a stage was given
+RUN_DETAIL_KEYS = re.compile(r"seconds|(^|_)time_s$|(^|_)fps$|^timings$|^threads$")
 
 
-def without_timings(metrics: Any) -> Any:
-    """``metrics`` (a run's metrics.json) without its :data:`TIMING_KEYS`: what two runs of
-    the same recording and config must agree on exactly."""
+def without_run_details(metrics: Any) -> Any:
+    """``metrics`` (a run's metrics.json) without its :data:`RUN_DETAIL_KEYS`: what two
+    runs of the same recording and config must agree on exactly, whatever the machine
+    and the number of cores."""
     if isinstance(metrics, dict):
-        return {k: without_timings(v) for k, v in metrics.items()
-                if not TIMING_KEYS.search(str(k))}
+        return {k: without_run_details(v) for k, v in metrics.items()
+                if not RUN_DETAIL_KEYS.search(str(k))}
     if isinstance(metrics, list):
-        return [without_timings(v) for v in metrics]
+        return [without_run_details(v) for v in metrics]
     return metrics
 
 

@@ -187,10 +187,11 @@ def test_deterministic_outputs(runs):
     two (see the ``runs`` fixture).
 
     Every result file byte for byte, and metrics.json without its wall-clock and CPU
-    times. (Before Open3D was pinned to one thread, :func:`robo3d.stages.common.
-    pin_open3d_threads`, the alignment differed between two processes by 1e-16 m and
-    quadric decimation made another triangulation of it.)"""
-    from robo3d.pipeline import without_timings
+    times and the stripes stage's thread count (1 here, 2 in the batch). (Before Open3D
+    was pinned to one thread, :func:`robo3d.stages.common.pin_open3d_threads`, the
+    alignment differed between two processes by 1e-16 m and quadric decimation made
+    another triangulation of it.)"""
+    from robo3d.pipeline import without_run_details
 
     batch, again = runs
     assert (again / "recs" / "laser_only.mcap").read_bytes() == \
@@ -203,9 +204,10 @@ def test_deterministic_outputs(runs):
             assert (res_a / f).read_bytes() == (res_b / f).read_bytes(), f
             compared += 1
     assert compared >= 7
-    ma = without_timings(_metrics(batch, "laser_only"))
-    mb = without_timings(_metrics(again, "laser_only"))
+    ma = without_run_details(_metrics(batch, "laser_only"))
+    mb = without_run_details(_metrics(again, "laser_only"))
     assert ma["evaluation"]["mesh"]["median_mm"] > 0  # scored, not an empty comparison
+    assert ma.pop("recording") != mb.pop("recording")  # the files' paths: two folders
     assert ma == mb
 
 

@@ -104,6 +104,9 @@ Method
 
 All computations run in a frame centred on the centroid of all points (better conditioned
 than ``base``, whose origin may be half a metre away); results are returned in ``base``.
+Reproducibility: Open3D's registration runs on one thread here (its parallel reductions
+differ in the last bit from run to run); the same input gives the same corrections, bit
+for bit.
 
 References
 ----------
@@ -636,8 +639,16 @@ def align_sweeps(
     if origins is not None and (len(origins) != len(pts_in) or any(
             np.shape(o) != p.shape for o, p in zip(origins, pts_in, strict=True))):
         raise ValueError("origins must hold one (N_s, 3) array per sweep, like points")
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        result = _align(pts_in, nrm_in, corrections, options, gauge, max_points)
+    # Open3D's ICP and pose graph reduce over points in parallel (TBB): on more than one
+    # thread their results vary by ~1e-16 from run to run, which the simplification
+    # downstream turns into a different mesh; on one thread they are bit-identical
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            result = _align(pts_in, nrm_in, corrections, options, gauge, max_points)
+    finally:
+        o3d.utility.set_max_threads(threads)
     if options.refine and n_sweeps > 1:
         _refine_guarded(result, pts_in, nrm_in, origins, profiles, silhouettes, options)
     return result

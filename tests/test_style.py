@@ -1,4 +1,5 @@
-"""The code stays clean: ruff over the library, workflow scripts, tests and benchmarks."""
+"""The code stays clean: ruff over the library, workflow scripts, tests and benchmarks; the
+stages and scripts stay thin."""
 
 import shutil
 import subprocess
@@ -17,3 +18,22 @@ def test_ruff_is_clean():
     proc = subprocess.run([ruff, "check", "--no-cache", str(REPO)], capture_output=True,
                           text=True, cwd=REPO)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_stage_modules_and_scripts_have_short_functions():
+    """Every function of a stage module (robo3d/stages/) and of a rule's script is under
+    120 lines, docstring included: a stage reads its inputs, builds its options, calls the
+    algorithm and writes its outputs; longer means logic that belongs in the library."""
+    import ast
+
+    files = sorted((REPO / "robo3d" / "stages").glob("*.py")) + sorted(
+        (REPO / "workflow" / "scripts").glob("*.py"))
+    assert len(files) >= 15
+    long = []
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = node.end_lineno - node.lineno + 1
+                if n >= 120:
+                    long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, long

@@ -12,6 +12,8 @@ given); the checks more than one module needs live here, under public names:
 * :func:`check_grid` and :func:`check_carve_inputs`: a :class:`~robo3d.grid.VoxelGrid`,
   and everything the carvers (dense and octree) check alike;
 * :func:`check_points`: an ``(N, 3)`` float64 array of points;
+* :func:`check_mesh`: a triangle mesh (finite vertices, faces that index them);
+* :func:`check_transform`: a finite ``(4, 4)`` transform, or a batch of them;
 * :func:`check_region`: an optional ``(box_min, box_max)`` pair (a box that must be
   given and finite, as the carving box, is :func:`robo3d.grid.check_box`).
 
@@ -30,7 +32,7 @@ from .errors import StageError
 from .grid import VoxelGrid
 
 __all__ = ["check_views", "check_choice", "check_min_views", "check_points", "check_region",
-           "check_grid", "check_carve_inputs", "POLICIES"]
+           "check_mesh", "check_transform", "check_grid", "check_carve_inputs", "POLICIES"]
 
 #: The carvers' policies for a voxel outside a view's image or behind its camera.
 POLICIES = ("keep", "carve")
@@ -121,6 +123,37 @@ def check_points(points: object, name: str = "points") -> np.ndarray:
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"{name} must be (N, 3), got {p.shape}")
     return p
+
+
+def check_mesh(vertices: object, faces: object) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a triangle mesh: ``(V, 3)`` finite float64 vertices and ``(F, 3)`` int64
+    faces that index them (an empty face list is ``(0, 3)``); ``ValueError`` otherwise."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must be (V, 3), got {v.shape}")
+    if f.size == 0:
+        f = np.zeros((0, 3), dtype=np.int64)
+    if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
+        raise ValueError(f"faces must be (F, 3) integer, got {f.shape} {f.dtype}")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise ValueError(f"faces index vertices {f.min()}..{f.max()} of {len(v)}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("vertices contain non-finite values")
+    return v, f.astype(np.int64)
+
+
+def check_transform(t: object, name: str, batch: bool = False) -> np.ndarray:
+    """A rigid transform as a finite ``(4, 4)`` float64 array (or ``(F, 4, 4)`` with
+    ``batch``); ``ValueError`` naming ``name`` otherwise."""
+    t = np.asarray(t, dtype=np.float64)
+    ok = t.shape == (4, 4) or (batch and t.ndim == 3 and t.shape[1:] == (4, 4))
+    if not ok:
+        want = "(4, 4) or (F, 4, 4)" if batch else "(4, 4)"
+        raise ValueError(f"{name} must be {want} float, got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{name} has non-finite entries")
+    return t
 
 
 def check_region(region: object, name: str = "region"

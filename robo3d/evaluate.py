@@ -43,8 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from .checks import check_points, check_region
-from .meshio import check_mesh as _check_mesh
+from .checks import check_mesh, check_points, check_region
 from .transforms import rotation_angle_deg
 
 __all__ = [
@@ -90,7 +89,7 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, *, seed: int
     (n, 3) float64, metres
         Empty (0, 3) when the mesh has no area.
     """
-    v, f = _check_mesh(vertices, faces)
+    v, f = check_mesh(vertices, faces)
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
     if len(f) == 0 or n == 0:
@@ -127,7 +126,7 @@ class TruthSurface:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         import open3d as o3d
 
-        v, f = _check_mesh(vertices, faces)
+        v, f = check_mesh(vertices, faces)
         if len(f) == 0:
             raise ValueError("the truth mesh has no faces")
         self.vertices = v
@@ -315,7 +314,7 @@ def completeness(vertices: np.ndarray, faces: np.ndarray, truth: TruthSurface, *
         values when the reconstruction is empty).
     """
     box = check_region(region)
-    v, f = _check_mesh(vertices, faces)
+    v, f = check_mesh(vertices, faces)
     samples = truth.sample(n_samples, seed=seed)
     samples = samples[_in_box(samples, box)]
     if len(f) == 0 or len(samples) == 0:

@@ -46,28 +46,10 @@ __all__ = [
     "read_point_cloud",
     "read_point_cloud_attributes",
     "read_vertex_attributes",
-    "check_mesh",
 ]
 
 log = logging.getLogger(__name__)
 
-
-def check_mesh(vertices: object, faces: object) -> tuple[np.ndarray, np.ndarray]:
-    """Validate a triangle mesh: ``(V, 3)`` finite float64 vertices and ``(F, 3)`` int64
-    faces that index them (an empty face list is ``(0, 3)``); ``ValueError`` otherwise."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"vertices must be (V, 3), got {v.shape}")
-    if f.size == 0:
-        f = np.zeros((0, 3), dtype=np.int64)
-    if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
-        raise ValueError(f"faces must be (F, 3) integer, got {f.shape} {f.dtype}")
-    if len(f) and (f.min() < 0 or f.max() >= len(v)):
-        raise ValueError(f"faces index vertices {f.min()}..{f.max()} of {len(v)}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("vertices contain non-finite values")
-    return v, f.astype(np.int64)
 
 _MESH_SUFFIXES = (".ply", ".stl", ".obj")
 _RESERVED_PLY_NAMES = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha"}

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from .meshio import check_mesh
+from .checks import check_mesh
 from .options import Options
 
 __all__ = ["SimplifyOptions", "clean_mesh", "simplify_mesh", "hausdorff_distance",

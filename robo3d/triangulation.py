@@ -97,6 +97,7 @@ from numba import njit
 
 from .artefacts import SweepCloud
 from .camera import CameraModel
+from .checks import check_transform
 from .errors import StageError
 from .options import Options
 from .stripes import StripePoints
@@ -214,7 +215,7 @@ def laser_params_from_transform(T_camera_laser: np.ndarray) -> tuple[float, ...]
         ``theta`` in [-pi/2, pi/2]; at ``theta = ±pi/2`` (gimbal lock) ``phi`` is set
         to 0.
     """
-    t = _check_transform(T_camera_laser, "T_camera_laser")
+    t = check_transform(T_camera_laser, "T_camera_laser")
     r = t[:3, :3]
     # R = Rx(psi) Ry(theta) Rz(phi): R[0] = (c_t c_p, -c_t s_p, s_t)
     theta = float(np.arctan2(r[0, 2], np.hypot(r[0, 0], r[0, 1])))
@@ -226,17 +227,6 @@ def laser_params_from_transform(T_camera_laser: np.ndarray) -> tuple[float, ...]
         psi = float(np.arctan2(r[2, 1], r[1, 1]))
     d = r.T @ t[:3, 3]
     return float(d[0]), float(d[1]), float(d[2]), phi, theta, psi
-
-
-def _check_transform(t: np.ndarray, name: str, batch: bool = False) -> np.ndarray:
-    t = np.asarray(t, dtype=np.float64)
-    ok = t.shape == (4, 4) or (batch and t.ndim == 3 and t.shape[1:] == (4, 4))
-    if not ok:
-        want = "(4, 4) or (F, 4, 4)" if batch else "(4, 4)"
-        raise ValueError(f"{name} must be {want} float, got shape {t.shape}")
-    if not np.all(np.isfinite(t)):
-        raise ValueError(f"{name} has non-finite entries")
-    return t
 
 
 # ---------------------------------------------------------------------------- eq. 12-15
@@ -266,7 +256,7 @@ def laser_plane_in_camera(T_camera_laser: np.ndarray) -> tuple[np.ndarray, float
     ----------
     .. [1] The seed chapter, §4.1, eqs. 12–15.
     """
-    t = _check_transform(T_camera_laser, "T_camera_laser")
+    t = check_transform(T_camera_laser, "T_camera_laser")
     pts_l = np.array([[0.0, 0, 0, 1], [1.0, 0, 0, 1], [0.0, 0, 1, 1]])
     p, q, r = (pts_l @ t.T)[:, :3]
     a, b = q - p, r - p
@@ -550,7 +540,7 @@ def triangulate_pixels(
     .. [1] The seed chapter, §4.1, eqs. 16–17.
     """
     uv = _check_pixels(pixels_uv)
-    t = _check_transform(T_camera_laser, "T_camera_laser")
+    t = check_transform(T_camera_laser, "T_camera_laser")
     _check_ranges(min_angle_deg, min_range, max_range)
     n, d = laser_plane_in_camera(t)
     pts, keep, dropped, _ = _intersect(uv, camera, np.zeros(len(uv), np.int64), n[None],
@@ -585,7 +575,7 @@ def triangulate_pixels_eq17(
     .. [1] The seed chapter, §4.1, eqs. 9–17.
     """
     uv = _check_pixels(pixels_uv)
-    t = _check_transform(T_camera_laser, "T_camera_laser")
+    t = check_transform(T_camera_laser, "T_camera_laser")
     xy = camera.undistort_normalized(camera.pixels_to_normalized(uv))
     u0, v0, f = camera.cx, camera.cy, 1.0
     dx, dy = 1.0 / camera.fx, 1.0 / camera.fy
@@ -776,13 +766,13 @@ def _check_sweep_inputs(F: int, T_base_camera: np.ndarray, T_camera_laser: np.nd
                         options: TriangulateOptions):
     """The sweep's poses (F, 4, 4) each, frame indices (F,) and workspace box (or None),
     checked against its ``F`` frames."""
-    tb = _check_transform(T_base_camera, "T_base_camera", batch=True)
+    tb = check_transform(T_base_camera, "T_base_camera", batch=True)
     if tb.ndim == 2:
         tb = tb[None]
     if tb.shape[0] != F:
         raise ValueError(f"T_base_camera must be (F, 4, 4) with F={F} frames, got "
                          f"{tb.shape}")
-    tl = _check_transform(T_camera_laser, "T_camera_laser", batch=True)
+    tl = check_transform(T_camera_laser, "T_camera_laser", batch=True)
     if tl.ndim == 2:
         tl = np.broadcast_to(tl, (F, 4, 4))
     if tl.shape[0] != F:

@@ -48,6 +48,21 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    reflection beside the stripe, also where the stripe itself is missing). The line on
    the table or the wall in *other* lines is a curve of its own and is kept: the
    workspace crop of the triangulation removes it.
+3b. Hysteresis (``follow``, off by default), as Canny's and Steger's [5] line
+   detectors: each kept curve is followed beyond its ends, line by line, within
+   1 px per line of the position its direction predicts, with a weaker test
+   (:func:`_weak_at`): the laser channel's two-sided rise less *half* the other
+   channels' rise, the pixel itself of the laser's colour (its channel ``min_peak``
+   above the others: not a grey wall, not white), and the rise at least a quarter of
+   the step across the pixel (not a JPEG's ringing beside an edge); it also takes a
+   line won by another curve where it is twice that winner's height by the same test.
+   Why: in a 4:2:0 JPEG a thin stripe keeps little of its colour (the chroma is
+   stored at half resolution): on an object of the laser's own colour its rise is
+   nearly the same in all three channels, so the scan's test rejects it (53 % of the
+   missed true stripe pixels of the simulated green cell). Measured on the simulated
+   cells: recall 0.890 -> 0.940 (green), 0.959 -> 0.962 (red), 0.927 -> 0.931 (blue),
+   but the added points near the silhouettes move the alignment's sweeps (blue:
+   delivered p95 0.19 -> 0.68 mm), hence off (``benchmarks/results/front_end.json``).
 4. The axis, per frame, from the stripe's geometry: the probe of step 1 on sampled rows
    (profiles along u: a stripe crossing the rows) and columns; the axis whose strongest
    curve is stronger (a stripe within 45 degrees of vertical gets one centre per row).
@@ -445,6 +460,10 @@ class StripeOptions(Options):
         channel or the luma (for JPEGs with subsampled chroma; module docstring, step 5).
         ``auto`` is the stage's choice from the frames' encoding; an array carries none,
         so :func:`extract_stripe_centres` takes it as the laser's channel.
+    follow : bool
+        Ridge detector: follow each kept curve beyond its ends where the stripe's colour
+        fades (hysteresis, module docstring step 3b). Off by default (the measured
+        trade-off: ``benchmarks/results/front_end.json`` notes).
     tail_fraction : float
         Soft threshold of the centre of gravity, relative to the peak height (not in the
         config).
@@ -469,6 +488,7 @@ class StripeOptions(Options):
     reference_lines: int = 16
     s: float | None = None
     centre_on: Literal["laser", "luma", "auto"] = "auto"
+    follow: bool = False
     tail_fraction: float = 0.05
     noise_k: float = 3.0
 
@@ -1584,7 +1604,7 @@ def _probe8(img, k, step, thr, clo, chi, rlo, rhi):  # noqa: ANN001, ANN202
 
 @njit(**_JIT)
 def _ridge_frame8(img, k, axis_mode, step, min_peak, noise_k, link_px, min_run, h,
-                  tail_fraction, max_width_px, gaussian, clo, chi, rlo, rhi):  # noqa: ANN001, ANN202
+                  tail_fraction, max_width_px, gaussian, clo, chi, rlo, rhi, follow):  # noqa: ANN001, ANN202
     """Steps 2-5 of the ridge detector (and the axis of step 4 when ``axis_mode`` is 0;
     1: rows, 2: columns) on a uint8 image for a laser colour or a mono image, in one
     compiled call that holds no interpreter lock (frames run in parallel on threads):
@@ -1614,6 +1634,10 @@ def _ridge_frame8(img, k, axis_mode, step, min_peak, noise_k, link_px, min_run, 
                                            clo, chi)
     win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep, link_px,
                                                       _LINK_GAP, min_run, True)
+    if follow:
+        lo, hi = (rlo, rhi) if rows_axis else (clo, chi)
+        _extend(img, k, rows_axis, win, status, run, float(thr_w), link_px, _LINK_GAP, lo,
+                hi, 250.0)
     st2, centre, amp, width = _ridge_centres(img, k, False, rows_axis, win, h, _H_SMALL,
                                              tail_fraction, noise_k * sigma_n, min_peak,
                                              max_width_px, gaussian)
@@ -1838,6 +1862,137 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
             amp_out[i] = amp
             width_out[i] = width
     return status, centre, amp_out, width_out
+
+
+#: Hysteresis (step 3b): the laser's height of a curve's continuation may keep only
+#: this fraction of the other channels' rise (1 in the scan: :func:`_laser_at`).
+_WEAK_OTHERS = 0.5
+#: Hysteresis: how far (pixels per line) a continuation may leave the position its curve's
+#: direction predicts.
+_WEAK_TOL = 1.0
+#: Hysteresis: a continuation's rise must be at least this fraction of the step across it.
+_WEAK_STEP = 0.25
+
+
+@njit(inline="always")
+def _step_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
+    """The larger step of channel ch across (r, c) between the pixels a1 and a2 away on
+    either side (an edge's contrast)."""
+    if along_u:
+        s1 = abs(np.float32(img[r, c - a1, ch]) - np.float32(img[r, c + a1, ch]))
+        s2 = abs(np.float32(img[r, c - a2, ch]) - np.float32(img[r, c + a2, ch]))
+    else:
+        s1 = abs(np.float32(img[r - a1, c, ch]) - np.float32(img[r + a1, c, ch]))
+        s2 = abs(np.float32(img[r - a2, c, ch]) - np.float32(img[r + a2, c, ch]))
+    return max(s1, s2)
+
+
+@njit(inline="always")
+def _weak_at(img, r, c, k, a1, a2, along_u, sat, thr):  # noqa: ANN001, ANN202
+    """The height of a curve's continuation at (r, c) (step 3b): the two-sided rise of
+    the laser's channel (a mono image's values) less :data:`_WEAK_OTHERS` of the other
+    channels' larger rise (halved where the laser's channel saturates), zero where both
+    other channels fall (:func:`_laser_at` with the weaker colour test), and zero where
+    it is less than :data:`_WEAK_STEP` of the channel's step across the pixel (a JPEG's
+    ringing beside an edge: a small overshoot of every channel on the bright side)."""
+    ch = 0 if img.shape[2] == 1 else k
+    x = _rise_at(img, r, c, ch, a1, a2, along_u)
+    if x < np.float32(_WEAK_STEP) * _step_at(img, r, c, ch, a1, a2, along_u):
+        return np.float32(0.0)
+    if img.shape[2] == 1:
+        return x
+    i1 = 1 if k == 0 else 0
+    i2 = 1 if k == 2 else 2
+    if (np.float32(img[r, c, k]) - max(np.float32(img[r, c, i1]), np.float32(img[r, c, i2]))
+            < np.float32(thr)):  # the pixel itself not of the laser's colour: grey, white
+        return np.float32(0.0)
+    m = max(_rise_at(img, r, c, i1, a1, a2, along_u), _rise_at(img, r, c, i2, a1, a2, along_u))
+    if np.float32(img[r, c, k]) >= sat:
+        m = np.float32(0.5) * m
+    if m < -np.float32(_FALL):
+        return np.float32(0.0)
+    return min(x, x - np.float32(_WEAK_OTHERS) * m)
+
+
+@njit(**_JIT)
+def _extend(img, k, rows_axis, win, status, run, thr, link_px, gap, lo, hi, sat):  # noqa: ANN001, ANN202
+    """Step 3b, hysteresis (as Canny's and Steger's [5] line detectors): each kept curve
+    is followed beyond its ends, one line at a time, to the pixel within
+    :data:`_WEAK_TOL` px per line of the position its direction predicts where the
+    weaker height :func:`_weak_at` is the largest and above ``thr``, until ``gap`` lines
+    in a row hold none. It goes on into the lines that kept nothing (``too_weak`` or
+    ``isolated``), and into a line won by another curve (its winner farther from the
+    prediction) when the continuation there is higher than that winner by the same
+    measure; it stops where it meets its own curve again or a rejected line. Only the
+    continuation of a long curve is searched this way, so clutter elsewhere cannot
+    enter: where a JPEG's half-resolution chroma leaves a thin stripe's colour mostly
+    in the luma (the stripe on an object of the laser's own colour, its fading ends
+    near a silhouette), the curve goes on. Updates ``win``, ``status`` (_OK) and
+    ``run`` (the curve's) in place; returns the number of lines added or replaced."""
+    n = win.size
+    if img.shape[2] == 3 and k > 2:  # the lightness of an RGB image: not followed
+        return 0
+    length = img.shape[1] if rows_axis else img.shape[0]
+    a1, a2 = _RIDGE_A1, _RIDGE_A2
+    sat = np.float32(sat)
+    ext = np.zeros(n, np.bool_)  # lines a continuation took: never taken back
+    added = 0
+    for d in (1, -1):
+        start = 0 if d == 1 else n - 1
+        stop = n if d == 1 else -1
+        for i in range(start, stop, d):
+            j = i + d
+            if win[i] < 0 or status[i] != _OK or j < 0 or j >= n:
+                continue
+            if win[j] >= 0 and (ext[j] or abs(win[j] - win[i]) <= link_px):
+                continue  # the curve goes on by itself
+            slope = 0.0  # the curve's direction over its last (up to 4) lines
+            for b in range(4, 0, -1):
+                prev = i - b * d
+                if 0 <= prev < n and win[prev] >= 0:
+                    slope = min(max(float(win[i] - win[prev]) / b, -link_px), link_px)
+                    break
+            p = float(win[i])
+            last = i
+            while 0 <= j < n and abs(j - last) <= gap:
+                g = abs(j - last)
+                pred = p + slope * g
+                other = win[j] >= 0
+                if other and (ext[j] or abs(win[j] - pred) <= _WEAK_TOL * g + 1.0):
+                    break  # its own curve again, or a line already taken
+                if not other and status[j] != _TOO_WEAK and status[j] != _ISOLATED:
+                    break
+                best = np.float32(thr)
+                if other:  # a line won by another curve: the continuation must beat it
+                    if rows_axis:
+                        hw = _weak_at(img, j, win[j], k, a1, a2, True, sat, thr)
+                    else:
+                        hw = _weak_at(img, win[j], j, k, a1, a2, False, sat, thr)
+                    best = max(best, np.float32(_DOMINANT) * hw)
+                c0 = max(int(np.floor(pred - _WEAK_TOL * g)), lo[j], a2)
+                c1 = min(int(np.ceil(pred + _WEAK_TOL * g)), hi[j], length - 1 - a2)
+                bc = -1
+                for c in range(c0, c1 + 1):
+                    if rows_axis:
+                        x = _weak_at(img, j, c, k, a1, a2, True, sat, thr)
+                    else:
+                        x = _weak_at(img, c, j, k, a1, a2, False, sat, thr)
+                    if x > best:
+                        best = x
+                        bc = c
+                if bc >= 0:
+                    slope = min(max(0.5 * slope + 0.5 * (bc - p) / g, -link_px), link_px)
+                    p = float(bc)
+                    win[j] = bc
+                    status[j] = _OK
+                    run[j] = run[i]
+                    ext[j] = True
+                    last = j
+                    added += 1
+                elif other:
+                    break
+                j += d
+    return added
 
 
 @njit(inline="always")
@@ -2122,7 +2277,7 @@ def extract_stripe_centres(
                               max_width_px=float(o.max_width_px), method=o.method,
                               tail_fraction=float(o.tail_fraction), noise_k=float(o.noise_k),
                               min_run=int(o.min_run), link_px=float(o.link_px), roi=roi,
-                              centre_on=o.centre_on)
+                              centre_on=o.centre_on, follow=bool(o.follow))
     return _extract_band(img, o, min_peak_abs)
 
 
@@ -2268,7 +2423,7 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
                    max_width_px: float, method: str, tail_fraction: float, noise_k: float,
                    min_run: int, link_px: float,
                    roi: np.ndarray | None = None,
-                   centre_on: str = "laser") -> StripePoints:
+                   centre_on: str = "laser", follow: bool = False) -> StripePoints:
     """The ridge detector on an (H, W, 1|3) kernel image (see the module docstring),
     candidates only inside ``roi`` when given."""
     h_img, w_img, nch = img.shape
@@ -2291,7 +2446,7 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
          width) = _ridge_frame8(img, k, ("auto", "rows", "columns").index(axis), step,
                                 float(min_peak), float(noise_k), float(link_px),
                                 int(min_run), h, float(tail_fraction), float(max_width_px),
-                                method == "gaussian", clo, chi, rlo, rhi)
+                                method == "gaussian", clo, chi, rlo, rhi, follow)
         axis = "rows" if rows_axis else "columns"
         lo, hi = (rlo, rhi) if rows_axis else (clo, chi)
         if centre_on == "luma" and nch == 3 and k != _LIGHTNESS:
@@ -2341,6 +2496,9 @@ def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
         win, status, run, n_second, n_isolated, _ = _link(m1, p1, m2, p2, sep,
                                                           float(link_px), _LINK_GAP,
                                                           int(min_run), True)
+        if follow:
+            _extend(img, k, axis == "rows", win, status, run, float(thr_w), float(link_px),
+                    _LINK_GAP, lo, hi, float(sat))
         st2, centre, amp, width = _ridge_centres(img, k, two, axis == "rows", win, h,
                                                  _H_SMALL, float(tail_fraction),
                                                  float(noise_k * sigma_n),

@@ -1,0 +1,52 @@
+"""The silhouette term on a flat face seen at a grazing angle (issue 11: the bracket).
+
+A block is seen from above, nearly along its +y face, so that the silhouette's far
+side is the block's top edge and the +y face is back-facing at about 7 degrees from
+edge-on. Laser profiles run across that face parallel to the edge, 1.1 mm apart: every
+one of them has the grazing normal and continues along the contour, but only the
+topmost reach the contour generator. At the true pose the rim residuals must not put the
+face deep inside the silhouette: without the test of each border cell's most outward
+profile they did (mean -2.6 px, the deepest -4.6 px: 19 profiles down the face; with it
+-0.9 and -1.6 px, the 5 topmost profiles that passed the other tests), and the refinement
+pushed such sweeps outward until the mean agreed (the bracket's upright ended 0.7 mm
+outward on both faces).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robo3d.camera import CameraModel, pixel_rays
+from robo3d.registration import _RIM, _RIM_CELL_PX, SilhouetteViews, _rim_residuals, _view_fields
+from robo3d.sim.rig import look_at
+
+LO, HI = np.array([-0.03, -0.02, 0.0]), np.array([0.03, 0.02, 0.05])  # a block, metres
+SS = 3  # supersampling of the rendered view (anti-aliased edges)
+
+
+def _view():
+    cam = CameraModel("camera", 320, 240, [[450.0, 0, 159.5], [0, 450.0, 119.5], [0, 0, 1]],
+                      np.zeros(5))
+    T = look_at(np.array([0.0, -0.018, 0.37]), np.array([0.0, 0.0, 0.025]))
+    v, u = np.mgrid[0:cam.height * SS, 0:cam.width * SS]
+    uv = (np.stack([u.ravel(), v.ravel()], 1) + 0.5) / SS - 0.5
+    o, d = pixel_rays(uv, cam, T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (LO - o) / d, (HI - o) / d
+    hit = (np.nanmax(np.minimum(t1, t2), axis=1) <= np.nanmin(np.maximum(t1, t2), axis=1))
+    cover = hit.reshape(cam.height, SS, cam.width, SS).mean(axis=(1, 3))
+    grey = 30.0 + 150.0 * cover
+    return SilhouetteViews([grey], [cover >= 0.5], [cam], T[None])
+
+
+def test_profiles_across_a_grazing_flat_face_do_not_bias_the_silhouette_term():
+    views = _view()
+    x, z = np.meshgrid(np.arange(-0.025, 0.025, 2e-4), HI[2] - 1.1e-3 * (np.arange(40) + 0.3))
+    pts = np.stack([x.ravel(), np.full(x.size, HI[1]), z.ravel()], axis=1)
+    nrm = np.tile([0.0, 1.0, 0.0], (len(pts), 1))
+    profile = np.repeat(np.arange(40), x.shape[1])
+    field = _view_fields(views, _RIM_CELL_PX, 1.0)[0]
+    idx, r, _, _ = _rim_residuals(field, pts, nrm, profile, **_RIM)
+    assert len(idx) >= 5  # the contour along the top edge is found ...
+    assert len(np.unique(profile[idx])) <= 6  # ... from the topmost profiles only
+    assert np.mean(r) > -1.0 and r.min() > -2.0  # px; the true contour is at 0

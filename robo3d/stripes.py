@@ -792,16 +792,35 @@ def _noise_sigma(img, nch):  # noqa: ANN001, ANN202
     h, w = img.shape[0], img.shape[1]
     if h < 2 or w == 0:
         return 0.0
-    n_r = min(h - 1, 64)
-    n_c = min(w, 64)
-    d = np.zeros(n_r * n_c, np.float32)
+    rows, cols = _noise_grid(h, w)
+    d = np.zeros(rows.size * cols.size, np.float32)
     k = 0
-    for i in range(n_r):
-        r = int((h - 1) * (i + 0.5) / n_r)
-        for j in range(n_c):
-            c = int(w * (j + 0.5) / n_c)
+    for r in rows:
+        for c in cols:
             d[k] = abs(_lum(img, r + 1, c, nch) - _lum(img, r, c, nch))
             k += 1
+    return _mad_sigma(d)
+
+
+@njit(inline="always")
+def _noise_grid(h, w):  # noqa: ANN001, ANN202
+    """The rows and columns of the noise estimate's samples: up to 64 of each, spread
+    evenly over an (h, w) image (each row with the one below it)."""
+    n_r = min(h - 1, 64)
+    n_c = min(w, 64)
+    rows = np.empty(n_r, np.int64)
+    cols = np.empty(n_c, np.int64)
+    for i in range(n_r):
+        rows[i] = int((h - 1) * (i + 0.5) / n_r)
+    for j in range(n_c):
+        cols[j] = int(w * (j + 0.5) / n_c)
+    return rows, cols
+
+
+@njit(inline="always")
+def _mad_sigma(d):  # noqa: ANN001, ANN202
+    """A Gaussian's sigma from absolute differences of neighbouring samples (their MAD,
+    1.4826 per sigma, over sqrt(2) for a difference of two)."""
     return 1.4826 * float(np.median(d)) / np.sqrt(2.0)
 
 
@@ -1258,18 +1277,7 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat, lo, hi):  # noqa:
                     xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat)
                     if not xc > m2[c]:
                         continue
-                if abs(rc - p1[c]) <= sep:
-                    if xc > m1[c]:
-                        m1[c] = xc
-                        p1[c] = rc
-                elif xc > m1[c]:
-                    m2[c] = m1[c]
-                    p2[c] = p1[c]
-                    m1[c] = xc
-                    p1[c] = rc
-                else:
-                    m2[c] = xc
-                    p2[c] = rc
+                m1[c], p1[c], m2[c], p2[c] = _keep_two(xc, rc, m1[c], p1[c], m2[c], p2[c], sep)
     return m1, p1, m2, p2
 
 
@@ -1531,18 +1539,7 @@ def _ridge_scan_cols8(img, k, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, A
                 xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat)
                 if not xc > m2[c]:
                     continue
-            if abs(rc - p1[c]) <= sep:
-                if xc > m1[c]:
-                    m1[c] = xc
-                    p1[c] = rc
-            elif xc > m1[c]:
-                m2[c] = m1[c]
-                p2[c] = p1[c]
-                m1[c] = xc
-                p1[c] = rc
-            else:
-                m2[c] = xc
-                p2[c] = rc
+            m1[c], p1[c], m2[c], p2[c] = _keep_two(xc, rc, m1[c], p1[c], m2[c], p2[c], sep)
             tb[c] = np.uint8(min(max(np.int32(m2[c]), 0), 255))
     return m1, p1, m2, p2
 
@@ -1785,18 +1782,15 @@ def _noise_contrast(img, k, two):  # noqa: ANN001, ANN202
     h, w, nch = img.shape
     if h < 2 or w == 0:
         return 0.0
-    n_r = min(h - 1, 64)
-    n_c = min(w, 64)
-    d = np.zeros(n_r * n_c, np.float64)
+    rows, cols = _noise_grid(h, w)
+    d = np.zeros(rows.size * cols.size, np.float64)
     i_ = 0
-    for i in range(n_r):
-        r = int((h - 1) * (i + 0.5) / n_r)
-        for j in range(n_c):
-            c = int(w * (j + 0.5) / n_c)
+    for r in rows:
+        for c in cols:
             d[i_] = abs(_contrast_at(img, r + 1, c, k, nch, two)
                         - _contrast_at(img, r, c, k, nch, two))
             i_ += 1
-    return 1.4826 * float(np.median(d)) / np.sqrt(2.0)
+    return _mad_sigma(d)
 
 
 @njit(**_JIT)

@@ -82,7 +82,7 @@ from . import __version__
 from .errors import Robo3dError
 from .recording.images import encode_image
 from .sim.render import (
-    _LEGACY_FIELDS,
+    LEGACY_FIELDS,
     Appearance,
     SimScene,
     StripeTruth,
@@ -383,7 +383,7 @@ CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
 _NEW_FIELDS = frozenset({"vignetting", "robot_error", "drift_mm", "drift_deg",
                          "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
                          "object_mesh", "mesh_unit"})
-_LEGACY_APPEARANCE = frozenset(_LEGACY_FIELDS)
+_LEGACY_APPEARANCE = frozenset(LEGACY_FIELDS)
 
 
 @dataclass

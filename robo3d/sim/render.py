@@ -282,7 +282,7 @@ class Appearance:
 
 
 #: The fields of the demo cell's appearance (all others are issue 10's realism options).
-_LEGACY_FIELDS: tuple[str, ...] = (
+LEGACY_FIELDS: tuple[str, ...] = (
     "object_albedo", "table_albedo", "table_texture", "background", "light_dir", "ambient",
     "direct", "view_exposure_dn", "laser_ambient_dn", "laser_peak_dn", "laser_width",
     "laser_fan_deg", "laser_reference_range", "supersample")

@@ -81,6 +81,13 @@ import numpy as np
 from . import __version__
 from .errors import Robo3dError
 from .recording.images import encode_image
+from .sim.calibration import (
+    CalibrationCell,
+    CalibrationOptions,
+    CalibrationSimResult,
+    Checkerboard,
+    write_calibration_recording,
+)
 from .sim.render import (
     LEGACY_FIELDS,
     Appearance,
@@ -124,6 +131,11 @@ __all__ = [
     "ROBOT_ERROR_MODELS",
     "SILHOUETTES",
     "IMAGE_POSES",
+    "calibration_cell",
+    "simulate_calibration",
+    "CalibrationOptions",
+    "CalibrationSimResult",
+    "Checkerboard",
 ]
 
 _log = logging.getLogger(__name__)
@@ -941,3 +953,98 @@ def write_demos(directory: str | os.PathLike[str], *, threads: int = 1,
         todo = [n for n in todo if not (d / f"{n}.mcap").exists()]
     return [simulate_recording(d / f"{n}.mcap", DEMOS[n][0], threads=threads, demo_format=True,
                                **DEMOS[n][1]) for n in todo]
+
+
+# --------------------------------------------------------------------------- calibration
+def calibration_cell(params: SimulationParams | None = None) -> CalibrationCell:
+    """The true cell of a scan simulation, for a calibration recording of it.
+
+    The camera (:func:`robo3d.sim.rig.default_camera` at ``width x height``), hand-eye
+    (:func:`~robo3d.sim.rig.default_hand_eye`), laser mount
+    (:func:`~robo3d.sim.rig.default_laser_mount` at ``baseline``, ``crossing``),
+    appearance, sensor and robot error of ``params`` are exactly those
+    :func:`simulate_recording` uses with the same ``params``: a calibration recording
+    and a scan recording of one ``SimulationParams`` share the true camera, hand-eye and
+    laser sheet.
+
+    Parameters
+    ----------
+    params : SimulationParams, optional
+        Default: :meth:`SimulationParams.cell` (room light, red laser, JPEG 80, a webcam's
+        noise).
+    """
+    p = params or SimulationParams.cell()
+    return CalibrationCell(
+        camera=default_camera(p.width, p.height), T_flange_camera=default_hand_eye(),
+        T_camera_laser=default_laser_mount(p.baseline, p.crossing), appearance=p.appearance,
+        view_encoding=p.view_encoding, laser_encoding=p.laser_encoding,
+        jpeg_quality=p.jpeg_quality, view_read_noise_dn=p.view_read_noise_dn,
+        laser_read_noise_dn=max(p.laser_read_noise_dn, p.view_read_noise_dn),
+        gain_dn_per_electron=p.gain_dn_per_electron, vignetting=p.vignetting,
+        view_error_mm=tuple(p.view_error_mm), view_error_deg=tuple(p.view_error_deg),
+        robot_error=p.robot_error, pose_error_mm_per_m=p.pose_error_mm_per_m,
+        pose_error_deg_per_m=p.pose_error_deg_per_m, start_time_ns=p.start_time_ns)
+
+
+#: The small calibration session for tests (with :meth:`SimulationParams.cell`'s
+#: ``small=True``: 320 x 240).
+SMALL_CALIBRATION: dict[str, Any] = dict(views=8, laser_frames=4)
+
+
+def simulate_calibration(path: str | os.PathLike[str], *, rig: str = "robot",
+                         seed: int | None = None, params: SimulationParams | None = None,
+                         small: bool = False, threads: int = 1,
+                         message_encoding: str = "protobuf",
+                         **options: Any) -> CalibrationSimResult:
+    """Simulate a calibration recording (``kind=calibration``) of the scan cell.
+
+    See :mod:`robo3d.sim.calibration` for what is recorded, how it is rendered and the
+    ``ground_truth/calibration.json`` it carries. To calibrate from one recording and
+    scan with another, give both the same ``params``::
+
+        p = SimulationParams.cell(seed=3)
+        simulate_calibration("cal.mcap", params=p)         # the truth: calibration.json
+        simulate_recording("scan.mcap", "vase", params=p)  # the same camera, hand-eye, laser
+
+    Parameters
+    ----------
+    path : str or path-like
+        The ``.mcap`` file to write (atomically).
+    rig : {"robot", "fixed"}
+        A robot-carried camera over a static board, or a fixed camera (``base``) and a
+        hand-held board (``robo3d.target`` ``moving=true``).
+    seed : int, optional
+        Seeds every draw of the session (poses, noise, robot and published errors);
+        default ``params.seed``.
+    params : SimulationParams, optional
+        The cell (:func:`calibration_cell`); default :meth:`SimulationParams.cell`
+        (``small=True``: its 320 x 240 preset).
+    small : bool
+        A small session for tests (:data:`SMALL_CALIBRATION`, 320 x 240 when ``params``
+        is not given).
+    threads : int
+        Ray-casting threads of the background (0: all cores).
+    message_encoding : {"protobuf", "json"}
+    **options
+        Any :class:`robo3d.sim.calibration.CalibrationOptions` field (``views``,
+        ``laser_frames``, ``board=Checkerboard(...)``, ``defects``, ...).
+
+    Returns
+    -------
+    CalibrationSimResult
+    """
+    p = params or SimulationParams.cell(small=small)
+    known = {f.name for f in dataclasses.fields(CalibrationOptions)}
+    unknown = set(options) - known
+    if unknown:
+        raise ValueError(f"unknown calibration simulation option(s): "
+                         f"{', '.join(sorted(unknown))}")
+    kw = {**(SMALL_CALIBRATION if small else {}), **options, "rig": rig}
+    for name in ("defects", "distance_m", "nominal_error_mm", "nominal_error_deg",
+                 "focal_error"):  # lists from JSON / the CLI -> tuples
+        if name in kw:
+            kw[name] = tuple(kw[name])
+    with _blas_one_thread():
+        return write_calibration_recording(path, calibration_cell(p), CalibrationOptions(**kw),
+                                           seed=p.seed if seed is None else int(seed),
+                                           threads=threads, message_encoding=message_encoding)

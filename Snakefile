@@ -15,6 +15,7 @@ include: "workflow/rules/silhouettes.smk"
 include: "workflow/rules/laser.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/calibration.smk"
 
 
 rule all:

@@ -2,7 +2,9 @@
 sections each stage reads, and running one stage from a Snakemake rule.
 
 - :func:`find_recordings` turns the config's ``recordings`` (a folder or a list) into
-  the batch, and says what a folder held when it yields no recording.
+  the batch, and says what a folder held when it yields no recording;
+  :func:`split_by_kind` parts it into scans and ``kind=calibration`` recordings, and
+  :func:`scan_calibrations` says which calibration each scan uses (``scan_calibration``).
 - :data:`STAGE_CONFIG` / :func:`stage_config`: the config sections of each stage, the
   rules' ``params:`` (a changed parameter re-runs exactly the stages that read it), with
   :func:`code_version` (a hash of the library's code: an upgrade re-runs too).
@@ -27,6 +29,7 @@ from typing import Any
 
 from .errors import Robo3dError
 from .stages.align import stage_align
+from .stages.calibrate import stage_calibrate
 from .stages.carve import stage_carve
 from .stages.common import OPEN3D_STAGES, code_version, log, pin_open3d_threads, topic_map
 from .stages.evaluate import stage_evaluate
@@ -39,6 +42,9 @@ from .stages.triangulate import stage_triangulate
 __all__ = [
     "RecordingEntry",
     "find_recordings",
+    "split_by_kind",
+    "recording_kind",
+    "scan_calibrations",
     "export_library_path",
     "recording_stages",
     "topic_map",
@@ -50,6 +56,7 @@ __all__ = [
     "stage_fuse",
     "stage_simplify",
     "stage_evaluate",
+    "stage_calibrate",
     "STAGES",
     "STAGE_CONFIG",
     "stage_config",
@@ -71,9 +78,12 @@ class RecordingEntry:
     _topics: dict[str, str] = field(default_factory=dict)
 
 
-def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = None
-                    ) -> dict[str, RecordingEntry]:
+def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = None,
+                    kind: str | None = None) -> dict[str, RecordingEntry]:
     """The recordings of a batch: every ``*.mcap`` in a folder, or a list of files.
+
+    ``kind`` = ``"scan"`` or ``"calibration"`` keeps only those (:func:`split_by_kind`);
+    None keeps every recording.
 
     A rosbag2 directory (``metadata.yaml`` beside an ``.mcap``) counts as one recording
     named after the directory, and so does a sub-folder holding ``<folder>_0.mcap`` without
@@ -108,7 +118,72 @@ def find_recordings(spec: str | list[str], topics: Mapping[str, str] | None = No
             raise ConfigError(f"config key recordings: two recordings named {name!r} "
                               f"({out[name].path} and {p}); results/<name>/ must be unique")
         out[name] = RecordingEntry(name, str(p), None, dict(topics or {}))
+    if kind is not None:
+        if kind not in ("scan", "calibration"):
+            raise ValueError(f"kind must be scan, calibration or None, got {kind!r}")
+        return split_by_kind(out)[0 if kind == "scan" else 1]
     return out
+
+
+def recording_kind(entry: RecordingEntry) -> str:
+    """``calibration`` for a recording whose metadata says ``kind=calibration``, else
+    ``scan`` (an unreadable file too: its scan jobs fail with the reader's message)."""
+    if entry.summary is None:
+        from .recording.reader import probe_recording
+
+        entry.summary = probe_recording(entry.path, topic_map(entry._topics))
+    return "calibration" if getattr(entry.summary, "kind", None) == "calibration" else "scan"
+
+
+def split_by_kind(entries: Mapping[str, RecordingEntry]
+                  ) -> tuple[dict[str, RecordingEntry], dict[str, RecordingEntry]]:
+    """The scans and the calibration recordings of a batch (``robo3d.recording`` metadata
+    ``kind``, read by the cheap probe). Calibrations make ``results/calibration/<name>``,
+    so a scan may not be named ``calibration``."""
+    from .errors import ConfigError
+
+    scans = {n: e for n, e in entries.items() if recording_kind(e) == "scan"}
+    calibs = {n: e for n, e in entries.items() if n not in scans}
+    if "calibration" in scans:
+        raise ConfigError(f"config key recordings: a scan named 'calibration' "
+                          f"({scans['calibration'].path}) would write into "
+                          "results/calibration/, where the calibrations go; rename it")
+    return scans, calibs
+
+
+def scan_calibrations(setting: str | Mapping[str, str | None] | None,
+                      scans: Mapping[str, Any], calibrations: Mapping[str, Any]
+                      ) -> dict[str, str | None]:
+    """Which calibration each scan uses (config key ``scan_calibration``): a name for every
+    scan, or None where the scan keeps the calibration it carries.
+
+    Raises
+    ------
+    ConfigError
+        A calibration name that is not among the batch's calibration recordings, or a scan
+        name that is not among its scans, naming what there is.
+    """
+    from .errors import ConfigError
+
+    def known(name: str, where: str) -> str:
+        if name not in calibrations:
+            have = ", ".join(sorted(calibrations)) or "none (no kind=calibration recording " \
+                "among the recordings)"
+            raise ConfigError(f"config key {where}: no calibration recording named {name!r}; "
+                              f"calibration recordings: {have}")
+        return name
+
+    if setting is None:
+        return {s: None for s in scans}
+    if isinstance(setting, str):
+        return {s: known(setting, "scan_calibration") for s in scans}
+    unknown = sorted(set(setting) - set(scans))
+    if unknown:
+        raise ConfigError(f"config key scan_calibration: {', '.join(map(repr, unknown))} "
+                          f"{'is not a scan' if len(unknown) == 1 else 'are not scans'} of "
+                          f"the batch; scans: {', '.join(sorted(scans)) or 'none'}")
+    return {s: (known(setting[s], f"scan_calibration.{s}") if setting.get(s) else None)
+            for s in scans}
 
 
 def _what_is_there(items: list[str]) -> str:
@@ -172,6 +247,7 @@ STAGES: dict[str, Callable[..., dict[str, Any]]] = {
     "fuse": stage_fuse,
     "simplify": stage_simplify,
     "evaluate": stage_evaluate,
+    "calibrate": stage_calibrate,
 }
 
 
@@ -214,6 +290,8 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
     "fuse": ("fusion", "carving", "rerun", "seed"),
     "simplify": ("simplify", "rerun", "seed"),
     "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),
+    "calibrate": ("calibration", "laser_sheet", "calibration_gates", "topics", "frames",
+                  "timing", "seed"),
 }
 
 
@@ -253,7 +331,7 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
     """
     import inspect
 
-    rec = smk.wildcards.get("rec", "recording")
+    rec = smk.wildcards.get("rec") or smk.wildcards.get("calib") or "recording"
     _setup_logging(smk.log[0] if len(smk.log) else None, rec, stage)
     inputs = {k: str(v) for k, v in smk.input.items()}
     outputs = {k: str(v) for k, v in smk.output.items()}

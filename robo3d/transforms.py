@@ -249,6 +249,22 @@ class TransformBuffer:
         self._links[child] = _Link(parent, child, static, stamps[keep], tr[keep],
                                    quat_normalize(q[keep]), topic)
 
+    def copy(self) -> TransformBuffer:
+        """An independent copy of the tree (its samples copied)."""
+        import copy
+
+        return TransformBuffer(self.max_gap_ns, self.path, copy.deepcopy(self._links))
+
+    def replace_static(self, parent: str, child: str, T_parent_child: np.ndarray, *,
+                       topic: str = "/tf_static") -> None:
+        """Make ``parent -> child`` the one static link ``T_parent_child`` (4, 4), dropping
+        whatever samples the link had (a calibration replacing a recorded hand-eye):
+        unlike :meth:`add`, the old samples are not merged."""
+        self._links.pop(child, None)
+        T = np.asarray(T_parent_child, dtype=np.float64)
+        self.add(parent, child, np.zeros(1, np.int64), T[:3, 3], matrix_to_quat(T[:3, :3]),
+                 static=True, topic=topic)
+
     @property
     def frames(self) -> set[str]:
         """Every frame named in the tree."""

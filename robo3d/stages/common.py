@@ -26,10 +26,21 @@ summary = logging.getLogger("robo3d.summary")
 
 
 # ---------------------------------------------------------------------------- helpers
-def open_recording(path: str, cfg: Mapping[str, Any], roles: tuple[str, ...], require: bool = True):
+def open_recording(path: str, cfg: Mapping[str, Any], roles: tuple[str, ...], require: bool = True,
+                   calibration: str | None = None):
+    """Read a recording with the config's reader options; with ``calibration`` (a
+    ``results/calibration/<calib>.yaml``, config key ``scan_calibration``) its camera
+    model, hand-eye and laser replace the recorded ones
+    (:func:`robo3d.calibration.io.apply_calibration`)."""
     from ..recording.reader import read_recording
 
     rec = read_recording(path, roles=roles, require=require, **reader_options(cfg))
+    if calibration:
+        from ..calibration.io import CALIBRATION_METADATA, apply_calibration
+
+        rec = apply_calibration(rec, calibration)
+        log.info("%s: using calibration %s (%s)", path, calibration,
+                 rec.metadata[CALIBRATION_METADATA]["replaced"])
     return rec  # the reader has logged its warnings (rec.warnings keeps them)
 
 

@@ -89,6 +89,10 @@ def _stage_metrics(inputs: Mapping[str, str], results_dir: Path, cfg: Mapping[st
 
     metrics: dict[str, Any] = {"recording": str(inputs["recording"]), "name": rec_name,
                                "robo3d": code_version(), "skipped": {}}
+    if inputs.get("calibration"):  # config scan_calibration: not the recording's own
+        from ..calibration.io import calibration_note
+
+        metrics["calibration"] = calibration_note(inputs["calibration"])
     if not inputs.get("hull"):
         metrics["skipped"]["hull"] = "the recording has no silhouette views"
     if not inputs.get("aligned"):

@@ -47,13 +47,15 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     from ..silhouettes import SegmentOptions
 
     t0 = time.perf_counter()
-    rec = open_recording(inputs["recording"], cfg, roles=("views",))
+    rec = open_recording(inputs["recording"], cfg, roles=("views",),
+                         calibration=inputs.get("calibration"))
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
     cameras = [rec.camera_for(m) for m in views]
     poses = rec.camera_poses(views)
     options = SegmentOptions.from_config(cfg["segmentation"])
     ws = rec.workspace
-    backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses)
+    backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses,
+                                     inputs.get("calibration"))
     masks, per_view = [], []
     progress = Progress("segmenting views", len(views))
     for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
@@ -173,9 +175,11 @@ def _write_mask_pngs(directory: str, masks: list[np.ndarray]) -> None:
 
 
 def _background_images(path: str, cfg: Mapping[str, Any], views: list, cameras: list,
-                       poses: np.ndarray) -> list[np.ndarray | None]:
+                       poses: np.ndarray, calibration: str | None = None
+                       ) -> list[np.ndarray | None]:
     """For each view, the decoded empty-scene image of ``segmentation.background_topic``
-    taken nearest its pose (same camera), or None when there is none close enough."""
+    taken nearest its pose (same camera), or None when there is none close enough. Their
+    poses use the views' calibration (``calibration``: the scan's calibration file)."""
     from dataclasses import replace
 
     from ..transforms import rotation_angle_deg
@@ -190,6 +194,10 @@ def _background_images(path: str, cfg: Mapping[str, Any], views: list, cameras: 
     options = reader_options(cfg)
     options["topics"] = replace(options["topics"], views=topic)
     rec = read_recording(path, roles=("views",), require=False, **options)
+    if calibration:
+        from ..calibration.io import apply_calibration
+
+        rec = apply_calibration(rec, calibration)
     bgs = [m for m in rec.views if m.topic == topic]
     if not bgs:
         log.warning("segmentation.background_topic %s has no images in %s: segmenting "

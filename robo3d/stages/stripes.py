@@ -42,7 +42,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     t0 = time.perf_counter()
     n_threads = stage_threads(threads)
-    rec = open_recording(inputs["recording"], cfg, roles=("laser",))
+    rec = open_recording(inputs["recording"], cfg, roles=("laser",),
+                         calibration=inputs.get("calibration"))
     frames = sorted(rec.laser_frames, key=lambda m: m.timestamp_ns)
     cameras = [rec.camera_for(m) for m in frames]
     poses = rec.camera_poses(frames)

@@ -5,6 +5,8 @@ from robo3d.pipeline import (
     export_library_path,
     find_recordings,
     recording_stages,
+    scan_calibrations,
+    split_by_kind,
     stage_config,
 )
 
@@ -12,7 +14,11 @@ config.update(validate_config(config))
 
 export_library_path(workflow.basedir)
 
-RECORDINGS = find_recordings(config["recordings"], topics=config["topics"])
+# the scans, and the kind=calibration recordings (each makes results/calibration/<calib>.yaml)
+RECORDINGS, CALIBRATIONS = split_by_kind(find_recordings(config["recordings"],
+                                                         topics=config["topics"]))
+# the calibration each scan uses instead of its own (config scan_calibration), or None
+SCAN_CALIBRATION = scan_calibrations(config["scan_calibration"], RECORDINGS, CALIBRATIONS)
 CODE_VERSION = code_version()
 
 
@@ -24,11 +30,30 @@ def stage_params(stage):
 
 wildcard_constraints:
     rec="|".join(sorted(RECORDINGS)) or "NO_RECORDINGS",
+    calib="|".join(sorted(CALIBRATIONS)) or "NO_CALIBRATIONS",
 
 
 def get_recording(wildcards):
     """The .mcap file of one recording."""
     return RECORDINGS[wildcards.rec].path
+
+
+def get_calibration(wildcards):
+    """The calibration file a scan uses instead of its own ({} when it keeps its own):
+    re-calibrating re-runs the scans that use it, and only those."""
+    calib = SCAN_CALIBRATION.get(wildcards.rec)
+    return {"calibration": f"results/calibration/{calib}.yaml"} if calib else {}
+
+
+def get_scan_inputs(wildcards):
+    """A stage that reads the scan recording's cameras and transforms: the recording and
+    the calibration it uses."""
+    return {"recording": RECORDINGS[wildcards.rec].path, **get_calibration(wildcards)}
+
+
+def get_calibration_recording(wildcards):
+    """The .mcap file of one calibration recording."""
+    return CALIBRATIONS[wildcards.calib].path
 
 
 def get_align_inputs(wildcards):
@@ -54,7 +79,7 @@ def get_fuse_inputs(wildcards):
 def get_evaluate_inputs(wildcards):
     """The recording and every result it supports."""
     stages = recording_stages(RECORDINGS[wildcards.rec])
-    out = {"recording": RECORDINGS[wildcards.rec].path,
+    out = {"recording": RECORDINGS[wildcards.rec].path, **get_calibration(wildcards),
            "mesh": f"results/{wildcards.rec}/mesh.ply",
            "fused": f"results/{wildcards.rec}/fused.ply",
            "measured": f"results/{wildcards.rec}/measured.ply"}
@@ -80,4 +105,6 @@ def get_all_outputs():
                 f"results/{name}/mesh.ply", f"results/{name}/metrics.json"]
     if RECORDINGS:
         out.append("results/batch.tsv")
+    for name in sorted(CALIBRATIONS):
+        out += [f"results/calibration/{name}.yaml", f"results/calibration/{name}_report.json"]
     return out

@@ -4,7 +4,7 @@
 
 rule stripes:
     input:
-        recording=get_recording,
+        unpack(get_scan_inputs),
     output:
         npz="results/{rec}/stripes.npz",
         report="results/{rec}/reports/stripes.json",

@@ -3,7 +3,7 @@
 
 rule silhouettes:
     input:
-        recording=get_recording,
+        unpack(get_scan_inputs),
     output:
         npz="results/{rec}/silhouettes.npz",
         masks=directory("results/{rec}/masks"),

@@ -1,0 +1,399 @@
+"""A calibration recording in, a checked calibration out (issue 13, items 1 and 2).
+
+:func:`calibrate_recording` runs the parts in order and hands each the previous one's
+result:
+
+* **robot cell** (static board in ``base``, the robot moves the camera): board detection
+  in every view (:mod:`robo3d.calibration.target`), intrinsics and distortion
+  (:mod:`robo3d.calibration.intrinsics`), hand-eye ``flange -> camera`` refined jointly
+  with the board's pose in ``base`` (:mod:`robo3d.calibration.handeye`), then the laser
+  sheet from the stripe on the board in the laser frames, each frame's board pose coming
+  from the chain ``base -> flange -> camera`` (:mod:`robo3d.calibration.sheet`);
+* **fixed camera, moving board** (``robo3d.target`` ``moving = true``): intrinsics, then
+  the laser sheet from the boards detected in the laser frames themselves; no hand-eye.
+
+Then the quality gates (:mod:`robo3d.calibration.gates`). :func:`calibration_report`
+is the report (per-view RMS, the views left out and why, the gate table) and
+:func:`to_calibration_file` the calibration file's content
+(:mod:`robo3d.calibration.io`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..camera import CameraModel
+from ..errors import CalibrationError, RecordingError
+from ..transforms import invert_transform
+from .gates import GateResult, evaluate_gates, gate_table, tilt_spread_deg
+from .io import CalibrationFile
+
+__all__ = ["CalibrationResult", "calibrate_recording", "calibration_report",
+           "to_calibration_file", "GateFailure"]
+
+
+@dataclass
+class CalibrationResult:
+    """Everything one calibration found, and the figures the gates judge.
+
+    Attributes
+    ----------
+    name, recording : str
+        The calibration's name (``results/calibration/<name>.yaml``) and its file.
+    kind : str
+        ``robot_cell`` (static board, hand-eye) or ``moving_target`` (fixed camera).
+    target : robo3d.calibration.target.Target
+    camera : CameraModel
+        The calibrated intrinsics.
+    rms_px : float
+        Reprojection RMS of the intrinsics' fit over the used views, pixels.
+    per_view_rms_px : (M,) float64
+        Per used view.
+    views_used : (M,) int
+        Indices (into the views in time order) of the views the fit used.
+    views_left_out : dict
+        Index -> reason, for every view not used.
+    T_camera_target : (M, 4, 4) float64
+        The board's pose in the camera per used view.
+    view_stamps_ns : (V,) int64
+        Every view's time.
+    edge_width_px : (V,) float64
+        Every view's board edge width (``estimateChessboardSharpness``; NaN: not found).
+    intrinsics_std : dict
+        1-sigma uncertainty of ``fx, fy, cx, cy, k1, ...``.
+    T_base_flange : (M, 4, 4) float64 or None
+        The robot's flange pose at each used view (robot cell).
+    T_flange_camera, T_base_target : (4, 4) float64 or None
+        Hand-eye and the board's pose in ``base`` (robot cell).
+    handeye_rms_px : float or None
+        Reprojection RMS through the robot chain after the joint refinement.
+    handeye_per_view_rms_px : (M,) float64 or None
+    board_scatter_mm : float or None
+        Standard deviation of the board origin's position in ``base`` over the views.
+    handeye_closed_form : dict
+        The closed form's figures (method, RMS, scatter) beside the refined ones.
+    T_camera_laser : (4, 4) float64 or None
+    laser_sheet : dict or None
+        ``normal``, ``offset_m``, ``six_parameters``, ``rms_mm``.
+    sheet_rms_mm : float or None
+    sheet_frames_used : (L,) int
+        Indices (into the laser frames in time order) of the frames the plane used.
+    sheet_left_out : dict
+        Index -> reason.
+    sheet_per_frame_rms_mm : (L,) float64
+    gates : list of GateResult
+    notes : list of str
+    seconds : float
+    """
+
+    name: str
+    recording: str
+    kind: str
+    target: Any
+    camera: CameraModel
+    rms_px: float
+    per_view_rms_px: np.ndarray
+    views_used: np.ndarray
+    views_left_out: dict[int, str]
+    T_camera_target: np.ndarray
+    view_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    edge_width_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    intrinsics_std: dict[str, float] = field(default_factory=dict)
+    T_base_flange: np.ndarray | None = None
+    T_flange_camera: np.ndarray | None = None
+    T_base_target: np.ndarray | None = None
+    handeye_rms_px: float | None = None
+    handeye_per_view_rms_px: np.ndarray | None = None
+    board_scatter_mm: float | None = None
+    handeye_closed_form: dict[str, Any] = field(default_factory=dict)
+    T_camera_laser: np.ndarray | None = None
+    laser_sheet: dict[str, Any] | None = None
+    sheet_rms_mm: float | None = None
+    sheet_frames_used: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    sheet_left_out: dict[int, str] = field(default_factory=dict)
+    sheet_per_frame_rms_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gates: list[GateResult] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def failed_gates(self) -> list[GateResult]:
+        return [g for g in self.gates if g.passed is False]
+
+
+class GateFailure(CalibrationError):
+    """A calibration that failed a quality gate; ``result`` keeps what was found (for the
+    report of a failed calibration)."""
+
+    def __init__(self, message: str, result: CalibrationResult, *, path: str | None = None):
+        super().__init__(message, path=path)
+        self.result = result
+
+
+# ---------------------------------------------------------------------------- orchestration
+def _sorted_images(msgs: list) -> list:
+    return sorted(msgs, key=lambda m: m.timestamp_ns)
+
+
+def _camera_frame(recording) -> tuple[str, CameraModel]:
+    """The calibrated camera: the recording's only camera (or ``camera``)."""
+    views = recording.views or recording.laser_frames
+    if not views:
+        raise RecordingError("a calibration recording needs views of the target on the views "
+                             "topic; it has none", path=recording.path)
+    fids = sorted({m.frame_id for m in views})
+    if len(fids) > 1:
+        raise RecordingError(f"the views come from {len(fids)} cameras ({', '.join(fids)}); "
+                             "robo3d calibrates one camera per recording", path=recording.path)
+    return fids[0], recording.camera_for(views[0])
+
+
+def _detect(recording, msgs: list, target, options) -> list:
+    from .target import detect_boards
+
+    return detect_boards((recording.decode(m) for m in msgs), target, options)
+
+
+def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = None,
+                        check: bool = True) -> CalibrationResult:
+    """Calibrate from a ``kind=calibration`` recording and judge the result.
+
+    Parameters
+    ----------
+    recording : robo3d.recording.Recording
+        Read with views (the target) and, when it has them, laser frames.
+    cfg : mapping
+        The validated config (sections ``calibration``, ``laser_sheet``,
+        ``calibration_gates``, ``frames``, ``seed``).
+    name : str, optional
+        The calibration's name; the recording's file name by default.
+    check : bool
+        Raise :class:`GateFailure` when a gate fails (else only record it in ``gates``).
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    RecordingError
+        Not a calibration recording (``kind``), no target metadata, no views.
+    GateFailure
+        A quality gate failed (``check``); its message names every failed gate.
+    """
+    from pathlib import Path
+
+    from .target import DetectOptions, target_from_recording
+
+    t0 = time.perf_counter()
+    kind = recording.info.get("kind")
+    if kind != "calibration":
+        raise RecordingError(f"metadata robo3d.recording kind is {kind!r}: only kind="
+                             "calibration recordings are calibrated from", path=recording.path)
+    target = target_from_recording(recording)
+    frame_id, published = _camera_frame(recording)
+    views = _sorted_images([m for m in recording.views if m.frame_id == frame_id])
+    stamps = np.array([m.timestamp_ns for m in views], dtype=np.int64)
+    detections = _detect(recording, views, target, DetectOptions.from_config(cfg["calibration"]))
+    res = _intrinsics(detections, target, published, cfg)
+    result = CalibrationResult(
+        name=name or Path(recording.path).stem, recording=str(recording.path),
+        kind="moving_target" if target.moving else "robot_cell", target=target,
+        camera=res.camera, rms_px=float(res.rms_px),
+        per_view_rms_px=np.asarray(res.per_view_rms, dtype=np.float64),
+        views_used=np.asarray(res.used, dtype=int),
+        views_left_out={int(k): str(v) for k, v in res.rejected.items()},
+        T_camera_target=np.asarray(res.T_camera_target, dtype=np.float64).reshape(-1, 4, 4),
+        view_stamps_ns=stamps,
+        edge_width_px=np.array([d.sharpness for d in detections], dtype=np.float64),
+        intrinsics_std={k: float(v) for k, v in dict(res.std).items()})
+    if not target.moving:
+        _handeye(recording, result, detections, cfg)
+    lasers = _sorted_images([m for m in recording.laser_frames if m.frame_id == frame_id])
+    if lasers:
+        _sheet(recording, result, lasers, cfg)
+    else:
+        result.notes.append("no laser frames: no laser sheet calibrated")
+    result.gates = evaluate_gates(result, cfg["calibration_gates"])
+    result.seconds = round(time.perf_counter() - t0, 3)
+    failed = result.failed_gates
+    if check and failed:
+        raise GateFailure(
+            f"calibration failed {len(failed)} quality gate(s) (config calibration_gates):\n"
+            + "\n".join("  " + g.line() for g in failed), result, path=recording.path)
+    return result
+
+
+def _intrinsics(detections: list, target, published: CameraModel, cfg: Mapping[str, Any]):
+    """Intrinsics (:func:`robo3d.calibration.intrinsics.calibrate_intrinsics`), with the
+    camera model attached as ``camera``."""
+    from . import intrinsics as intr
+
+    opts_cls = getattr(intr, "IntrinsicsOptions", None)
+    options = opts_cls.from_config(cfg["calibration"]) if opts_cls is not None else None
+    res = intr.calibrate_intrinsics(detections, target, (published.width, published.height),
+                                    options)
+    res.camera = CameraModel(published.frame_id, published.width, published.height,
+                             np.asarray(res.K), np.asarray(res.D))
+    return res
+
+
+def _handeye(recording, result: CalibrationResult, detections: list,
+             cfg: Mapping[str, Any]) -> None:
+    """Hand-eye and the board in ``base`` (robot cell), refined jointly."""
+    from . import handeye as he
+
+    t_used = result.view_stamps_ns[result.views_used]
+    T_bf = recording.tf.lookup(recording.base_frame, "flange", t_used)
+    result.T_base_flange = T_bf
+    opts_cls = getattr(he, "HandEyeOptions", None)
+    options = opts_cls.from_config(cfg["calibration"]) if opts_cls is not None else None
+    corners = [detections[int(i)].corners for i in result.views_used]
+    X0 = he.handeye_closed_form(T_bf, result.T_camera_target, "park")
+    out = he.refine_handeye(T_bf, result.T_camera_target, corners, result.target,
+                            result.camera, X0, options)
+    result.T_flange_camera = np.asarray(out.T_flange_camera, dtype=np.float64)
+    result.T_base_target = np.asarray(out.T_base_target, dtype=np.float64)
+    result.handeye_rms_px = float(out.rms_px)
+    result.handeye_per_view_rms_px = np.asarray(out.per_view_rms, dtype=np.float64)
+    result.board_scatter_mm = float(out.board_scatter_mm)
+    result.handeye_closed_form = dict(getattr(out, "closed_form", {}) or {})
+    if getattr(out, "K", None) is not None:  # the joint refinement may refine intrinsics
+        cam = result.camera
+        result.camera = CameraModel(cam.frame_id, cam.width, cam.height, np.asarray(out.K),
+                                    np.asarray(out.D) if out.D is not None else cam.D)
+
+
+def _sheet(recording, result: CalibrationResult, lasers: list, cfg: Mapping[str, Any]) -> None:
+    """The laser sheet from the stripe on the board: the board's pose in each laser frame
+    from the robot chain (static board) or from the board detected in the frame."""
+    from . import sheet as sh
+
+    stamps = np.array([m.timestamp_ns for m in lasers], dtype=np.int64)
+    if result.T_flange_camera is not None and result.T_base_target is not None:
+        T_bf = recording.tf.lookup(recording.base_frame, "flange", stamps)
+        T_ct = invert_transform(T_bf @ result.T_flange_camera) @ result.T_base_target
+        poses: list[np.ndarray | None] = list(T_ct)
+        source = "the robot chain"
+    else:
+        poses = _board_poses_in_frames(recording, lasers, result, cfg)
+        source = "the board detected in each laser frame"
+    opts_cls = getattr(sh, "SheetOptions", None)
+    options = opts_cls.from_config(cfg["laser_sheet"]) if opts_cls is not None else None
+    images = (recording.decode(m) for m in lasers)
+    out = sh.calibrate_sheet(images, result.camera, poses, options)
+    result.T_camera_laser = np.asarray(out.T_camera_laser, dtype=np.float64)
+    result.sheet_rms_mm = float(out.rms_mm)
+    result.sheet_frames_used = np.asarray(out.used, dtype=int)
+    result.sheet_left_out = {int(k): str(v) for k, v in dict(out.rejected).items()}
+    result.sheet_per_frame_rms_mm = np.asarray(getattr(out, "per_frame_rms_mm", []),
+                                               dtype=np.float64)
+    six = out.six_parameters
+    result.laser_sheet = {
+        "normal": np.asarray(out.plane.normal, dtype=np.float64).tolist(),
+        "offset_m": float(out.plane.offset_m),
+        "six_parameters": {"dx_m": six[0], "dy_m": six[1], "dz_m": six[2],
+                           "phi_deg": float(np.degrees(six[3])),
+                           "theta_deg": float(np.degrees(six[4])),
+                           "psi_deg": float(np.degrees(six[5]))},
+        "rms_mm": float(out.rms_mm), "board_poses_from": source}
+
+
+def _board_poses_in_frames(recording, lasers: list, result: CalibrationResult,
+                           cfg: Mapping[str, Any]) -> list[np.ndarray | None]:
+    """The board's pose in each laser frame (moving target): detected, then solvePnP with
+    the calibrated camera (None where the board is not found)."""
+    import cv2
+
+    from .target import DetectOptions, board_points
+
+    dets = _detect(recording, lasers, result.target, DetectOptions.from_config(cfg["calibration"]))
+    obj = board_points(result.target)
+    K, D = result.camera.K, result.camera.D
+    out: list[np.ndarray | None] = []
+    for d in dets:
+        if not d.ok:
+            out.append(None)
+            continue
+        ok, rvec, tvec = cv2.solvePnP(obj, d.corners, K, D, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            out.append(None)
+            continue
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.ravel()
+        out.append(T)
+    return out
+
+
+# ---------------------------------------------------------------------------- outputs
+def to_calibration_file(result: CalibrationResult, code: str = "") -> CalibrationFile:
+    """The calibration file of a result (:func:`robo3d.calibration.io.write_calibration`)."""
+    t = result.target
+    quality = {
+        "rms_px": result.rms_px,
+        "per_view_rms_px": np.round(result.per_view_rms_px, 5).tolist(),
+        "views_used": [int(i) for i in result.views_used],
+        "views_left_out": {int(k): v for k, v in sorted(result.views_left_out.items())},
+        "tilt_spread_deg": tilt_spread_deg(result.T_camera_target),
+        "intrinsics_std": result.intrinsics_std,
+        "handeye_rms_px": result.handeye_rms_px,
+        "board_scatter_mm": result.board_scatter_mm,
+        "handeye_closed_form": result.handeye_closed_form or None,
+        "T_base_target": result.T_base_target,
+        "sheet_rms_mm": result.sheet_rms_mm,
+        "sheet_frames_used": [int(i) for i in result.sheet_frames_used],
+        "sheet_left_out": {int(k): v for k, v in sorted(result.sheet_left_out.items())},
+    }
+    source = {"recording": result.recording, "kind": result.kind,
+              "target": {"cols": int(t.cols), "rows": int(t.rows), "square_m": float(t.square),
+                         "moving": bool(t.moving)},
+              "code": code, "notes": list(result.notes)}
+    return CalibrationFile(name=result.name, camera=result.camera,
+                           T_flange_camera=result.T_flange_camera,
+                           T_camera_laser=result.T_camera_laser,
+                           laser_sheet=result.laser_sheet, quality=quality,
+                           gates=gate_table(result.gates), source=source)
+
+
+def calibration_report(result: CalibrationResult) -> dict[str, Any]:
+    """The report: every view (used or left out, why, its RMS), every laser frame the sheet
+    left out, the gate table, the figures beside the closed form's."""
+    n_views = len(result.view_stamps_ns)
+    rms = dict(zip(map(int, result.views_used), result.per_view_rms_px.tolist(), strict=True))
+    he = {}
+    if result.handeye_per_view_rms_px is not None:
+        he = dict(zip(map(int, result.views_used), result.handeye_per_view_rms_px.tolist(),
+                      strict=True))
+    views = [{"index": i, "t_s": int(result.view_stamps_ns[i]) / 1e9,
+              "used": i in rms, "rms_px": rms.get(i), "handeye_rms_px": he.get(i),
+              "edge_width_px": (float(result.edge_width_px[i])
+                                if i < len(result.edge_width_px)
+                                and np.isfinite(result.edge_width_px[i]) else None),
+              "left_out": result.views_left_out.get(i)} for i in range(n_views)]
+    cam = result.camera
+    return {
+        "name": result.name, "recording": result.recording, "kind": result.kind,
+        "passed": not result.failed_gates,
+        "gates": gate_table(result.gates),
+        "failed_gates": [g.line() for g in result.failed_gates],
+        "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                       "D": cam.D.tolist(), "std": result.intrinsics_std,
+                       "rms_px": result.rms_px, "n_views": n_views,
+                       "n_used": len(result.views_used),
+                       "tilt_spread_deg": tilt_spread_deg(result.T_camera_target)},
+        "handeye": None if result.T_flange_camera is None else {
+            "T_flange_camera": result.T_flange_camera, "T_base_target": result.T_base_target,
+            "rms_px": result.handeye_rms_px, "board_scatter_mm": result.board_scatter_mm,
+            "closed_form": result.handeye_closed_form},
+        "laser_sheet": result.laser_sheet,
+        "laser_frames_left_out": {int(k): v for k, v in sorted(result.sheet_left_out.items())},
+        "views": views,
+        "views_left_out": {int(k): v for k, v in sorted(result.views_left_out.items())},
+        "notes": result.notes, "seconds": result.seconds,
+    }

@@ -109,6 +109,8 @@ __all__ = [
     "laser_transform_from_params",
     "laser_params_from_transform",
     "laser_plane_in_camera",
+    "laser_pose_from_plane",
+    "six_parameters_from_pose",
     "sheet_in_workspace",
     "sheet_roi_mask",
     "triangulate_pixels",
@@ -266,6 +268,111 @@ def laser_plane_in_camera(T_camera_laser: np.ndarray) -> tuple[np.ndarray, float
     n = -np.array([m_x, -m_y, m_z])  # eq. 15 coefficients, flipped to +y_L
     n /= np.linalg.norm(n)
     return n, float(n @ p)
+
+
+def laser_pose_from_plane(normal: np.ndarray, offset_m: float,
+                          reference: np.ndarray | None = None) -> np.ndarray:
+    """A laser pose whose sheet is the plane ``normal · x = offset_m`` of the camera
+    frame: the inverse of :func:`laser_plane_in_camera`, up to what a plane leaves free.
+
+    A plane fixes three of the pose's six degrees of freedom (the direction of the
+    laser's +y axis and the sheet's distance from the camera centre); the laser's
+    rotation within the sheet and its origin's position in it are not seen by the
+    triangulation (every point of the sheet triangulates alike). We fix them so:
+
+    * without ``reference`` (the canonical pose): ``+y_L = ±normal`` with the sign that
+      makes the offset non-negative (the normal points from the camera centre towards
+      the sheet); ``+z_L`` (the beam) is the camera's +z projected onto the sheet (its
+      +y when the sheet is nearly perpendicular to the optical axis, i.e. the
+      projection is shorter than 0.1); ``x_L = y_L × z_L``; the origin is the foot of
+      the perpendicular from the camera centre, ``offset · y_L``;
+    * with ``reference`` (e.g. the recording's nominal ``T_camera_laser``): ``+y_L``
+      takes the sign of the reference's y axis, ``+z_L`` is the reference's z axis
+      projected onto the sheet, and the origin is the reference's origin projected
+      onto the sheet, so that only what the plane measures changes.
+
+    Parameters
+    ----------
+    normal : (3,) float64
+        The sheet's normal in the camera frame (any length but zero).
+    offset_m : float, metres
+        The plane's offset along ``normal`` (``normal · x = offset_m``, after
+        ``normal`` is made unit length).
+    reference : (4, 4) float64, optional
+        A laser pose whose in-plane choices to keep.
+
+    Returns
+    -------
+    (4, 4) float64
+        ``T_camera_laser`` with ``laser_plane_in_camera(T) == (±normal, ±offset)``.
+    """
+    n = np.asarray(normal, dtype=np.float64).reshape(-1)
+    nn = float(np.linalg.norm(n)) if n.shape == (3,) else 0.0
+    if not (nn > 0 and np.isfinite(nn) and np.isfinite(offset_m)):
+        raise ValueError(f"normal must be a finite non-zero (3,) vector and offset_m finite, "
+                         f"got {np.asarray(normal).tolist()} and {offset_m}")
+    n, d = n / nn, float(offset_m) / nn
+    if reference is None:
+        if d < 0 or (d == 0 and n[np.argmax(np.abs(n))] < 0):
+            n, d = -n, -d
+        z = np.array([0.0, 0.0, 1.0]) - n[2] * n
+        if np.linalg.norm(z) < 0.1:
+            z = np.array([0.0, 1.0, 0.0]) - n[1] * n
+        origin = d * n
+    else:
+        ref = check_transform(reference, "reference")
+        if n @ ref[:3, 1] < 0:
+            n, d = -n, -d
+        z = ref[:3, 2] - (ref[:3, 2] @ n) * n
+        if np.linalg.norm(z) < 0.1:  # the reference's beam along the normal: its x instead
+            x_ref = ref[:3, 0] - (ref[:3, 0] @ n) * n
+            z = np.cross(x_ref, n)
+        origin = ref[:3, 3] - (ref[:3, 3] @ n - d) * n
+    z /= np.linalg.norm(z)
+    x = np.cross(n, z)
+    t = np.eye(4)
+    t[:3, 0], t[:3, 1], t[:3, 2], t[:3, 3] = x, n, z, origin
+    return t
+
+
+def six_parameters_from_pose(T_camera_laser: np.ndarray, *,
+                             canonical: bool = False) -> dict[str, float]:
+    """The seed's six laser parameters (eq. 11) of a laser pose, as a dict.
+
+    The inverse of :func:`laser_transform_from_params` (through
+    :func:`laser_params_from_transform`): ``laser_transform_from_params(**p)`` with
+    ``p`` the first six entries gives ``T_camera_laser`` back (away from θ = ±90°).
+    A sheet fitted to points fixes only its plane; with ``canonical=True`` the pose is
+    first replaced by the canonical pose of its sheet (:func:`laser_pose_from_plane`
+    without reference: origin at the foot of the perpendicular from the camera centre,
+    beam along the camera's +z projected onto the sheet), so that the parameters depend
+    on the plane alone.
+
+    Parameters
+    ----------
+    T_camera_laser : (4, 4) float64
+        Pose of the laser in the camera.
+    canonical : bool
+        Use the canonical pose of the sheet instead of ``T_camera_laser`` itself.
+
+    Returns
+    -------
+    dict
+        ``dx, dy, dz`` (metres), ``phi, theta, psi`` (radians) as in
+        :func:`laser_transform_from_params`, and the angles again in degrees as
+        ``phi_deg, theta_deg, psi_deg``.
+
+    References
+    ----------
+    .. [1] The seed chapter, §4.1, eq. 11.
+    """
+    t = check_transform(T_camera_laser, "T_camera_laser")
+    if canonical:
+        t = laser_pose_from_plane(*laser_plane_in_camera(t))
+    dx, dy, dz, phi, theta, psi = laser_params_from_transform(t)
+    out = {"dx": dx, "dy": dy, "dz": dz, "phi": phi, "theta": theta, "psi": psi}
+    out.update({f"{k}_deg": float(np.degrees(out[k])) for k in ("phi", "theta", "psi")})
+    return out
 
 
 def _planes(T_camera_laser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,9 @@ status. To add a command (``robo3d info``, ...), write the pair and append it.
 ``robo3d simulate --demo DIR [--missing]``
     Regenerate the demo recordings into ``DIR``, deterministically (``--missing``: only
     those not there yet; ``./run.sh demo`` does this first).
+``robo3d simulate-calibration OUT.mcap [--rig robot|fixed] [--seed N] [--small] [options]``
+    Simulate a calibration recording of the scan cell with its truth (see
+    :mod:`robo3d.sim.calibration`).
 ``robo3d info RECORDING [--config CONFIG] [--topic ROLE=NAME] [--frame ROLE=NAME] [--json]``
     What a recording holds and whether each stage can use it (see :mod:`robo3d.info`);
     exit status 1 when it is not fit, with the reasons.
@@ -232,6 +235,56 @@ def _run_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- simulate-calibration
+def _add_simulate_calibration(p: argparse.ArgumentParser) -> None:
+    from .sim.calibration import DEFECTS, CalibrationOptions
+
+    d = CalibrationOptions()
+    p.add_argument("out", help="output .mcap file")
+    p.add_argument("--rig", choices=("robot", "fixed"), default="robot",
+                   help="robot: the robot moves the camera over a static board; fixed: a "
+                        "fixed camera (base) and a hand-held board (default %(default)s)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="random seed of the session (default: the cell's, 0)")
+    p.add_argument("--scene", choices=("demo", "cell"), default="cell",
+                   help="the scan cell to calibrate (as robo3d simulate --scene; default "
+                        "%(default)s)")
+    p.add_argument("--small", action="store_true",
+                   help="320x240, 8 views and 4 laser frames (tests)")
+    p.add_argument("--width", type=int, default=None, help="image width, px (default 640)")
+    p.add_argument("--height", type=int, default=None, help="image height, px (default 480)")
+    p.add_argument("--views", type=int, default=None,
+                   help=f"board views, bad ones included (default {d.views})")
+    p.add_argument("--laser-frames", type=int, default=None,
+                   help=f"laser frames, each with a companion view (default {d.laser_frames})")
+    p.add_argument("--defects", nargs="*", choices=DEFECTS, default=None,
+                   help=f"one bad view of each kind given, none without a value (default "
+                        f"{' '.join(d.defects)})")
+    p.add_argument("--encoding", choices=("protobuf", "json"), default="protobuf",
+                   help="message encoding (default %(default)s)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="ray-casting threads, 0 for all cores (default %(default)s)")
+
+
+def _run_simulate_calibration(args: argparse.Namespace) -> int:
+    from .simulate import SimulationParams, simulate_calibration
+
+    size = {k: v for k, v in (("width", args.width), ("height", args.height)) if v is not None}
+    if args.scene == "cell":
+        params = SimulationParams.cell(small=args.small, **size)
+    else:
+        params = (SimulationParams.small(**size) if args.small else SimulationParams(**size))
+    options = {k: v for k, v in (("views", args.views), ("laser_frames", args.laser_frames),
+                                 ("defects", args.defects)) if v is not None}
+    try:
+        simulate_calibration(args.out, rig=args.rig, seed=args.seed, params=params,
+                             small=args.small, threads=args.threads,
+                             message_encoding=args.encoding, **options)
+    except ValueError as exc:  # an option out of range
+        raise Robo3dError(str(exc)) from None
+    return 0
+
+
 # --------------------------------------------------------------------------- info
 def _pairs(items: list[str] | None, what: str, allowed: tuple[str, ...]) -> dict[str, str]:
     out = {}
@@ -297,6 +350,9 @@ def _run_status(args: argparse.Namespace) -> int:
 COMMANDS: list[Command] = [
     Command("simulate", "simulate a scan recording with ground truth (or the demos)",
             _add_simulate, _run_simulate),
+    Command("simulate-calibration", "simulate a calibration recording (a checkerboard, "
+            "robot cell or fixed rig) with its truth", _add_simulate_calibration,
+            _run_simulate_calibration),
     Command("info", "what a recording holds and whether the pipeline can use it",
             _add_info, _run_info),
     Command("status", "what a batch run made, and why its failed jobs failed",

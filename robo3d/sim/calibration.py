@@ -420,15 +420,12 @@ class BoardLayer(NamedTuple):
         times ``cos(theta) * r_ref / r`` (0 without a laser).
     depth : (N,) float64, metres
         Distance along the pixel centre's ray to the board plane (``inf``: none).
-    points_camera : (N, 3) float64, metres
-        The pixel centres' board-plane points in the camera frame.
     """
 
     coverage: np.ndarray
     albedo: np.ndarray
     laser: np.ndarray
     depth: np.ndarray
-    points_camera: np.ndarray
 
 
 def board_layer(camera: CameraModel, rays_camera: np.ndarray, T_camera_target: np.ndarray,
@@ -465,23 +462,26 @@ def board_layer(camera: CameraModel, rays_camera: np.ndarray, T_camera_target: n
     o, ex, ey, nz = t_ct[:3, 3], t_ct[:3, 0], t_ct[:3, 1], t_ct[:3, 2]
     full_cov, full_alb = np.zeros(H * W), np.zeros((H * W, 3))
     full_las, full_depth = np.zeros(H * W), np.full(H * W, np.inf)
-    full_pts = np.zeros((H * W, 3))
     box = _board_pixel_box(camera, t_ct, board, hand)
     if box is None:
-        return BoardLayer(full_cov, full_alb, full_las, full_depth, full_pts)
+        return BoardLayer(full_cov, full_alb, full_las, full_depth)
+    laser_on = T_camera_laser is not None
+    a = appearance or Appearance()
+    t_cl = np.asarray(T_camera_laser if laser_on else np.eye(4), dtype=np.float64)
+    lo, ln = t_cl[:3, 3], t_cl[:3, 1]
     r0, r1, c0, c1 = box
     h, w = r1 - r0, c1 - c0
     crop = (np.arange(r0, r1)[:, None] * W + np.arange(c0, c1)[None, :]).ravel()
     d = np.asarray(rays_camera, dtype=np.float64)[crop]
-    dn = d @ nz
+    proj = d @ np.stack([ex, ey, nz, ln], axis=1)  # ray . axis, (N, 4)
+    dn = proj[:, 2]
     valid = dn > 1e-9  # the printed face (normal -z) toward the camera: n . d > 0
     depth = np.where(valid, (o @ nz) / np.where(valid, dn, 1.0), np.inf)
     valid &= depth > 0
     depth[~valid] = np.inf
-    pts = d * np.where(valid, depth, 0.0)[:, None]
-    rel = pts - o
-    x = (rel @ ex).reshape(h, w)
-    y = (rel @ ey).reshape(h, w)
+    dep0 = np.where(valid, depth, 0.0)
+    x = (dep0 * proj[:, 0] - o @ ex).reshape(h, w)
+    y = (dep0 * proj[:, 1] - o @ ey).reshape(h, w)
     vmap = valid.reshape(h, w)
     # Jacobian of the board coordinates in pixels (central differences)
     x_v, x_u = np.gradient(x)
@@ -501,12 +501,8 @@ def board_layer(camera: CameraModel, rays_camera: np.ndarray, T_camera_target: n
     if hand is not None:
         for cx, cy, ax, ay in hand.ellipses:
             edge |= vmap & (np.abs(x - cx) < ax + hx) & (np.abs(y - cy) < ay + hy)
-    laser_on = T_camera_laser is not None
     if laser_on:
-        a = appearance or Appearance()
-        t_cl = np.asarray(T_camera_laser, dtype=np.float64)
-        lo, ln = t_cl[:3, 3], t_cl[:3, 1]
-        ds = ((pts - lo) @ ln).reshape(h, w)
+        ds = (dep0 * proj[:, 3] - lo @ ln).reshape(h, w)
         ds_v, ds_u = np.gradient(ds)
         hs = 0.5 * (np.abs(ds_u) + np.abs(ds_v))
         edge |= vmap & (np.abs(ds) < 2.5 * a.laser_width + hs) & near_plate
@@ -516,9 +512,10 @@ def board_layer(camera: CameraModel, rays_camera: np.ndarray, T_camera_target: n
     cov = inside.astype(np.float64)
     alb = rgb * cov[:, None]
     las_w = np.zeros(h * w)
-    if laser_on:
-        g = np.exp(-2.0 * (ds.ravel() / a.laser_width) ** 2)
-        las_w = _albedo_at_laser(rgb, a) * g * cov
+    if laser_on:  # pixel centres near the sheet (the supersampled ones are redone below)
+        lit = np.flatnonzero(np.abs(ds.ravel()) < 3.0 * a.laser_width)
+        g = np.exp(-2.0 * (ds.ravel()[lit] / a.laser_width) ** 2)
+        las_w[lit] = _albedo_at_laser(rgb[lit], a) * g * cov[lit]
     idx = np.flatnonzero(edge.ravel())
     if len(idx):
         n = max(int(supersample), 1)
@@ -537,10 +534,12 @@ def board_layer(camera: CameraModel, rays_camera: np.ndarray, T_camera_target: n
             las_w[idx] = (_albedo_at_laser(srgb, a) * gs * sin_f).reshape(len(idx), -1
                                                                           ).mean(axis=1)
     if laser_on:
-        las_w *= _laser_geometry(pts, t_ct, t_cl, a) * valid
+        nz_ = np.flatnonzero(las_w)
+        las_w[nz_] *= (_laser_geometry(d[nz_] * dep0[nz_, None], t_ct, t_cl, a)
+                       * valid[nz_])
     full_cov[crop], full_alb[crop], full_las[crop] = cov * valid, alb * valid[:, None], las_w
-    full_depth[crop], full_pts[crop] = depth, pts
-    return BoardLayer(full_cov, full_alb, full_las, full_depth, full_pts)
+    full_depth[crop] = depth
+    return BoardLayer(full_cov, full_alb, full_las, full_depth)
 
 
 def _board_pixel_box(camera: CameraModel, t_ct: np.ndarray, board: Checkerboard,
@@ -591,8 +590,9 @@ def _laser_geometry(pts: np.ndarray, t_ct: np.ndarray, t_cl: np.ndarray,
     return cos * (a.laser_reference_range / r) * fan
 
 
-def _board_radiance(layer: BoardLayer, t_world_camera: np.ndarray, t_ct: np.ndarray,
-                    a: Appearance, glare_lamp: np.ndarray | None) -> np.ndarray:
+def _board_radiance(layer: BoardLayer, rays: np.ndarray, t_world_camera: np.ndarray,
+                    t_ct: np.ndarray, a: Appearance, glare_lamp: np.ndarray | None
+                    ) -> np.ndarray:
     """Room-lit RGB DN ``(N, 3)`` of the board, premultiplied by coverage."""
     light = np.asarray(a.light_dir, dtype=np.float64)
     light /= np.linalg.norm(light)
@@ -600,7 +600,7 @@ def _board_radiance(layer: BoardLayer, t_world_camera: np.ndarray, t_ct: np.ndar
     irr = a.ambient + a.direct * max(float(front_world @ light), 0.0)
     out = layer.albedo * (irr * a.view_exposure_dn)
     if glare_lamp is not None:  # Blinn-Phong image of a lamp on the laminated board
-        p = layer.points_camera
+        p = rays * np.where(np.isfinite(layer.depth), layer.depth, 0.0)[:, None]
         to_l = glare_lamp - p
         to_l /= np.maximum(np.linalg.norm(to_l, axis=1, keepdims=True), 1e-9)
         to_c = -p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9)
@@ -876,13 +876,15 @@ def _flat(t: np.ndarray | None) -> list[list[float]] | None:
     return [[round(float(x), 12) for x in row] for row in np.asarray(t)]
 
 
-def _tf_json(samples: list[tuple[int, np.ndarray]]) -> bytes:
+def _tf_json(samples: list[tuple[int, str, str, np.ndarray]]) -> bytes:
+    """``ground_truth/tf.json`` (``recording-format.md``): a ``foxglove.FrameTransforms``
+    message in JSON of ``(stamp, parent, child, T)`` samples."""
     out = []
-    for stamp, t in sorted(samples, key=lambda s: s[0]):
+    for stamp, parent, child, t in sorted(samples, key=lambda s: (s[0], s[1], s[2])):
         q = matrix_to_quat(t[:3, :3])
         out.append({"timestamp": {"sec": int(stamp) // 1_000_000_000,
                                   "nsec": int(stamp) % 1_000_000_000},
-                    "parent_frame_id": "base", "child_frame_id": "flange",
+                    "parent_frame_id": parent, "child_frame_id": child,
                     "translation": dict(zip("xyz", (round(float(x), 9) for x in t[:3, 3]),
                                             strict=True)),
                     "rotation": dict(zip("xyzw", (round(float(x), 12) for x in q),
@@ -1060,8 +1062,20 @@ def write_calibration_recording(path: str | os.PathLike[str], cell: CalibrationC
         w.add_metadata("robo3d.simulation", sim_meta)
         w.add_attachment(CALIBRATION_TRUTH,
                          json.dumps(truth, separators=(",", ":")).encode(), "application/json")
+        # the truth of every link that carries error: base -> flange (robot), and the
+        # mounts (published nominal), sampled with it so that the file alone resolves
+        # the true camera and laser poses (robo3d.recording.read_ground_truth_tf)
+        truth_tf: list[tuple[int, str, str, np.ndarray]] = []
         if robot:
-            w.add_attachment("ground_truth/tf.json", _tf_json(tf_true), "application/json")
+            for ts, t_bf in tf_true:
+                truth_tf += [(ts, "base", "flange", t_bf), (ts, "flange", "camera", t_fc),
+                             (ts, "camera", "laser", t_cl)]
+        else:
+            for st in stops:
+                end = st["stamp"] + (_LASER_DELAY_NS if st["kind"] == "laser" else 0)
+                truth_tf += [(ts, "camera", "laser", t_cl)
+                             for ts in range(st["stamp"] - 27 * ms, end + 34 * ms, 20 * ms)]
+        w.add_attachment("ground_truth/tf.json", _tf_json(truth_tf), "application/json")
         w.write_calibration(_CAL_TOPIC, t0, pub_cam)
         static = ([("flange", "camera", pub_fc)] if robot
                   else [("base", "camera", np.eye(4))]) + [("camera", "laser", pub_cl)]
@@ -1142,7 +1156,7 @@ def _render_image(st: dict[str, Any], laser: bool, cam: CameraModel, cell: Calib
     glare = None
     if st["defect"] == "glare" and not laser:
         glare = _glare_lamp(t_ct, o.board, np.random.default_rng([seed, 22, i]))
-    rad = _board_radiance(layer, t_wc, t_ct, a, glare) * keep[:, None]
+    rad = _board_radiance(layer, rays, t_wc, t_ct, a, glare) * keep[:, None]
     if grey:
         rad = rad.mean(axis=1, keepdims=True)
     if laser:

@@ -1179,7 +1179,10 @@ def _render_image(st: dict[str, Any], laser: bool, cam: CameraModel, cell: Calib
         if fixed_bg is not None:  # the board's laser shadow on the background
             back = _shadowed(back, fixed_bg, bg, t_wc, t_ct, t_cl, o.board, frac)
         colour = np.ones(1) if grey else np.asarray(a.laser_rgb, dtype=np.float64)
-        rad = rad * frac + (layer.laser * keep * a.laser_peak_dn)[:, None] * colour
+        peak = a.laser_peak_dn
+        if a.laser_rgb is None and a.laser_ambient_fraction is None:  # the demo cell's
+            peak /= float(np.mean(a.object_albedo))  # scale (robo3d.sim.render)
+        rad = rad * frac + (layer.laser * keep * peak)[:, None] * colour
     sig = back * (1.0 - cov)[:, None] + rad
     if laser:
         sig = sig * o.laser_exposure

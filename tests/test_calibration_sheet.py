@@ -13,6 +13,7 @@ import pytest
 
 from robo3d.calibration.sheet import (
     SheetOptions,
+    board_border_region,
     board_point_mask,
     board_poses_from_handeye,
     calibrate_sheet,
@@ -91,25 +92,27 @@ def _pixel_rays() -> np.ndarray:
 
 
 def _render(T_camera_target: np.ndarray, n_sheet: np.ndarray, d_sheet: float,
-            rng: np.random.Generator, sigma_m: float = 0.0008) -> np.ndarray:
-    """A laser frame: a checkerboard with a white border (3.5 x 2.5 squares beyond the
+            rng: np.random.Generator, sigma_m: float = 0.0008,
+            border: tuple[float, float] = (3.5, 2.5), room: float = 35.0) -> np.ndarray:
+    """A laser frame: a checkerboard with a white border (``border`` squares beyond the
     inner corners), lit by room light and a green line laser (Gaussian across the sheet,
-    ``sigma_m``), over a dark room; 1 DN noise."""
+    ``sigma_m``), over a room of grey ``room``; 1 DN noise."""
     rays = _pixel_rays()
     n_b, d_b = T_camera_target[:3, 2], T_camera_target[:3, 2] @ T_camera_target[:3, 3]
     s = d_b / (rays @ n_b)
     X = rays * s[..., None]
     t_tc = invert_transform(T_camera_target)
     xy = (X @ t_tc[:3, :3].T + t_tc[:3, 3])[..., :2] / BOARD.square
-    on_board = ((xy[..., 0] > -3.5) & (xy[..., 0] < BOARD.cols + 2.5)
-                & (xy[..., 1] > -2.5) & (xy[..., 1] < BOARD.rows + 1.5) & (s > 0))
+    bx, by = border
+    on_board = ((xy[..., 0] > -bx) & (xy[..., 0] < BOARD.cols - 1 + bx)
+                & (xy[..., 1] > -by) & (xy[..., 1] < BOARD.rows - 1 + by) & (s > 0))
     pattern = ((xy[..., 0] > -1) & (xy[..., 0] < BOARD.cols)
                & (xy[..., 1] > -1) & (xy[..., 1] < BOARD.rows))
     dark = (np.floor(xy[..., 0]) + np.floor(xy[..., 1])) % 2 == 0
     refl = np.where(on_board, np.where(pattern & dark, 0.08, 0.85), 0.0)
     delta = X @ n_sheet - d_sheet
     laser = 150.0 * np.exp(-0.5 * (delta / sigma_m) ** 2)
-    grey = np.where(on_board, refl * 180.0, 35.0)
+    grey = np.where(on_board, refl * 180.0, room)
     rgb = np.stack([grey, grey + refl * laser, grey], -1)
     rgb += rng.normal(0, 1.0, rgb.shape)
     return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
@@ -240,6 +243,21 @@ def test_board_point_mask_keeps_the_border_and_white_squares_only():
     every = SheetOptions(pattern_edge_squares=-1.0)
     assert board_point_mask(P, T, BOARD, image, CAM, every).tolist() == [True, False, True,
                                                                         True, True]
+
+
+def test_board_border_region_ends_where_the_border_ends():
+    T = _pose(5, -10, 2, np.array([0.0, 0.0, 0.45]))  # the whole board in view
+    # a narrow border (2 squares beyond the inner corners: 1 beyond the pattern) on a
+    # table only 10 % darker than it, as the simulator's board lies
+    image = _render(T, N_TRUE, D_TRUE, np.random.default_rng(2), border=(2.0, 2.0),
+                    room=0.9 * 0.85 * 180.0)
+    x0, x1, y0, y1 = board_border_region(image, T, BOARD, CAM, SheetOptions())
+    # the border ends at -2 and cols - 1 + 2 (a quarter square inside, one band of slack)
+    assert -1.75 - 0.13 <= x0 <= -1.75 + 0.01 and 8.75 - 0.01 <= x1 <= 8.75 + 0.13
+    assert -1.75 - 0.13 <= y0 <= -1.75 + 0.01 and 6.75 - 0.01 <= y1 <= 6.75 + 0.13
+    # a wide border: the configured margins
+    wide = _render(T, N_TRUE, D_TRUE, np.random.default_rng(2))
+    assert board_border_region(wide, T, BOARD, CAM, SheetOptions()) == (-3.0, 10.0, -2.0, 7.0)
 
 
 def test_board_poses_from_handeye_chain():

@@ -29,15 +29,24 @@ Per frame (:func:`calibrate_sheet`)
   attribute ``margin``, metres beyond the outer squares, as the simulator's boards
   have) limits the region to a quarter square inside the board's edge. A region beyond
   the physical board casts the room's stripe onto the board's plane: those points
-  leave the sheet, and the line test and RANSAC drop them.
+  leave the sheet, and the line test and RANSAC drop them. So in each frame the
+  border's extent is also read from the image (:func:`board_border_region`): on each
+  side the region ends where the border gets darker than next to the pattern by
+  ``border_contrast`` (the simulator's board lies on a table only 10 % darker than its
+  1-square border, 3 mm below it: without this test that table's stripe, cast onto the
+  board's plane, passed the line test and RANSAC and moved the robot cell's sheet by
+  0.2 mm).
 * On the printed pattern the stripe is only trusted on white squares away from their
   edges (``pattern_edge_squares``): a black square absorbs the laser, and its edges
   are ridges in the luma on which the detector's centres zig-zag (seen on srv's frames
   48, 109, 110: centres 1-3 px off the line on every black square's edge). The default
-  0.3 squares: on rendered boards (tests) 0.15 left frames crossing the pattern at
-  0.1-0.17 mm RMS against 0.01 mm for the others (the detector's window reaching the
-  neighbouring black square), 0.3 brings all to 0.01 mm; srv's figures do not change. Which
-  parity is black is read from the frame (the mean grey of the squares' centres).
+  0.25 squares: on sharp rendered boards (tests) 0.15 left the frames crossing the
+  pattern at 0.1-0.17 mm RMS against 0.01 mm for the others (the detector's window
+  reaching the neighbouring black square), 0.25 brings all to 0.01-0.02 mm; on the
+  simulator's calibration recordings (true board poses) 0.15 / 0.2 / 0.25 / 0.3 give
+  normals within 0.004 / 0.002 / 0.002 / 0.006 deg and offsets within 0.016 / 0.001 /
+  0.007 / 0.031 mm of the truth (robot cell; fewer points as it grows); srv's figures
+  do not change.
 * The sheet meets the board's plane in a straight line, which the camera sees as a
   straight line of the undistorted image: per frame a line is fitted to the kept
   pixels (RANSAC on pairs, then total least squares) and pixels farther than
@@ -100,6 +109,7 @@ __all__ = [
     "sheet_points",
     "board_region_mask",
     "board_point_mask",
+    "board_border_region",
     "board_poses_from_handeye",
     "find_sheet_stripes",
     "calibrate_sheet",
@@ -127,6 +137,9 @@ class SheetOptions(Options):
     board_margin_x_squares, board_margin_y_squares : float, squares
         The board region: the inner corners' grid grown by this many squares along the
         columns (target x) and along the rows (target y); negative shrinks it.
+    border_contrast : float
+        The board's border ends, in the frame, where it gets darker by more than this
+        fraction (:func:`board_border_region`); 0: the margins' rectangle as it is.
     pattern_edge_squares : float, squares
         On the printed pattern only pixels on white squares at least this far from the
         squares' edges are used; a negative value uses every pixel of the pattern.
@@ -150,7 +163,8 @@ class SheetOptions(Options):
     section = "laser_sheet"
     board_margin_x_squares: float = 3.0
     board_margin_y_squares: float = 2.0
-    pattern_edge_squares: float = 0.3
+    border_contrast: float = 0.05
+    pattern_edge_squares: float = 0.25
     line_tolerance_px: float = 1.0
     min_points_per_frame: int = 30
     ransac_threshold_mm: float = 2.0
@@ -379,10 +393,14 @@ def _region(target: _Board, options: SheetOptions) -> tuple[float, float, float,
 
 
 def board_region_mask(camera_model: CameraModel, T_camera_target: np.ndarray,
-                      target: _Board, options: SheetOptions = SheetOptions()) -> np.ndarray:
+                      target: _Board, options: SheetOptions = SheetOptions(),
+                      region: tuple[float, float, float, float] | None = None) -> np.ndarray:
     """The board's region in the image: the inner corners' grid grown by
     ``board_margin_x_squares`` and ``board_margin_y_squares``, its edges sampled (64
     points each), projected with lens distortion and filled (``cv2.fillPoly``).
+
+    ``region`` (x0, x1, y0, y1) in squares, target frame, replaces the options'
+    rectangle (e.g. :func:`board_border_region`'s).
 
     Returns
     -------
@@ -391,7 +409,7 @@ def board_region_mask(camera_model: CameraModel, T_camera_target: np.ndarray,
     """
     import cv2
 
-    x0, x1, y0, y1 = _region(target, options)
+    x0, x1, y0, y1 = _region(target, options) if region is None else region
     s = np.linspace(0.0, 1.0, 64, endpoint=False)
     edges = np.concatenate([
         np.stack([x0 + (x1 - x0) * s, np.full_like(s, y0)], 1),
@@ -414,7 +432,8 @@ def board_region_mask(camera_model: CameraModel, T_camera_target: np.ndarray,
 
 def board_point_mask(points_cam: np.ndarray, T_camera_target: np.ndarray, target: _Board,
                      image: np.ndarray | None, camera_model: CameraModel,
-                     options: SheetOptions = SheetOptions()) -> np.ndarray:
+                     options: SheetOptions = SheetOptions(),
+                     region: tuple[float, float, float, float] | None = None) -> np.ndarray:
     """Which sheet points (on the board's plane) may be used: inside the board's region,
     and on the printed pattern only on white squares, ``pattern_edge_squares`` from
     their edges (see the module docstring).
@@ -429,6 +448,9 @@ def board_point_mask(points_cam: np.ndarray, T_camera_target: np.ndarray, target
         The frame, to tell black squares from white; None: every square counts as
         white (only the edges are avoided).
     camera_model : CameraModel
+    options : SheetOptions
+    region : (x0, x1, y0, y1), squares, optional
+        The board's region in the target frame (default: the options' rectangle).
 
     Returns
     -------
@@ -436,7 +458,7 @@ def board_point_mask(points_cam: np.ndarray, T_camera_target: np.ndarray, target
     """
     p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     xy = _board_xy(np.nan_to_num(p), T_camera_target, float(target.square))
-    x0, x1, y0, y1 = _region(target, options)
+    x0, x1, y0, y1 = _region(target, options) if region is None else region
     ok = np.all(np.isfinite(p), axis=1)
     ok &= (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
     e = float(options.pattern_edge_squares)
@@ -452,6 +474,80 @@ def board_point_mask(points_cam: np.ndarray, T_camera_target: np.ndarray, target
     return ok & ~(on_pattern & (near_edge | black))
 
 
+def _grey(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    return img.mean(axis=2) if img.ndim == 3 else img
+
+
+def _sample(grey: np.ndarray, uv: np.ndarray, front: np.ndarray) -> np.ndarray:
+    """Grey values at the nearest pixels (NaN outside the image or behind the camera)."""
+    u = np.rint(np.nan_to_num(uv[..., 0], nan=-1.0)).astype(np.int64)
+    v = np.rint(np.nan_to_num(uv[..., 1], nan=-1.0)).astype(np.int64)
+    inside = front & (u >= 0) & (u < grey.shape[1]) & (v >= 0) & (v < grey.shape[0])
+    out = np.full(uv.shape[:-1], np.nan)
+    out[inside] = grey[v[inside], u[inside]]
+    return out
+
+
+def board_border_region(image: np.ndarray, T_camera_target: np.ndarray, target: _Board,
+                        camera_model: CameraModel, options: SheetOptions = SheetOptions(),
+                        step: float = 0.125) -> tuple[float, float, float, float]:
+    """The board's border as seen in the frame: how far beyond the printed pattern each
+    of its four sides keeps the border's own brightness.
+
+    On each side, bands parallel to the pattern's edge (every ``step`` squares from the
+    edge outward, up to the options' margins) are sampled at 33 points along the
+    pattern's extent, and each band's median grey is taken (the stripe crossing a band
+    is a few samples and does not move it). The border's brightness is the median of
+    the bands 0.125-0.375 squares from the pattern; the first band farther out whose
+    median is darker by more than ``border_contrast`` (a fraction) is beyond the board
+    (the room, the table the board lies on, a hand), and the region ends a quarter
+    square before it. Only darker bands count: a band along the stripe is brighter
+    (on srv the near-vertical line runs inside the left side's bands).
+
+    Returns
+    -------
+    (x0, x1, y0, y1) : floats, squares, target frame
+        The region (never beyond the options' rectangle).
+    """
+    x0, x1, y0, y1 = _region(target, options)
+    grey = _grey(image)
+    t = check_transform(T_camera_target, "T_camera_target")
+    sq = float(target.square)
+
+    def project(xy: np.ndarray) -> np.ndarray:
+        p = np.concatenate([xy * sq, np.zeros(xy.shape[:-1] + (1,))], -1) @ t[:3, :3].T
+        uv, front = camera_model.project(p + t[:3, 3])
+        return _sample(grey, uv, front)
+
+    along_x = np.linspace(-1.0, float(target.cols), 33)
+    along_y = np.linspace(-1.0, float(target.rows), 33)
+    out = []
+    # the four sides: (outward sign, axis, pattern edge, configured bound)
+    for sign, axis, edge, bound in ((-1, 0, -1.0, x0), (1, 0, float(target.cols), x1),
+                                    (-1, 1, -1.0, y0), (1, 1, float(target.rows), y1)):
+        reach = sign * (bound - edge) + 0.25
+        d = np.arange(step / 2, max(reach, 0.5) + 1e-9, step)  # band centres
+        along = along_y if axis == 0 else along_x
+        pos = edge + sign * d
+        xy = (np.stack(np.broadcast_arrays(pos[:, None], along[None, :]), -1) if axis == 0
+              else np.stack(np.broadcast_arrays(along[None, :], pos[:, None]), -1))
+        vals = project(xy)
+        near = vals[(d > 0.1) & (d < 0.4)]
+        if reach <= 0 or not np.isfinite(near).any():
+            out.append(bound)
+            continue
+        ref = float(np.nanmedian(near))
+        has = np.isfinite(vals).any(axis=1)  # bands outside the image stop nothing
+        med = np.full(len(vals), ref)
+        med[has] = np.nanmedian(vals[has], axis=1)
+        off = (d > 0.4) & (med < (1.0 - float(options.border_contrast)) * ref)
+        hit = np.flatnonzero(off)
+        out.append(edge + sign * (d[hit[0]] - step / 2 - 0.25) if len(hit) else bound)
+    # never beyond the configured rectangle
+    return (max(out[0], x0), min(out[1], x1), max(out[2], y0), min(out[3], y1))
+
+
 def _black_parity(image: np.ndarray | None, T_camera_target: np.ndarray, target: _Board,
                   camera_model: CameraModel) -> int:
     """The parity ``(i + j) % 2`` of the black squares ``[i, i+1] x [j, j+1]`` (in
@@ -463,8 +559,7 @@ def _black_parity(image: np.ndarray | None, T_camera_target: np.ndarray, target:
     c = np.c_[(i.ravel() + 0.5), (j.ravel() + 0.5), np.zeros(i.size)] * float(target.square)
     t = check_transform(T_camera_target, "T_camera_target")
     uv, front = camera_model.project(c @ t[:3, :3].T + t[:3, 3])
-    img = np.asarray(image)
-    grey = img.mean(axis=2) if img.ndim == 3 else img
+    grey = _grey(image)
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
     inside = front & (u >= 0) & (u < grey.shape[1]) & (v >= 0) & (v < grey.shape[0])
@@ -647,11 +742,16 @@ def calibrate_sheet(laser_images: Iterable[np.ndarray], camera_model: CameraMode
     ids = list(range(F)) if frame_ids is None else [int(i) for i in frame_ids]
     left_out: dict[int, str] = {}
     rois: list = [None] * F
+    regions: list = [None] * F
     for k in range(F):
         if T_camera_target[k] is None:
             left_out[ids[k]] = "board not found"
         else:
-            rois[k] = board_region_mask(camera_model, T_camera_target[k], target, options)
+            if options.border_contrast > 0:
+                regions[k] = board_border_region(laser_images[k], T_camera_target[k],
+                                                 target, camera_model, options)
+            rois[k] = board_region_mask(camera_model, T_camera_target[k], target, options,
+                                        regions[k])
     stripes, colour = find_sheet_stripes(laser_images, rois, stripe_options, encoded)
 
     pts, frm, uv_used, normals = [], [], {}, {}
@@ -665,7 +765,7 @@ def calibrate_sheet(laser_images: Iterable[np.ndarray], camera_model: CameraMode
         uv = sp.pixels_uv
         p = sheet_points(uv, camera_model, T_camera_target[k])
         keep = board_point_mask(p, T_camera_target[k], target, laser_images[k],
-                                camera_model, options)
+                                camera_model, options, regions[k])
         if keep.sum() < options.min_points_per_frame:
             left_out[ids[k]] = (f"too few pixels ({int(keep.sum())} of {len(sp)} stripe "
                                 f"pixels on the board, < {options.min_points_per_frame})")

@@ -290,8 +290,8 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
     "fuse": ("fusion", "carving", "rerun", "seed"),
     "simplify": ("simplify", "rerun", "seed"),
     "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),
-    "calibrate": ("calibration", "laser_sheet", "calibration_gates", "topics", "frames",
-                  "timing", "seed"),
+    "calibrate": ("calibration", "laser_sheet", "stripes", "calibration_gates", "topics",
+                  "frames", "timing", "seed"),
 }
 
 

@@ -29,12 +29,11 @@ import numpy as np
 
 from ..camera import CameraModel
 from ..errors import CalibrationError, RecordingError
-from ..transforms import invert_transform
-from .gates import GateResult, evaluate_gates, gate_table, tilt_spread_deg
+from .gates import GateResult, evaluate_gates, failure_message, gate_table, tilt_spread_deg
 from .io import CalibrationFile
 
 __all__ = ["CalibrationResult", "calibrate_recording", "calibration_report",
-           "to_calibration_file", "GateFailure"]
+           "to_calibration_file", "detection_picture", "GateFailure"]
 
 
 @dataclass
@@ -89,6 +88,10 @@ class CalibrationResult:
     gates : list of GateResult
     notes : list of str
     seconds : float
+    view_corners : dict of int to (N, 2) float64
+        The detected corners of every view where the board was found (for the picture).
+    sheet_pixels_uv : dict of int to (n, 2) float64
+        The stripe pixels of each laser frame the sheet used.
     """
 
     name: str
@@ -120,6 +123,8 @@ class CalibrationResult:
     gates: list[GateResult] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    view_corners: dict[int, np.ndarray] = field(default_factory=dict)
+    sheet_pixels_uv: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def failed_gates(self) -> list[GateResult]:
@@ -200,7 +205,7 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
     views = _sorted_images([m for m in recording.views if m.frame_id == frame_id])
     stamps = np.array([m.timestamp_ns for m in views], dtype=np.int64)
     detections = _detect(recording, views, target, DetectOptions.from_config(cfg["calibration"]))
-    res = _intrinsics(detections, target, published, cfg)
+    res = _intrinsics(detections, target, published, cfg, str(recording.path))
     result = CalibrationResult(
         name=name or Path(recording.path).stem, recording=str(recording.path),
         kind="moving_target" if target.moving else "robot_cell", target=target,
@@ -211,7 +216,8 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
         T_camera_target=np.asarray(res.T_camera_target, dtype=np.float64).reshape(-1, 4, 4),
         view_stamps_ns=stamps,
         edge_width_px=np.array([d.sharpness for d in detections], dtype=np.float64),
-        intrinsics_std={k: float(v) for k, v in dict(res.std).items()})
+        intrinsics_std={k: float(v) for k, v in dict(res.std).items()},
+        view_corners={i: d.corners for i, d in enumerate(detections) if d.corners is not None})
     if not target.moving:
         _handeye(recording, result, detections, cfg)
     lasers = _sorted_images([m for m in recording.laser_frames if m.frame_id == frame_id])
@@ -223,21 +229,19 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
     result.seconds = round(time.perf_counter() - t0, 3)
     failed = result.failed_gates
     if check and failed:
-        raise GateFailure(
-            f"calibration failed {len(failed)} quality gate(s) (config calibration_gates):\n"
-            + "\n".join("  " + g.line() for g in failed), result, path=recording.path)
+        raise GateFailure(failure_message(failed), result, path=recording.path)
     return result
 
 
-def _intrinsics(detections: list, target, published: CameraModel, cfg: Mapping[str, Any]):
+def _intrinsics(detections: list, target, published: CameraModel, cfg: Mapping[str, Any],
+                path: str):
     """Intrinsics (:func:`robo3d.calibration.intrinsics.calibrate_intrinsics`), with the
     camera model attached as ``camera``."""
-    from . import intrinsics as intr
+    from .intrinsics import IntrinsicsOptions, calibrate_intrinsics
 
-    opts_cls = getattr(intr, "IntrinsicsOptions", None)
-    options = opts_cls.from_config(cfg["calibration"]) if opts_cls is not None else None
-    res = intr.calibrate_intrinsics(detections, target, (published.width, published.height),
-                                    options)
+    res = calibrate_intrinsics(detections, target, (published.width, published.height),
+                               IntrinsicsOptions.from_config(cfg["calibration"]),
+                               recording=path)
     res.camera = CameraModel(published.frame_id, published.width, published.height,
                              np.asarray(res.K), np.asarray(res.D))
     return res
@@ -245,63 +249,75 @@ def _intrinsics(detections: list, target, published: CameraModel, cfg: Mapping[s
 
 def _handeye(recording, result: CalibrationResult, detections: list,
              cfg: Mapping[str, Any]) -> None:
-    """Hand-eye and the board in ``base`` (robot cell), refined jointly."""
-    from . import handeye as he
+    """Hand-eye and the board in ``base`` (robot cell), refined jointly with the
+    intrinsics (:func:`robo3d.calibration.handeye.refine_handeye`)."""
+    from .handeye import HandEyeOptions, refine_handeye
 
     t_used = result.view_stamps_ns[result.views_used]
     T_bf = recording.tf.lookup(recording.base_frame, "flange", t_used)
     result.T_base_flange = T_bf
-    opts_cls = getattr(he, "HandEyeOptions", None)
-    options = opts_cls.from_config(cfg["calibration"]) if opts_cls is not None else None
-    corners = [detections[int(i)].corners for i in result.views_used]
-    X0 = he.handeye_closed_form(T_bf, result.T_camera_target, "park")
-    out = he.refine_handeye(T_bf, result.T_camera_target, corners, result.target,
-                            result.camera, X0, options)
+    corners = np.stack([detections[int(i)].corners for i in result.views_used])
+    cam = result.camera
+    out = refine_handeye(T_bf, corners, result.target, cam.K, cam.D,
+                         T_camera_target=result.T_camera_target,
+                         options=HandEyeOptions.from_config(cfg["calibration"]),
+                         recording=str(recording.path))
     result.T_flange_camera = np.asarray(out.T_flange_camera, dtype=np.float64)
     result.T_base_target = np.asarray(out.T_base_target, dtype=np.float64)
     result.handeye_rms_px = float(out.rms_px)
     result.handeye_per_view_rms_px = np.asarray(out.per_view_rms, dtype=np.float64)
     result.board_scatter_mm = float(out.board_scatter_mm)
-    result.handeye_closed_form = dict(getattr(out, "closed_form", {}) or {})
-    if getattr(out, "K", None) is not None:  # the joint refinement may refine intrinsics
-        cam = result.camera
-        result.camera = CameraModel(cam.frame_id, cam.width, cam.height, np.asarray(out.K),
-                                    np.asarray(out.D) if out.D is not None else cam.D)
+    result.handeye_closed_form = {**dict(out.closed_form or {}),
+                                  "rotation_axis_spread_deg": out.rotation_axis_spread_deg}
+    # the joint refinement refines the intrinsics too (calibration.refine_intrinsics)
+    result.camera = CameraModel(cam.frame_id, cam.width, cam.height, np.asarray(out.K),
+                                np.asarray(out.D))
 
 
 def _sheet(recording, result: CalibrationResult, lasers: list, cfg: Mapping[str, Any]) -> None:
-    """The laser sheet from the stripe on the board: the board's pose in each laser frame
-    from the robot chain (static board) or from the board detected in the frame."""
-    from . import sheet as sh
+    """The laser sheet from the stripe on the board
+    (:func:`robo3d.calibration.sheet.calibrate_sheet`): the board's pose in each laser
+    frame from the robot chain (static board) or from the board detected in the frame."""
+    from ..stripes import StripeOptions
+    from .sheet import SheetOptions, board_poses_from_handeye, calibrate_sheet
 
     stamps = np.array([m.timestamp_ns for m in lasers], dtype=np.int64)
     if result.T_flange_camera is not None and result.T_base_target is not None:
         T_bf = recording.tf.lookup(recording.base_frame, "flange", stamps)
-        T_ct = invert_transform(T_bf @ result.T_flange_camera) @ result.T_base_target
-        poses: list[np.ndarray | None] = list(T_ct)
+        poses: list[np.ndarray | None] = list(board_poses_from_handeye(
+            T_bf, result.T_flange_camera, result.T_base_target))
         source = "the robot chain"
     else:
         poses = _board_poses_in_frames(recording, lasers, result, cfg)
         source = "the board detected in each laser frame"
-    opts_cls = getattr(sh, "SheetOptions", None)
-    options = opts_cls.from_config(cfg["laser_sheet"]) if opts_cls is not None else None
-    images = (recording.decode(m) for m in lasers)
-    out = sh.calibrate_sheet(images, result.camera, poses, options)
+    reference = None  # the recorded (nominal) laser keeps its in-plane choices
+    if "laser" in recording.tf.frames:
+        try:
+            reference = recording.tf.lookup(result.camera.frame_id, "laser", int(stamps[0]))
+        except RecordingError:
+            reference = None
+    out = calibrate_sheet((recording.decode(m) for m in lasers), result.camera, poses,
+                          SheetOptions.from_config(cfg["laser_sheet"]), target=result.target,
+                          stripe_options=StripeOptions.from_config(cfg["stripes"]),
+                          encoded=lasers[0].data, reference=reference,
+                          seed=int(cfg.get("seed", 0)),
+                          source=f"{recording.path}: topic {lasers[0].topic}")
     result.T_camera_laser = np.asarray(out.T_camera_laser, dtype=np.float64)
     result.sheet_rms_mm = float(out.rms_mm)
     result.sheet_frames_used = np.asarray(out.used, dtype=int)
-    result.sheet_left_out = {int(k): str(v) for k, v in dict(out.rejected).items()}
-    result.sheet_per_frame_rms_mm = np.asarray(getattr(out, "per_frame_rms_mm", []),
-                                               dtype=np.float64)
-    six = out.six_parameters
+    result.sheet_left_out = {int(k): str(v) for k, v in dict(out.left_out).items()}
+    result.sheet_pixels_uv = {int(k): np.asarray(v) for k, v in dict(out.pixels_uv).items()}
+    result.sheet_per_frame_rms_mm = np.array(
+        [out.per_frame_rms_mm.get(int(i), np.nan) for i in out.used], dtype=np.float64)
+    six = dict(out.six_parameters)
     result.laser_sheet = {
         "normal": np.asarray(out.plane.normal, dtype=np.float64).tolist(),
         "offset_m": float(out.plane.offset_m),
-        "six_parameters": {"dx_m": six[0], "dy_m": six[1], "dz_m": six[2],
-                           "phi_deg": float(np.degrees(six[3])),
-                           "theta_deg": float(np.degrees(six[4])),
-                           "psi_deg": float(np.degrees(six[5]))},
-        "rms_mm": float(out.rms_mm), "board_poses_from": source}
+        "six_parameters": {k: float(six[k]) for k in ("dx", "dy", "dz", "phi_deg",
+                                                      "theta_deg", "psi_deg") if k in six},
+        "rms_mm": float(out.rms_mm), "frames_used": len(out.used),
+        "tilt_spread_deg": float(out.tilt_spread_deg), "colour": str(out.colour),
+        "board_poses_from": source}
 
 
 def _board_poses_in_frames(recording, lasers: list, result: CalibrationResult,
@@ -397,3 +413,73 @@ def calibration_report(result: CalibrationResult) -> dict[str, Any]:
         "views_left_out": {int(k): v for k, v in sorted(result.views_left_out.items())},
         "notes": result.notes, "seconds": result.seconds,
     }
+
+
+def detection_picture(path: str, recording, result: CalibrationResult, max_views: int = 12,
+                      max_laser: int = 4, tile_px: int = 320) -> None:
+    """A PNG of the detections: views with their corners (green: used, orange: found but
+    left out, red frame: not found, each with its RMS or the reason), then laser frames
+    with the stripe pixels the sheet used (magenta). Evenly spaced samples, tiles
+    ``tile_px`` wide."""
+    import cv2
+
+    from ..atomic import atomic_path
+    from .target import to_gray8
+
+    views = _sorted_images([m for m in recording.views
+                            if m.frame_id == result.camera.frame_id])
+    lasers = _sorted_images([m for m in recording.laser_frames
+                             if m.frame_id == result.camera.frame_id])
+    rms = dict(zip(map(int, result.views_used), result.per_view_rms_px.tolist(), strict=True))
+    pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).astype(int)) \
+        if views else np.zeros(0, int)
+    left = sorted(result.views_left_out)[:4]  # always show some of the left-out views
+    pick = np.unique(np.concatenate([pick, left]).astype(int))[:max_views + 4]
+    used_l = sorted(result.sheet_pixels_uv)
+    lpick = [used_l[i] for i in np.unique(np.linspace(0, len(used_l) - 1, min(max_laser,
+                                                                                len(used_l))
+                                                        ).astype(int))] if used_l else []
+    tiles = []
+
+    def tile(img: np.ndarray, draw) -> np.ndarray:
+        g = cv2.cvtColor(to_gray8(img), cv2.COLOR_GRAY2BGR)
+        s = tile_px / g.shape[1]
+        g = cv2.resize(g, (tile_px, max(1, round(g.shape[0] * s))), interpolation=cv2.INTER_AREA)
+        draw(g, s)
+        return g
+
+    for i in pick:
+        i = int(i)
+
+        def draw(g, s, i=i):
+            c = result.view_corners.get(i)
+            colour = (0, 200, 0) if i in rms else (0, 140, 255)
+            if c is not None:
+                for u, v in np.round(c * s).astype(int):
+                    cv2.circle(g, (int(u), int(v)), 1, colour, -1)
+            text = f"view {i}: {rms[i]:.2f} px" if i in rms else \
+                f"view {i}: {result.views_left_out.get(i, '')}"[:48]
+            if c is None:
+                cv2.rectangle(g, (0, 0), (g.shape[1] - 1, g.shape[0] - 1), (0, 0, 230), 3)
+            cv2.putText(g, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
+                        cv2.LINE_AA)
+        tiles.append(tile(recording.decode(views[i]), draw))
+    for k in lpick:
+        def draw_l(g, s, k=k):
+            for u, v in np.round(result.sheet_pixels_uv[k] * s).astype(int):
+                cv2.circle(g, (int(u), int(v)), 1, (255, 0, 255), -1)
+            cv2.putText(g, f"laser frame {k}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                        (255, 255, 255), 1, cv2.LINE_AA)
+        if 0 <= k < len(lasers):
+            tiles.append(tile(recording.decode(lasers[k]), draw_l))
+    if not tiles:
+        tiles = [np.zeros((tile_px * 3 // 4, tile_px, 3), np.uint8)]
+    h = max(t.shape[0] for t in tiles)
+    tiles = [np.pad(t, ((0, h - t.shape[0]), (0, 0), (0, 0))) for t in tiles]
+    cols = 4
+    while len(tiles) % cols:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.concatenate(tiles[r:r + cols], axis=1) for r in range(0, len(tiles), cols)]
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.concatenate(rows, axis=0)):
+            raise OSError(f"cannot write {path}")

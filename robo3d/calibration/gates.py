@@ -40,8 +40,8 @@ import numpy as np
 from ..errors import CalibrationError
 from ..transforms import invert_transform
 
-__all__ = ["GateResult", "evaluate_gates", "check_gates", "gate_table", "tilt_spread_deg",
-           "rotation_spread_deg", "board_scale_from_motion"]
+__all__ = ["GateResult", "evaluate_gates", "check_gates", "failure_message", "gate_table",
+           "tilt_spread_deg", "rotation_spread_deg", "board_scale_from_motion"]
 
 
 @dataclass
@@ -334,7 +334,13 @@ def check_gates(result: Any, cfg: Mapping[str, Any], where: str | None = None
     gates = evaluate_gates(result, cfg)
     failed = [g for g in gates if g.passed is False]
     if failed:
-        raise CalibrationError(
-            f"calibration failed {len(failed)} quality gate(s) (config calibration_gates):\n"
-            + "\n".join("  " + g.line() for g in failed), path=where)
+        raise CalibrationError(failure_message(failed), path=where)
     return gates
+
+
+def failure_message(failed: list[GateResult]) -> str:
+    """The message of a failed calibration: the gates' names on its first line (what
+    ``robo3d status`` shows), then one line per gate (:meth:`GateResult.line`)."""
+    return (f"calibration failed {len(failed)} quality gate(s), "
+            f"{', '.join(g.name for g in failed)} (config calibration_gates):\n"
+            + "\n".join("  " + g.line() for g in failed))

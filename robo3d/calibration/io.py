@@ -13,7 +13,7 @@ The file, all lengths in metres, 4x4 matrices as nested lists (row-major)::
     camera: {frame_id, width, height, K: [9], D: [5], distortion_model: plumb_bob}
     T_flange_camera: 4x4 | null       # null: a fixed-camera rig (moving target)
     T_camera_laser: 4x4 | null        # null: no laser frames in the calibration
-    laser_sheet: {normal: [3], offset_m, six_parameters: {dx_m, dy_m, dz_m, phi_deg,
+    laser_sheet: {normal: [3], offset_m, six_parameters: {dx, dy, dz (m), phi_deg,
                   theta_deg, psi_deg}, rms_mm} | null
     quality: {rms_px, per_view_rms_px, handeye_rms_px, board_scatter_mm, sheet_rms_mm,
               views_used, views_left_out: {index: reason}, ...}

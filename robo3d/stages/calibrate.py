@@ -23,7 +23,8 @@ def stage_calibrate(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     Outputs: ``yaml`` (:func:`robo3d.calibration.io.write_calibration`), ``report``
     (:func:`robo3d.calibration.calibrate.calibration_report`: every view with its RMS or
-    why it was left out, the gate table).
+    why it was left out, the gate table) and, when given, ``picture`` (a PNG of the views
+    with their detected corners and of laser frames with the stripe the sheet used).
     A failed quality gate raises :class:`~robo3d.errors.CalibrationError` naming the
     gate and the likely cause; no calibration file is written then, and the report of the
     failed calibration goes to ``<report>.failed.json`` beside the report, to look at.
@@ -46,6 +47,10 @@ def stage_calibrate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         raise
     failed_path.unlink(missing_ok=True)
     report = calibration_report(result)
+    if outputs.get("picture"):
+        from ..calibration.calibrate import detection_picture
+
+        detection_picture(outputs["picture"], rec, result)
     write_calibration(outputs["yaml"], to_calibration_file(result, code_version()))
     write_json(outputs["report"], report)
     he = (f", hand-eye {result.handeye_rms_px:.3f} px, board scatter "

@@ -9,6 +9,7 @@ rule calibrate:
     output:
         yaml="results/calibration/{calib}.yaml",
         report="results/calibration/{calib}_report.json",
+        picture="results/calibration/{calib}_detections.png",
     params:
         **stage_params("calibrate"),
     log:

@@ -979,7 +979,7 @@ def calibration_cell(params: SimulationParams | None = None) -> CalibrationCell:
         T_camera_laser=default_laser_mount(p.baseline, p.crossing), appearance=p.appearance,
         view_encoding=p.view_encoding, laser_encoding=p.laser_encoding,
         jpeg_quality=p.jpeg_quality, view_read_noise_dn=p.view_read_noise_dn,
-        laser_read_noise_dn=max(p.laser_read_noise_dn, p.view_read_noise_dn),
+        laser_read_noise_dn=p.laser_read_noise_dn,
         gain_dn_per_electron=p.gain_dn_per_electron, vignetting=p.vignetting,
         view_error_mm=tuple(p.view_error_mm), view_error_deg=tuple(p.view_error_deg),
         robot_error=p.robot_error, pose_error_mm_per_m=p.pose_error_mm_per_m,

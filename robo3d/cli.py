@@ -337,13 +337,14 @@ def _run_status(args: argparse.Namespace) -> int:
     from .info import batch_status, format_batch_status
 
     status = batch_status(args.results, args.logs)
-    if not status["recordings"]:
+    if not status["recordings"] and not status["calibrations"]:
         _log.error("no results: neither %s nor %s holds a recording's results (run the "
                    "workflow first, or point --results/--logs at its folders)",
                    args.results, args.logs)
         return 1
     sys.stdout.write((dumps_json(status) if args.json else format_batch_status(status)) + "\n")
-    return 1 if status["failed"] else 0
+    failed_calibrations = [n for n, c in status["calibrations"].items() if c["status"] == "failed"]
+    return 1 if status["failed"] or failed_calibrations else 0
 
 
 #: The registered subcommands, in the order ``robo3d --help`` lists them.

@@ -61,6 +61,7 @@ __all__ = [
     "inspect_with_config",
     "format_info",
     "batch_status",
+    "calibration_status",
     "format_batch_status",
 ]
 
@@ -634,8 +635,8 @@ def batch_status(results_dir: str | os.PathLike[str] = "results",
     results, logs = Path(results_dir), Path(logs_dir)
     names = set(recordings) if recordings is not None else set()
     if recordings is None:
-        if results.is_dir():
-            names |= {d.name for d in results.iterdir() if d.is_dir()}
+        if results.is_dir():  # results/calibration/ holds the calibrations, not a scan
+            names |= {d.name for d in results.iterdir() if d.is_dir() and d.name != "calibration"}
         if logs.is_dir():
             names |= {f.stem for s in STAGES if (logs / s).is_dir()
                       for f in (logs / s).glob("*.log")}
@@ -672,6 +673,26 @@ def batch_status(results_dir: str | os.PathLike[str] = "results",
             out["failed"].append(name)
         elif rec_status == "done":
             out["done"].append(name)
+    out["calibrations"] = calibration_status(results, logs)
+    return out
+
+
+def calibration_status(results_dir: str | os.PathLike[str] = "results",
+                       logs_dir: str | os.PathLike[str] = "logs") -> dict[str, Any]:
+    """The calibrate rule's jobs (``results/calibration/<calib>.yaml``,
+    ``logs/calibrate/<calib>.log``): ``{name: {"status": "done" | "failed" | "incomplete",
+    "error": first error line (the failed quality gates) or None, "log", "file"}}``."""
+    results, logs = Path(results_dir) / "calibration", Path(logs_dir) / "calibrate"
+    names = {p.stem for p in results.glob("*.yaml")} if results.is_dir() else set()
+    names |= {p.stem for p in logs.glob("*.log")} if logs.is_dir() else set()
+    out: dict[str, Any] = {}
+    for name in sorted(names):
+        log, yaml = logs / f"{name}.log", results / f"{name}.yaml"
+        err = None if yaml.is_file() or not log.is_file() else _first_error(log)
+        status = "done" if yaml.is_file() else "failed" if err else "incomplete"
+        out[name] = {"status": status, "error": err,
+                     "log": str(log) if log.is_file() else None,
+                     "file": str(yaml) if yaml.is_file() else None}
     return out
 
 
@@ -694,6 +715,10 @@ def format_batch_status(status: Mapping[str, Any]) -> str:
             done = [s for s, v in r["stages"].items() if v["status"] == "done"]
             L.append(f"  done: {', '.join(done) or 'nothing'}; outputs: "
                      f"{', '.join(r['outputs']) or 'none'}")
+    for name, c in (status.get("calibrations") or {}).items():
+        L.append(f"calibration {name}: {c['status']}"
+                 + (f": {c['error']}  (log: {c['log']})" if c["error"] else
+                    f" ({c['file']})" if c["file"] else ""))
     return "\n".join(L)
 
 

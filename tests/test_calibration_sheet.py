@@ -338,8 +338,14 @@ def test_calibrate_sheet_too_few_frames_names_the_reasons():
 def test_real_srv_laser_plane():
     """Intrinsics from every 6th board view (OpenCV), the board's pose in every other laser
     frame (detected there, solvePnP), then our sheet: within the independent run's 0.45 mm,
-    from many more boards than its 25, and 2.6 deg from the published nominal laser (the
-    README: the nominal is off by 2.6 deg)."""
+    from more boards than its 25, and 2.6 deg from the published nominal laser (the
+    README: the nominal is off by 2.6 deg). Measured: 0.134 px from 26 views, 39 boards,
+    0.27 mm RMS, 0.08 deg from the whole recording's sheet, 2.38 deg from the nominal.
+
+    The board is found with OpenCV's classic detector directly (fast check, cornerSubPix):
+    robo3d.calibration.target.detect_board (sector-based refinement) takes ~0.5 s a frame
+    here, beyond this test's budget; the workflow's run with it on all frames gives
+    0.327 mm from 76 boards."""
     cv2 = pytest.importorskip("cv2")
     from robo3d.config import default_config
     from robo3d.recording.reader import read_recording

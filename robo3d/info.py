@@ -180,6 +180,10 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
     if _OK not in statuses and _UNFIT not in statuses:
         out["problems"].append(f"no stage can run: no images on {topics.views} or "
                                f"{topics.laser}")
+    if rec.info.get("kind") == "calibration" and "robo3d.target" not in rec.metadata:
+        out["problems"].append("kind=calibration without a robo3d.target metadata record "
+                               "(type, cols, rows, square): the calibrate rule needs it")
+        out["fit"] = False
     return out
 
 
@@ -586,6 +590,17 @@ def format_info(info: Mapping[str, Any]) -> str:
         for r in reasons:
             add(f"      {r}")
     add("")
+    if (info.get("metadata") or {}).get("robo3d.recording", {}).get("kind") == "calibration":
+        t = info["metadata"].get("robo3d.target", {})
+        try:
+            square = f"{float(t.get('square', 'nan')) * 1e3:g} mm"
+        except ValueError:
+            square = repr(t.get("square"))
+        board = (f"a {t.get('cols')} x {t.get('rows')} checkerboard of {square} squares"
+                 f"{', moved by hand' if str(t.get('moving')).lower() == 'true' else ''}"
+                 if t else "no robo3d.target record")
+        add(f"kind=calibration ({board}): the calibrate rule makes "
+            "results/calibration/<name>.yaml from it; it is not scanned")
     if info["fit"]:
         add("fit for the pipeline")
     else:

@@ -376,7 +376,8 @@ def _summary(work: Path, cfg: Path) -> dict[str, tuple[str, str]]:
 def test_re_calibrating_re_runs_the_scans_using_it_and_only_those(tmp_path):
     """Two calibrations, three scans: s1 uses calA, s2 calB, s3 its own. With every output
     up to date, a new calA.yaml plans s1's jobs (and the batch table), none of s2's or
-    s3's, and no calibration job."""
+    s3's, and no calibration job (were the outputs not up to date, s2 and s3 would be
+    planned too)."""
     recs = tmp_path / "recs"
     recs.mkdir()
     for n in ("calA", "calB"):
@@ -401,10 +402,94 @@ def test_re_calibrating_re_runs_the_scans_using_it_and_only_those(tmp_path):
         p.parent.mkdir(parents=True, exist_ok=True)
         p.mkdir() if f.endswith("/masks") else p.touch()
         os.utime(p, (t0 + 10 * order.index(rule),) * 2)
-    assert {pl for _, pl in _summary(tmp_path, cfg).values()} == {"no update"}
     new = time.time() + 1000  # calA re-calibrated
     os.utime(tmp_path / "results" / "calibration" / "calA.yaml", (new, new))
     pending = {f for f, (_, pl) in _summary(tmp_path, cfg).items() if pl != "no update"}
     assert "results/s1/stripes.npz" in pending and "results/s1/silhouettes.npz" in pending
     assert "results/s1/mesh.ply" in pending and "results/s1/metrics.json" in pending
     assert {f.split("/")[1] for f in pending} == {"s1", "batch.tsv", "batch.html"}
+
+
+# ---------------------------------------------------------------------------- the rule
+@pytest.fixture(scope="module")
+def cell_recording(tmp_path_factory) -> Path:
+    """The simulator's small robot-cell calibration recording (320 x 240, 12 views, a
+    few laser frames; its published K is a placeholder, its mounts nominal)."""
+    from robo3d.simulate import simulate_calibration
+
+    path = tmp_path_factory.mktemp("calsim") / "recs" / "cell.mcap"
+    path.parent.mkdir()
+    simulate_calibration(path, rig="robot", small=True, seed=1)
+    return path
+
+
+def _snakemake(work: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+         str(work), "--cores", "1", *args], capture_output=True, text=True, timeout=600)
+
+
+def test_the_calibrate_rule_writes_a_checked_calibration_or_fails_on_a_gate(cell_recording,
+                                                                            tmp_path):
+    import json
+
+    from robo3d.transforms import rotation_angle_deg
+
+    recs = cell_recording.parent
+    out = tmp_path / "results" / "calibration"
+    proc = _snakemake(tmp_path, "--config", f"recordings={recs}")  # rule all: every calibration
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    calib = read_calibration(out / "cell.yaml")
+    from robo3d.recording import read_recording
+
+    truth = json.loads(read_recording(cell_recording, roles=()).attachments[
+        "ground_truth/calibration.json"])
+    K_true = np.array(truth["camera"]["K"]).reshape(3, 3)
+    assert calib.camera.fx == pytest.approx(K_true[0, 0], rel=0.01)  # published: a placeholder
+    E = invert_transform(np.array(truth["T_flange_camera"])) @ calib.T_flange_camera
+    assert np.linalg.norm(E[:3, 3]) < 0.003 and rotation_angle_deg(E[:3, :3]) < 0.3
+    n_true = np.array(truth["T_camera_laser"])[:3, 1]
+    assert abs(calib.laser_sheet["normal"] @ n_true) > np.cos(np.radians(0.3))
+    assert all(g["passed"] is not False for g in calib.gates.values())
+    assert calib.gates["max_board_scatter_mm"]["passed"] is True
+    report = json.loads((out / "cell_report.json").read_text())
+    assert report["passed"] and len(report["views"]) == 12
+    left = {v["index"]: v["left_out"] for v in report["views"] if not v["used"]}
+    assert left and all(left.values())  # every view left out says why
+    assert (out / "cell_detections.png").stat().st_size > 10_000
+    # a gate it cannot pass: the rule fails, says which gate and why, leaves no yaml
+    strict = tmp_path / "strict.yaml"
+    strict.write_text("calibration_gates: {max_rms_px: 0.01}\n")
+    proc = _snakemake(tmp_path, "--configfile", str(strict), "--config", f"recordings={recs}")
+    assert proc.returncode != 0
+    log = (tmp_path / "logs" / "calibrate" / "cell.log").read_text()
+    assert "quality gate(s), max_rms_px" in log and "gate max_rms_px: " in log
+    assert "limit <= 0.01 px" in log and "likely cause: " in log
+    assert not (out / "cell.yaml").exists()
+    failed = json.loads((out / "cell_report.failed.json").read_text())
+    assert failed["passed"] is False and failed["gates"]["max_rms_px"]["passed"] is False
+
+
+def test_robo3d_status_lists_calibrations_apart_from_scans(tmp_path):
+    from robo3d.cli import main
+    from robo3d.info import batch_status, format_batch_status
+
+    res, logs = tmp_path / "results", tmp_path / "logs"
+    write_calibration(res / "calibration" / "calA.yaml", _calibration_file())
+    (logs / "calibrate").mkdir(parents=True)
+    (logs / "calibrate" / "calB.log").write_text(
+        "01:02:03 INFO robo3d.calibration.target: board found in 4 of 12 views\n"
+        "01:02:09 ERROR robo3d.pipeline: calibrate failed for calB: /d/calB.mcap: calibration "
+        "failed 1 quality gate(s), min_views (config calibration_gates):\n"
+        "  gate min_views: 4 views, limit >= 10 views (6 views under it, 40% of the limit); "
+        "likely cause: ...\n")
+    (res / "s1" / "reports").mkdir(parents=True)
+    (res / "s1" / "metrics.json").write_text("{}")
+    st = batch_status(res, logs)
+    assert set(st["recordings"]) == {"s1"}  # results/calibration/ is not a scan
+    assert st["calibrations"]["calA"]["status"] == "done"
+    assert st["calibrations"]["calB"]["status"] == "failed"
+    assert "min_views" in st["calibrations"]["calB"]["error"]
+    text = format_batch_status(st)
+    assert "calibration calA: done" in text and "calibration calB: failed: " in text
+    assert main(["status", "--results", str(res), "--logs", str(logs)]) == 1

@@ -783,4 +783,7 @@ def format_run_summary(results_dir: str | os.PathLike[str] = "results",
         lines.append(f"inspect: .venv/bin/rerun {results}/{done[0]}/*.rrd")
     if status["failed"]:
         lines.append(f"failed: {', '.join(status['failed'])} (robo3d status says why)")
+    for name, c in (status.get("calibrations") or {}).items():
+        lines.append(f"calibration {name}: {c['status']}"
+                     + (f" ({c['file']})" if c["file"] else " (robo3d status says why)"))
     return "\n".join(lines)

@@ -493,3 +493,40 @@ def test_robo3d_status_lists_calibrations_apart_from_scans(tmp_path):
     text = format_batch_status(st)
     assert "calibration calA: done" in text and "calibration calB: failed: " in text
     assert main(["status", "--results", str(res), "--logs", str(logs)]) == 1
+
+
+def test_apply_calibration_through_a_fixed_mount_and_onto_a_fixed_rig():
+    """A camera hanging from the flange through a fixed mount gets the calibrated
+    hand-eye through the chain; a camera without a flange refuses a hand-eye."""
+    from robo3d.recording.model import Recording
+    from robo3d.transforms import TransformBuffer, matrix_to_quat
+
+    def link(buf, parent, child, T, static=True, t=0):
+        buf.add(parent, child, [t], T[:3, 3], matrix_to_quat(T[:3, :3]), static=static,
+                topic="/tf_static" if static else "/tf")
+
+    buf = TransformBuffer()
+    link(buf, "base", "flange", _T([5, 0, 0], [0.3, 0, 0.4]), static=False)
+    link(buf, "flange", "mount", _T([0, 90, 0], [0, 0, 0.02]))
+    link(buf, "mount", "camera", _T([0, -90, 0], [0, 0, 0.03]))
+    link(buf, "camera", "laser", L_REC)
+    rec = Recording(path="cell.mcap", calibrations={"camera": CameraModel("camera", W, H,
+                                                                          K_REC)}, tf=buf)
+    calib = _calibration_file()
+    out = apply_calibration(rec, calib)
+    np.testing.assert_allclose(out.tf.lookup("flange", "camera", 0), calib.T_flange_camera,
+                               atol=1e-12)
+    np.testing.assert_allclose(out.tf.lookup("flange", "mount", 0),  # the mount is kept
+                               buf.lookup("flange", "mount", 0), atol=1e-12)
+    rig = TransformBuffer()
+    link(rig, "base", "camera", _T([0, 0, 0], [0, 0, 0.5]))
+    link(rig, "camera", "laser", L_REC)
+    rec_rig = Recording(path="rig.mcap", calibrations=rec.calibrations, tf=rig)
+    with pytest.raises(CalibrationError, match=r"rig.mcap: .*'camera' hangs from 'base', which "
+                       r"is not fixed to 'flange'"):
+        apply_calibration(rec_rig, calib)
+    calib.T_flange_camera = None  # a fixed rig's calibration: intrinsics and laser only
+    out = apply_calibration(rec_rig, calib)
+    np.testing.assert_allclose(out.tf.lookup("camera", "laser", 0), calib.T_camera_laser,
+                               atol=1e-12)
+    np.testing.assert_allclose(out.tf.lookup("base", "camera", 0), rig.lookup("base", "camera", 0))

@@ -330,9 +330,10 @@ def test_too_few_views_and_sheet_frames_say_what_was_left_out():
         check_gates(r, GATES)
     msg = str(exc.value)
     assert "gate min_views: 5 views, limit >= 10 views" in msg
-    assert "found in 5 of 8 views; left out: 2 x not found; 1 x blurred" in msg
+    assert ("5 of 8 views were used; left out: 2 not found (views 5, 7); 1 blurred (view 6: "
+            "board edges 9.1 px wide > 8 px)") in msg
     assert "gate min_sheet_frames: 2 frames, limit >= 3" in msg
-    assert "1 x too few points on the board" in msg
+    assert "1 too few points on the board (frame 2)" in msg
 
 
 # ---------------------------------------------------------------------------- the workflow

@@ -64,6 +64,8 @@ class GateResult:
             return ""
         d = self.value - self.limit
         u = f" {self.unit}" if self.unit else ""
+        if u.endswith("s") and abs(d) == 1:
+            u = u[:-1]  # 1 view, 1 frame
         if not self.limit:
             rel = ""
         elif self.kind == "max":
@@ -252,8 +254,9 @@ def evaluate_gates(result: Any, cfg: Mapping[str, Any]) -> list[GateResult]:
          f"{_view_name(result, int(np.argmax(per_view)))} is the worst: a blurred view or a "
          f"wrong detection{_sharpness_note(result, int(np.argmax(per_view)))}")
     gate("min_views", n_used, "min", "views",
-         lambda: f"the board was found in {n_used} of {n_all} views; left out: "
-         f"{_reasons(result.views_left_out)} (record more views, the whole board in each)")
+         lambda: f"{n_used} of {n_all} views were used; left out: "
+         f"{_reasons(result.views_left_out)} (record more views, the whole board sharp "
+         "in each)")
     gate("min_tilt_spread_deg", tilt_spread_deg(result.T_camera_target), "min", "deg",
          lambda: "too few tilted views: the board's normals span only this angle, which "
          "leaves the focal length and the principal point poorly determined (tilt the board "
@@ -291,7 +294,7 @@ def evaluate_gates(result: Any, cfg: Mapping[str, Any]) -> list[GateResult]:
     gate("min_sheet_frames", n_sheet, "min", "frames",
          lambda: f"the stripe was found on the board in {n_sheet} laser frames; one board "
          "pose gives one line, a plane needs several non-parallel ones; left out: "
-         f"{_reasons(result.sheet_left_out)}")
+         f"{_reasons(result.sheet_left_out, 'frame')}")
     return out
 
 
@@ -305,13 +308,26 @@ def _sheet_worst(result: Any) -> str:
             f"{res[k]:.3g} mm (median {float(np.nanmedian(res)):.3g} mm)")
 
 
-def _reasons(left_out: Mapping[int, str]) -> str:
+def _reasons(left_out: Mapping[int, str], what: str = "view") -> str:
+    """Why views (or laser frames) were left out, grouped by the reason's kind (its words
+    before ``:`` or ``(``), each with the indices and the first one's figures:
+    ``2 blurred (views 2, 4: board edges 9.0 px wide > 8 px ...); 1 not found (view 7)``."""
     if not left_out:
         return "none"
-    from collections import Counter
+    import re
 
-    counts = Counter(str(r) for r in left_out.values())
-    return "; ".join(f"{n} x {r}" for r, n in counts.most_common(4))
+    groups: dict[str, list[tuple[int, str]]] = {}
+    for k, r in sorted(left_out.items()):
+        key = re.split(r"[:(]", str(r), maxsplit=1)[0].strip() or str(r)
+        groups.setdefault(key, []).append((int(k), str(r)))
+    parts = []
+    for key, items in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        idx = [i for i, _ in items]
+        names = ", ".join(map(str, idx[:8])) + (", ..." if len(idx) > 8 else "")
+        detail = items[0][1][len(key):].strip(" :")
+        parts.append(f"{len(idx)} {key} ({what}{'s' if len(idx) > 1 else ''} {names}"
+                     f"{': ' + detail if detail else ''})")
+    return "; ".join(parts)
 
 
 def gate_table(gates: list[GateResult]) -> dict[str, dict[str, Any]]:

@@ -391,6 +391,7 @@ def test_re_calibrating_re_runs_the_scans_using_it_and_only_those(tmp_path):
     rules = {(f.split("/")[1], r) for f, (r, _) in plan.items() if "/" in f}
     assert ("calibration", "calibrate") in rules
     assert {r for f, r in rules if f == "s3"} >= {"silhouettes", "stripes", "evaluate"}
+    assert not {f for f, _ in rules} & {"calA", "calB"}  # calibrations are not scanned
     # mark every output as made, in the order of the rules (none older than its inputs
     # or than the rules' scripts)
     order = ["calibrate", "silhouettes", "stripes", "carve", "triangulate", "align", "fuse",

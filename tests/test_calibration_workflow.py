@@ -532,3 +532,26 @@ def test_apply_calibration_through_a_fixed_mount_and_onto_a_fixed_rig():
     np.testing.assert_allclose(out.tf.lookup("camera", "laser", 0), calib.T_camera_laser,
                                atol=1e-12)
     np.testing.assert_allclose(out.tf.lookup("base", "camera", 0), rig.lookup("base", "camera", 0))
+
+
+def test_a_wrong_square_size_is_found_from_the_robot_motion(cell_recording):
+    """The simulator's session with its board metadata 5 % too large (and without a
+    published calibration, which the calibration does not need): the intrinsics fit as
+    well as ever, the gate on the board's scale fails and says the true square size."""
+    import re
+
+    from robo3d.calibration.calibrate import GateFailure, calibrate_recording
+    from robo3d.recording import read_recording
+
+    rec = read_recording(cell_recording, roles=("views", "laser"), require=False)
+    rec.calibrations = {}
+    square = float(rec.metadata["robo3d.target"]["square"])
+    rec.metadata["robo3d.target"] = {**rec.metadata["robo3d.target"],
+                                     "square": repr(square * 1.05)}
+    with pytest.raises(GateFailure) as exc:
+        calibrate_recording(rec, default_config())
+    msg = str(exc.value)
+    assert "quality gate(s), max_scale_error" in msg and "a wrong square size" in msg
+    assert exc.value.result.rms_px < 0.2  # the intrinsics do not see it
+    likely = float(re.search(r"target.square is likely ([0-9.]+) mm", msg).group(1))
+    assert likely == pytest.approx(square * 1e3, rel=0.015)

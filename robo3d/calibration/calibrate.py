@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -146,8 +146,11 @@ def _sorted_images(msgs: list) -> list:
 
 
 def _camera_frame(recording) -> tuple[str, CameraModel]:
-    """The calibrated camera: the recording's only camera (or ``camera``)."""
-    views = recording.views or recording.laser_frames
+    """The calibrated camera: the frame_id of the views (one camera per recording) and
+    its published model; without one (nothing to trust anyway), a placeholder at the
+    first view's size (f = the longer side, the image centre), which only sets the image
+    size and OpenCV's starting point."""
+    views = recording.views
     if not views:
         raise RecordingError("a calibration recording needs views of the target on the views "
                              "topic; it has none", path=recording.path)
@@ -155,7 +158,12 @@ def _camera_frame(recording) -> tuple[str, CameraModel]:
     if len(fids) > 1:
         raise RecordingError(f"the views come from {len(fids)} cameras ({', '.join(fids)}); "
                              "robo3d calibrates one camera per recording", path=recording.path)
-    return fids[0], recording.camera_for(views[0])
+    if fids[0] in recording.calibrations:
+        return fids[0], recording.calibrations[fids[0]]
+    h, w = views[0].decode().shape[:2]
+    f = float(max(w, h))
+    return fids[0], CameraModel(fids[0], w, h, np.array([[f, 0, (w - 1) / 2],
+                                                         [0, f, (h - 1) / 2], [0, 0, 1]]))
 
 
 def _detect(recording, msgs: list, target, options) -> list:
@@ -202,6 +210,9 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
                              "calibration recordings are calibrated from", path=recording.path)
     target = target_from_recording(recording)
     frame_id, published = _camera_frame(recording)
+    if frame_id not in recording.calibrations:  # decode() checks sizes against it
+        recording = replace(recording, calibrations={**recording.calibrations,
+                                                     frame_id: published})
     views = _sorted_images([m for m in recording.views if m.frame_id == frame_id])
     stamps = np.array([m.timestamp_ns for m in views], dtype=np.int64)
     detections = _detect(recording, views, target, DetectOptions.from_config(cfg["calibration"]))

@@ -5,7 +5,9 @@ figures of an independent OpenCV run (their README):
   a 28 x 17 board): OpenCV reaches RMS 0.117 px, f ≈ 2059 px, principal point ≈ (962, 610),
   and with Tsai's hand-eye the board scatters by 1.75 mm in ``base``;
 - ``srv_laser_calibration`` (a hand-held 8 x 6 board before a webcam): OpenCV finds 141 of
-  154 boards, RMS 0.137 px, f ≈ 626 / 625 px, principal point ≈ (318, 242).
+  154 boards, RMS 0.137 px, f ≈ 626 / 625 px, principal point ≈ (318, 242). To stay fast
+  the test uses every third view (all 154: 143 used, RMS 0.1345 px, f = 626.5 / 625.0 px,
+  principal point (318.1, 242.0)).
 
 The OpenCV reference for kuka_1 is recomputed in the same run (classic corners refined by
 cornerSubPix, calibrateCamera, Tsai), beside ours. Skips cleanly without ``../shared``.
@@ -21,6 +23,7 @@ import pytest
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real"
 KUKA = REAL / "rwhe_kuka1_calibration.mcap"
 SRV = REAL / "srv_laser_calibration.mcap"
+SRV_STEP = 3
 
 pytestmark = pytest.mark.skipif(not (KUKA.exists() and SRV.exists()),
                                 reason=f"real recordings in {REAL} not present (the shared "
@@ -68,7 +71,7 @@ def srv():
     rec = read_recording(SRV, roles=("views",))
     target = target_from_recording(rec)
     cam = rec.calibrations["camera"]
-    dets = detect_boards((rec.decode(m) for m in rec.views), target)
+    dets = detect_boards((rec.decode(m) for m in rec.views[::SRV_STEP]), target)
     intr = calibrate_intrinsics(dets, target, (cam.width, cam.height), recording=rec.path)
     return target, dets, intr
 
@@ -104,7 +107,7 @@ def test_kuka1_board_scatter_below_opencv(kuka):
 def test_srv_intrinsics_at_least_opencv(srv):
     target, dets, intr = srv
     assert target.moving and (target.cols, target.rows) == (8, 6)
-    assert len(intr.used) >= 141                     # OpenCV found 141 of 154
+    assert len(intr.used) >= 0.9 * len(dets)         # OpenCV found 141 of 154 (91.6 %)
     assert intr.rms_px < 0.137
     assert abs(intr.K[0, 0] - 626) < 3 and abs(intr.K[1, 1] - 625) < 3
     assert np.hypot(intr.K[0, 2] - 318, intr.K[1, 2] - 242) < 3

@@ -278,3 +278,29 @@ def test_projection_matches_opencv(cell):
     T = cell.T_ct[3]
     ours = project_plumb_bob(obj @ T[:3, :3].T + T[:3, 3], K_TRUE, D_TRUE)
     assert np.abs(ours - cell.uv_true[3]).max() < 1e-9
+
+
+def test_every_corner_order_becomes_the_canonical_one():
+    """Whatever corner a detector starts at and whichever way it runs the rows, the
+    canonical order is the same (colour rule for an asymmetric board, handedness)."""
+    from robo3d.calibration.target import _canonical
+
+    tg = Target(9, 6, 0.03)
+    Hm = np.array([[36.0, 4.0, 150.0], [-3.0, 35.0, 120.0], [0.0001, 0.0002, 1.0]])
+    img, truth = _render(Hm, tg)
+    grid = truth.reshape(tg.rows, tg.cols, 2)
+    for g in (grid, grid[::-1], grid[:, ::-1], grid[::-1, ::-1]):
+        out, reason = _canonical(g.copy(), img, tg)
+        assert not reason
+        assert np.array_equal(out.reshape(-1, 2), truth)
+    # a symmetric board (cols + rows even): the x axis points to the image's right
+    ts = Target(8, 6, 0.03)
+    img_s, truth_s = _render(Hm, ts)
+    gs = truth_s.reshape(ts.rows, ts.cols, 2)
+    outs = [_canonical(g.copy(), img_s, ts)[0] for g in (gs, gs[::-1], gs[:, ::-1], gs[::-1, ::-1])]
+    assert all(np.array_equal(o, outs[0]) for o in outs)
+    assert outs[0][0, -1, 0] > outs[0][0, 0, 0]
+    # a folded grid is refused with a reason
+    bad = grid.copy()
+    bad[:, :4] = bad[::-1, :4]
+    assert "flipped" in _canonical(bad, img, tg)[1]

@@ -304,3 +304,15 @@ def test_every_corner_order_becomes_the_canonical_one():
     bad = grid.copy()
     bad[:, :4] = bad[::-1, :4]
     assert "flipped" in _canonical(bad, img, tg)[1]
+
+
+def test_opencv_reference_is_opencv_intrinsics_with_tsai(cell):
+    from robo3d.calibration import opencv_reference
+
+    ref = opencv_reference(cell.T_bf_reported, cell.uv, TARGET, (W, H))
+    assert ref["handeye"] == ("cv2.calibrateHandEye" if hasattr(cv2, "calibrateHandEye")
+                              else "robo3d tsai")
+    mm, deg = _pose_error(ref["T_flange_camera"], cell.X)
+    assert mm < 1.0 and deg < 0.1
+    assert abs(ref["rms_px"] - NOISE_PX * np.sqrt(2)) < 0.02
+    assert 0 < ref["board_scatter_mm"] < 0.3

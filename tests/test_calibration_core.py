@@ -316,3 +316,26 @@ def test_opencv_reference_is_opencv_intrinsics_with_tsai(cell):
     assert mm < 1.0 and deg < 0.1
     assert abs(ref["rms_px"] - NOISE_PX * np.sqrt(2)) < 0.02
     assert 0 < ref["board_scatter_mm"] < 0.3
+
+
+def test_symmetric_board_read_turned_in_some_views_is_made_consistent(cell):
+    """A half-turn symmetric board (cols + rows even) read from the other end in some
+    views: the flips are found from the robot's motion and undone before the hand-eye."""
+    from robo3d.calibration import half_turn, resolve_board_flips
+
+    sym = Target(12, 8, 0.02)
+    obj = board_points(sym)
+    turned = np.zeros(len(cell.T_ct), bool)
+    turned[[3, 7, 8, 15]] = True
+    Tct = cell.T_ct.copy()
+    Tct[turned] = Tct[turned] @ half_turn(sym)[None]
+    assert np.array_equal(resolve_board_flips(cell.T_bf, Tct, sym), turned)
+    assert not resolve_board_flips(cell.T_bf, Tct, TARGET).any()  # asymmetric: never
+    # corners of the turned views in their (reversed) reading: refine_handeye undoes it
+    uv = np.stack([cv2.projectPoints(obj, cv2.Rodrigues(t[:3, :3])[0], t[:3, 3], K_TRUE,
+                                     D_TRUE)[0].reshape(-1, 2) for t in cell.T_ct])
+    uv[turned] = uv[turned][:, ::-1]
+    res = refine_handeye(cell.T_bf, uv, sym, K_TRUE, D_TRUE, Tct)
+    assert np.array_equal(res.flipped, turned)
+    mm, deg = _pose_error(res.T_flange_camera, cell.X)
+    assert mm < 1e-3 and deg < 1e-4

@@ -10,11 +10,13 @@ from .handeye import (
     HandEyeResult,
     board_positions_base,
     board_scatter_mm,
+    half_turn,
     handeye_closed_form,
     opencv_reference,
     pnp_poses,
     project_plumb_bob,
     refine_handeye,
+    resolve_board_flips,
     rotation_axis_spread_deg,
 )
 from .intrinsics import IntrinsicsOptions, IntrinsicsResult, calibrate_intrinsics, tilt_spread_deg
@@ -50,4 +52,6 @@ __all__ = [
     "opencv_reference",
     "pnp_poses",
     "project_plumb_bob",
+    "half_turn",
+    "resolve_board_flips",
 ]

@@ -101,6 +101,8 @@ __all__ = [
     "project_plumb_bob",
     "pnp_poses",
     "OPENCV4_AGREEMENT",
+    "half_turn",
+    "resolve_board_flips",
 ]
 
 _log = logging.getLogger(__name__)
@@ -177,6 +179,9 @@ class HandEyeResult:
         The closed form's figures beside it: ``method``, ``T_flange_camera``,
         ``T_base_target``, ``rms_px``, ``per_view_rms``, ``board_scatter_mm``.
     rotation_axis_spread_deg : float
+    flipped : (M,) bool
+        Views of a symmetric board whose reading was turned by 180° to agree with view 0
+        (:func:`resolve_board_flips`); their corners count reversed.
     robot_correction_mm, robot_correction_deg : (M,) float64
         Per view, the correction of the robot's pose the refinement's robot-error model
         implies (translation and rotation; zeros when ``robot_sigma_*`` are 0).
@@ -194,6 +199,7 @@ class HandEyeResult:
     rotation_axis_spread_deg: float
     robot_correction_mm: np.ndarray | None = None
     robot_correction_deg: np.ndarray | None = None
+    flipped: np.ndarray | None = None
     nfev: int = 0
     success: bool = True
 
@@ -368,6 +374,46 @@ def handeye_closed_form(T_base_flange: np.ndarray, T_camera_target: np.ndarray,
     return X
 
 
+# ------------------------------------------------------------- symmetric boards' half turn
+def half_turn(target: Target) -> np.ndarray:
+    """``T_target_turned``: the board frame turned by 180° about its centre's normal, whose
+    corner ``k`` is the original corner ``N - 1 - k`` (a symmetric board's other reading)."""
+    F = np.diag([-1.0, -1.0, 1.0, 1.0])
+    F[:2, 3] = [(target.cols - 1) * target.square, (target.rows - 1) * target.square]
+    return F
+
+
+def resolve_board_flips(T_base_flange: np.ndarray, T_camera_target: np.ndarray,
+                        target: Target) -> np.ndarray:
+    """Which views of a static, half-turn symmetric board (``cols + rows`` even) read the
+    board turned by 180° against the first view (see :mod:`robo3d.calibration.target`).
+
+    For a consistent reading, each pair ``(0, i)`` rotates the flange and the camera by the
+    same angle (``A X = X B`` makes ``R_A`` and ``R_B`` similar, whatever ``X`` is); a view
+    read turned changes ``R_B`` by the half turn. Each view takes the reading whose angle
+    is closer to the flange's.
+
+    Returns
+    -------
+    (N,) bool
+        True where ``T_camera_target_i @ half_turn(target)`` (and the corners reversed) is
+        the reading consistent with view 0; all False for an asymmetric board.
+    """
+    Tbf = _check_poses("T_base_flange", T_base_flange)
+    Tct = _check_poses("T_camera_target", T_camera_target)
+    flips = np.zeros(len(Tct), dtype=bool)
+    if not target.symmetric or len(Tct) < 2:
+        return flips
+    A = _inv(Tbf[1:]) @ Tbf[:1]
+    ang_a = np.linalg.norm(_log_rotation(A[:, :3, :3]), axis=-1)
+    ang = []
+    for Tc in (Tct[1:], Tct[1:] @ half_turn(target)[None]):
+        B = Tc @ _inv(Tct[:1])
+        ang.append(np.abs(np.linalg.norm(_log_rotation(B[:, :3, :3]), axis=-1) - ang_a))
+    flips[1:] = ang[1] < ang[0]
+    return flips
+
+
 # ----------------------------------------------------------------------------- figures
 def board_positions_base(T_base_flange: np.ndarray, T_flange_camera: np.ndarray,
                          T_camera_target: np.ndarray) -> np.ndarray:
@@ -483,6 +529,14 @@ def refine_handeye(T_base_flange: np.ndarray, corners_uv: np.ndarray, target: Ta
     obj = board_points(target)
     Tct0 = pnp_poses(uv, target, K, D) if T_camera_target is None else _check_poses(
         "T_camera_target", T_camera_target)
+    flips = resolve_board_flips(Tbf, Tct0, target)
+    if flips.any():  # a symmetric board read turned in some views: one reading for all
+        _log.info("hand-eye: %d views of the symmetric board read turned by 180 deg against "
+                  "view 0; their corners are reversed", int(flips.sum()))
+        uv = uv.copy()
+        uv[flips] = uv[flips][:, ::-1]
+        Tct0 = Tct0.copy()
+        Tct0[flips] = Tct0[flips] @ half_turn(target)[None]
     X0 = handeye_closed_form(Tbf, Tct0, opts.handeye_method,
                              min_rotation_deg=opts.min_rotation_deg,
                              min_axis_spread_deg=opts.min_axis_spread_deg, recording=recording)
@@ -554,7 +608,7 @@ def refine_handeye(T_base_flange: np.ndarray, corners_uv: np.ndarray, target: Ta
         board_scatter_mm=board_scatter_mm(Tbf, X, Tct), closed_form=closed,
         rotation_axis_spread_deg=spread,
         robot_correction_mm=np.linalg.norm(delta[:, 3:], axis=1) * 1000.0,
-        robot_correction_deg=np.degrees(np.linalg.norm(delta[:, :3], axis=1)),
+        robot_correction_deg=np.degrees(np.linalg.norm(delta[:, :3], axis=1)), flipped=flips,
         nfev=int(sol.nfev), success=bool(sol.success))
     _log.info("hand-eye: closed form (%s) RMS %.3f px, scatter %.3f mm; refined RMS %.3f px, "
               "scatter %.3f mm", opts.handeye_method, closed["rms_px"],

@@ -35,9 +35,11 @@ vectorised over the grid:
    there the choice is made in the image: the board's ``x`` axis points to the image's
    right (``u`` component of the mean row step ≥ 0). Two views of such a board rolled
    by more than 90° against each other get frames turned by 180° against each other;
-   for intrinsics and for the laser sheet (the board's plane) that does not matter, for
-   a static board's hand-eye it would, so such a board should not be rolled beyond
-   ±90° between views (our test cells keep the board's asymmetric: cols + rows odd).
+   for intrinsics and for the laser sheet (the board's plane) that does not matter; for
+   a static board's hand-eye :func:`robo3d.calibration.handeye.resolve_board_flips`
+   turns such views back to the first view's reading (the flange and the camera must
+   rotate by the same angle between two views). Boards with ``cols + rows`` odd need
+   none of this.
 
 Square boards (``cols == rows``) also allow a quarter turn and are refused.
 

@@ -15,7 +15,8 @@ measures only what is missing):
     :func:`robo3d.simulate.simulate_calibration` (``rig`` robot: a static board, the robot
     moves the camera; fixed: a fixed camera, a hand-held board), the default session (25
     board views of which 3 are bad: motion blur, partly out of frame, glare; 15 laser
-    frames; 640 x 480, JPEG 80, room light, the cell's noise) of
+    frames, each with a laser-off companion view: 40 views; 640 x 480, JPEG 80, room
+    light, the cell's noise) of
     ``SimulationParams.cell(seed=seed)``, calibrated by
     :func:`robo3d.calibration.calibrate.calibrate_recording` with the default config
     (the ``calibrate`` rule's function; gates evaluated, not raised) and compared with
@@ -23,8 +24,8 @@ measures only what is missing):
 
     - ``rms_px``: the intrinsics fit's reprojection RMS over the views it used;
     - ``focal_rel_err``: ``max(|fx - fx*| / fx*, |fy - fy*| / fy*)`` of the camera the
-      calibration file carries (robot cell: the intrinsics refined jointly with the
-      hand-eye);
+      calibration file carries (the intrinsics fit's; refined with the hand-eye too only
+      with ``calibration.refine_intrinsics``, off by default);
     - ``principal_px``: ``|(cx, cy) - (cx*, cy*)|``;
     - ``handeye_mm`` / ``handeye_deg``: translation and rotation angle of
       ``T_flange_camera* ^-1 T_flange_camera`` (robot cell only);
@@ -547,12 +548,13 @@ def assemble(parts: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 def _notes(parts: dict[str, dict[str, Any]], summ: dict[str, Any]) -> str:
     sims = [n for n in parts if n.startswith("sim_")]
-    envs = {n: (p.get("code"), p.get("utc"), p.get("load_average"))
-            for n, p in parts.items() if "utc" in p}
+    envs = {n: ((p.get("true") or {}).get("code") or p.get("code"), p.get("utc"),
+                p.get("load_average")) for n, p in parts.items() if "utc" in p}
     text = [
         f"Simulated: {len(sims)} calibration recordings ({', '.join(sorted(sims))}: "
         "robo3d.simulate.simulate_calibration, default session of SimulationParams.cell(seed): "
-        "25 views with 3 bad ones, 15 laser frames, 640x480, JPEG 80) calibrated by "
+        "25 board views with 3 bad ones, 15 laser frames with a companion view each, "
+        "640x480, JPEG 80) calibrated by "
         "robo3d.calibration.calibrate.calibrate_recording with the default config; headline "
         "figures are the WORST over the recordings (intrinsics and sheet: both rigs; "
         "hand-eye: robot cell), means in details.simulated. focal_rel_err = max over fx, fy "
@@ -573,11 +575,35 @@ def _notes(parts: dict[str, dict[str, Any]], summ: dict[str, Any]) -> str:
         f"{README_SRV_PLANE_RMS_MM} mm on 25 boards).",
     ]
     if "kuka1" in parts and "opencv" in parts["kuka1"]:
-        text.append(f"kuka1 OpenCV peer's hand-eye: {parts['kuka1']['opencv']['handeye']}.")
+        from robo3d.calibration.handeye import OPENCV4_AGREEMENT
+
+        text.append(f"kuka1 OpenCV peer's hand-eye: {parts['kuka1']['opencv']['handeye']} "
+                    f"(robo3d's Tsai against OpenCV 4.x's: {OPENCV4_AGREEMENT}).")
+    src = [p["sheet_board_pose_sources"] for n, p in parts.items()
+           if n.startswith("sim_fixed") and "sheet_board_pose_sources" in p]
+    fixed = [abs(p["sheet_offset_signed_mm"]) for n, p in parts.items()
+             if n.startswith("sim_fixed") and "sheet_offset_signed_mm" in p]
+    if src and fixed:
+        worst = {k: max(abs(s[k]["offset_signed_mm"]) for s in src) for k in src[0]}
+        text.append(
+            "Fixed rig sheet offset: the pipeline takes each laser frame's board pose from PnP "
+            "in that frame, across which the stripe runs; worst |offset error| over the "
+            f"seeds {max(fixed):.4f} mm that way, {worst['companion_view_pnp']:.4f} mm with "
+            "the board's pose from PnP in the frame's laser-off companion view (same still "
+            f"pose), {worst['true_poses']:.4f} mm with the true board poses (the calibrated "
+            "camera throughout; details.parts.sim_fixed_<seed>.sheet_board_pose_sources).")
+    if "scan" in parts and "true" in parts["scan"]:
+        t = parts["scan"]["true"]
+        text.append(
+            f"The scan's own error with the true calibration (measured median "
+            f"{t['measured_median_mm']:.4f} mm, worst frame pose after alignment "
+            f"{t['pose_worst_after_frame_mm']:.3f} mm: the cell preset's robot error, 3 sweeps, "
+            "12 views) is the floor the ratio is taken against.")
     for n in ("kuka1", "srv"):
         if n in parts and "skipped" in parts[n]:
             text.append(f"{n}: skipped ({parts[n]['skipped']}).")
-    text.append("Each part's code (robo3d code hash, git HEAD, uncommitted files), UTC start "
+    text.append("Each part's code (robo3d code hash, git HEAD, uncommitted files; the scan: the "
+                "workflow runs' own, from their metrics.json), UTC start "
                 "time and load average are in details.parts.<part>; machine: 2 cores shared "
                 "with other jobs. " + "; ".join(f"{n}: code {h}, {u} UTC, load {la[0]}"
                                                 for n, (h, u, la) in sorted(envs.items())))

@@ -19,6 +19,7 @@ from robo3d.calibration.sheet import (
     calibrate_sheet,
     fit_plane_robust,
     sheet_points,
+    still_views,
 )
 from robo3d.camera import CameraModel
 from robo3d.errors import CalibrationError
@@ -268,6 +269,30 @@ def test_board_poses_from_handeye_chain():
     T_ct = board_poses_from_handeye(T_bf, X, T_bt)
     for k in range(4):
         np.testing.assert_allclose(T_bf[k] @ X @ T_ct[k], T_bt, atol=1e-12)
+
+
+def test_still_views_picks_the_view_with_the_board_at_the_same_place():
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(9) * 20.0 + 100, np.arange(6) * 20.0 + 80),
+                    -1).reshape(-1, 2)
+    frame = grid + rng.normal(0, 0.05, grid.shape)
+    frame[[10, 11, 12]] += 2.0  # the corners under the line moved
+    frames = [frame, frame + 50.0, frame, None]
+    s = 1_000_000_000
+    t_frames = np.array([10, 20, 30, 40]) * s
+    still = grid + rng.normal(0, 0.05, grid.shape)
+    views = [still,                              # 0.25 s before frame 0, same place
+             grid + [0.8, 0.0],                  # frame 0's time too, the board moved 0.8 px
+             frame + 50.0 + [0.3, 0.0],          # beside frame 1: within 0.5 px
+             still,                              # 2 s before frame 2: too long ago
+             still,                              # frame 3: its board not found
+             still, None]                        # None: not a candidate
+    t_views = np.array([9.75, 10.1, 20.25, 28.0, 39.9, 30.1, 30.0]) * s
+    t_views[5] = 33 * s  # out of frame 2's window
+    got = still_views(t_frames, frames, t_views, views, max_s=1.0, max_px=0.5)
+    np.testing.assert_array_equal(got, [0, 2, -1, -1])
+    assert (still_views(t_frames, frames, t_views, views, max_s=0.0, max_px=0.5) == -1).all()
+    assert still_views(t_frames, frames, t_views, views, max_s=1.0, max_px=0.2)[1] == -1
 
 
 # ---------------------------------------------------------------------------- calibrate_sheet

@@ -14,7 +14,16 @@ Per frame (:func:`calibrate_sheet`)
   laser frames are separate hand-held poses, not paired with the views, and the board is
   found in them despite the line), or from the hand-eye chain
   ``inv(T_base_flange X) T_base_target`` in a robot cell (:func:`board_poses_from_handeye`).
-  A frame without it is left out ("board not found").
+  A frame without it is left out ("board not found"). With a moving board, a laser-off
+  view within ``still_view_max_s`` of the frame whose corners lie within
+  ``still_view_max_px`` (median) of the frame's shows the board held still, and its
+  corners give the pose (:func:`still_views`): the laser frame's are worse (the dimmed
+  exposure, the line across the pattern). On the simulator's fixed rig (seeds 0-2)
+  the laser frames' corners left the board's tilt off by up to 0.16 deg (the views':
+  0.044 deg) and the sheet's offset by 0.047 / 0.039 / 0.005 mm; the views' corners
+  0.000 / 0.017 / 0.017 mm (the true poses: 0.007 / 0.017 / 0.011 mm). The board's
+  depth error is the same either way (+-0.1 mm per frame, its mean following the
+  focal length's error), so tilt, not scale, was the laser frames' share.
 * The stripe is found with the project's detector (:mod:`robo3d.stripes`, the config's
   ``stripes`` section, the laser colour found once for the recording as the stripes
   stage does) inside the board's region only (its region of interest): the detector keeps
@@ -111,6 +120,7 @@ __all__ = [
     "board_point_mask",
     "board_border_region",
     "board_poses_from_handeye",
+    "still_views",
     "find_sheet_stripes",
     "calibrate_sheet",
 ]
@@ -158,6 +168,11 @@ class SheetOptions(Options):
         Fewest frames the fit needs.
     min_spread_mm : float, mm
         Least spread of the points across their main direction (else one line).
+    still_view_max_s : float, seconds
+        Moving board: a view at most this far in time from a laser frame may give the
+        board's pose (:func:`still_views`); 0: always the laser frame's own detection.
+    still_view_max_px : float, pixels
+        ... when its corners lie within this (median) of the laser frame's.
     """
 
     section = "laser_sheet"
@@ -172,6 +187,8 @@ class SheetOptions(Options):
     frame_outlier_factor: float = 3.0
     min_frames: int = 3
     min_spread_mm: float = 5.0
+    still_view_max_s: float = 1.0
+    still_view_max_px: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -625,6 +642,63 @@ def board_poses_from_handeye(T_base_flange: np.ndarray, T_flange_camera: np.ndar
     tbt = check_transform(T_base_target, "T_base_target")
     tbc = tbf @ tfc
     return np.einsum("fij,jk->fik", invert_transform(tbc), tbt)
+
+
+def still_views(frame_stamps_ns: np.ndarray, frame_corners: Sequence[np.ndarray | None],
+                view_stamps_ns: np.ndarray, view_corners: Sequence[np.ndarray | None],
+                max_s: float, max_px: float) -> np.ndarray:
+    """For each laser frame, a view that shows the board at the same place, if any.
+
+    A moving board held still for a laser frame is often also seen in a laser-off view
+    just before or after (the simulator's fixed rig writes one 0.25 s before each laser
+    frame). The view's detection is the better one: in the laser frame the exposure is
+    dimmed for the line and the line crosses the pattern, which moves the corners near
+    it (measured on the simulator's fixed rig, seeds 0-2: up to 0.9-2.1 px at single
+    corners, median 0.05-0.13 px, the board's tilt off by up to 0.16 deg from the laser
+    frame's corners against at most 0.044 deg from the view's).
+
+    Parameters
+    ----------
+    frame_stamps_ns : (F,) int
+        The laser frames' time stamps.
+    frame_corners : sequence of (N, 2) float or None
+        The board's corners detected in each laser frame (None: not found).
+    view_stamps_ns : (V,) int
+        The views' time stamps.
+    view_corners : sequence of (N, 2) float or None
+        The corners of each view that may stand in (None: not a candidate).
+    max_s : float, seconds
+        Only views at most this far in time from the frame are candidates; 0: none.
+    max_px : float, pixels
+        The view stands in when the median distance between its corners and the laser
+        frame's is at most this (the median: a few corners under the line move).
+
+    Returns
+    -------
+    (F,) int
+        Index of the view (the candidate with the smallest median distance) per frame,
+        -1 where none qualifies (or the frame's board was not found: without its corners
+        nothing says the board had not moved).
+    """
+    ts = np.asarray(frame_stamps_ns, dtype=np.int64)
+    tv = np.asarray(view_stamps_ns, dtype=np.int64)
+    out = np.full(len(ts), -1, dtype=int)
+    if max_s <= 0 or len(tv) == 0:
+        return out
+    cand = [j for j, c in enumerate(view_corners) if c is not None]
+    for f, fc in enumerate(frame_corners):
+        if fc is None:
+            continue
+        near = [j for j in cand if abs(int(tv[j]) - int(ts[f])) <= max_s * 1e9
+                and np.shape(view_corners[j]) == np.shape(fc)]
+        if not near:
+            continue
+        med = np.median(np.linalg.norm(np.stack([view_corners[j] for j in near])
+                                       - np.asarray(fc)[None], axis=2), axis=1)
+        best = int(np.argmin(med))
+        if med[best] <= max_px:
+            out[f] = near[best]
+    return out
 
 
 # ---------------------------------------------------------------------------- stripes

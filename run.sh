@@ -98,7 +98,8 @@ case "$cmd" in
     exec .venv/bin/snakemake --cores all --keep-going --rerun-incomplete "$@"
     ;;
   test)
-    exec .venv/bin/python -m pytest "$@"
+    # two workers (the machine the suite is sized for has 2 cores), one file at a time each
+    exec .venv/bin/python -m pytest -n 2 --dist loadfile "$@"
     ;;
   *)
     say "usage: ./run.sh demo|test [args...]"; exit 2

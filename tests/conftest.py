@@ -15,6 +15,11 @@ of compiling it (numba reads the cache index at every compilation). Nothing a te
 computes or asserts changes: the cache holds the same machine code the test would
 compile. The process is ended when the session ends; ``ROBO3D_TEST_NO_WARMUP=1`` turns
 it off (e.g. to time the suite without it).
+
+Under pytest-xdist (``./run.sh test`` runs two workers, one test file per worker at a
+time) both cores are the tests' own, so there is no warm-up process; instead the files
+marked ``slow`` (the end-to-end workflow runs, minutes each) are handed out first, so
+that they run beside the many short files instead of after them.
 """
 
 from __future__ import annotations
@@ -73,7 +78,8 @@ _warm: subprocess.Popen | None = None
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     global _warm
-    if os.environ.get("ROBO3D_TEST_NO_WARMUP") or session.config.option.collectonly:
+    if (os.environ.get("ROBO3D_TEST_NO_WARMUP") or session.config.option.collectonly
+            or os.environ.get("PYTEST_XDIST_WORKER")):
         return
     names = [item.path.name for item in session.items]
     first = next((i for i, n in enumerate(names) if n in _LATER_USERS), None)
@@ -81,6 +87,15 @@ def pytest_collection_finish(session: pytest.Session) -> None:
         return
     _warm = subprocess.Popen([sys.executable, "-c", WARM_UP], stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under xdist, the ``slow`` files first (stable order otherwise): xdist's ``loadfile``
+    schedule hands out files in collection order, and a long file handed out last
+    would run alone on one core at the end."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:

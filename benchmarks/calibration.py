@@ -586,12 +586,15 @@ def _notes(parts: dict[str, dict[str, Any]], summ: dict[str, Any]) -> str:
     if src and fixed:
         worst = {k: max(abs(s[k]["offset_signed_mm"]) for s in src) for k in src[0]}
         text.append(
-            "Fixed rig sheet offset: the pipeline takes each laser frame's board pose from PnP "
-            "in that frame, across which the stripe runs; worst |offset error| over the "
-            f"seeds {max(fixed):.4f} mm that way, {worst['companion_view_pnp']:.4f} mm with "
-            "the board's pose from PnP in the frame's laser-off companion view (same still "
-            f"pose), {worst['true_poses']:.4f} mm with the true board poses (the calibrated "
-            "camera throughout; details.parts.sim_fixed_<seed>.sheet_board_pose_sources).")
+            "Fixed rig sheet offset: the pipeline takes a laser frame's board pose from a "
+            "view that shows the board at the same place (laser_sheet.still_view_max_s/_px), "
+            "else from PnP in the laser frame itself; worst |offset error| over the seeds "
+            f"{max(fixed):.4f} mm that way; refitted by this benchmark with other board "
+            f"poses: {worst['companion_view_pnp']:.4f} mm from PnP in every frame's "
+            "laser-off companion view (including frames whose own board detection fails, "
+            f"which the pipeline leaves out), {worst['true_poses']:.4f} mm with the true board "
+            "poses (the calibrated camera throughout; "
+            "details.parts.sim_fixed_<seed>.sheet_board_pose_sources).")
     if "scan" in parts and "true" in parts["scan"]:
         t = parts["scan"]["true"]
         text.append(

@@ -797,15 +797,8 @@ def _robot_pose(rng: np.random.Generator, camera: CameraModel, t_world_target: n
         roll = np.radians(rng.uniform(-o.roll_max_deg, o.roll_max_deg))
         t_wc = look_at(eye, aim, roll=roll, up=np.array([0.0, 1.0, 0.0]))
         t_ct = invert_transform(t_wc) @ t_world_target
-        if defect == "out_of_frame":
-            if 0.35 <= _fraction_inside(camera, t_ct, board, 0.0) <= 0.8:
-                return t_wc
-            continue
-        if not _all_inside(camera, t_ct, board, o.edge_px):
-            continue
-        if t_camera_laser is not None and not _stripe_ok(t_ct, t_camera_laser, board):
-            continue
-        return t_wc
+        if _pose_ok(camera, t_ct, board, o, defect, t_camera_laser):
+            return t_wc
     raise ValueError(f"no camera pose found for stop {k} (board too large for the image "
                      f"at distance {o.distance_m} m?)")
 
@@ -814,6 +807,19 @@ def _crossing(t_camera_laser: np.ndarray) -> float:
     """Depth at which the laser sheet crosses the optical axis."""
     ln, lo = t_camera_laser[:3, 1], t_camera_laser[:3, 3]
     return float((lo @ ln) / ln[2]) if abs(ln[2]) > 1e-9 else 0.3
+
+
+def _pose_ok(camera: CameraModel, t_ct: np.ndarray, board: Checkerboard,
+             o: CalibrationOptions, defect: str | None,
+             t_camera_laser: np.ndarray | None) -> bool:
+    """Whether a sampled board pose is what its stop asks for: an out-of-frame defect
+    shows 35-80 % of the board; any other pose shows all of it ``edge_px`` inside the
+    image, and (a laser frame) a stripe across it from the laser's side."""
+    if defect == "out_of_frame":
+        return 0.35 <= _fraction_inside(camera, t_ct, board, 0.0) <= 0.8
+    if not _all_inside(camera, t_ct, board, o.edge_px):
+        return False
+    return t_camera_laser is None or _stripe_ok(t_ct, t_camera_laser, board)
 
 
 def _stripe_ok(t_ct: np.ndarray, t_cl: np.ndarray, board: Checkerboard) -> bool:
@@ -850,15 +856,8 @@ def _fixed_pose(rng: np.random.Generator, camera: CameraModel, board: Checkerboa
         if defect == "out_of_frame":
             shift = np.r_[rng.uniform(-1, 1, 2) * 0.07, 0.0]
         t_ct = make_transform(r, target_pt - r @ (board.centre + shift))
-        if defect == "out_of_frame":
-            if 0.35 <= _fraction_inside(camera, t_ct, board, 0.0) <= 0.8:
-                return t_ct
-            continue
-        if not _all_inside(camera, t_ct, board, o.edge_px):
-            continue
-        if t_camera_laser is not None and not _stripe_ok(t_ct, t_camera_laser, board):
-            continue
-        return t_ct
+        if _pose_ok(camera, t_ct, board, o, defect, t_camera_laser):
+            return t_ct
     raise ValueError("no board pose found (board too large for the image?)")
 
 

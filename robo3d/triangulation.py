@@ -517,63 +517,141 @@ _RING = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7071, 0.7071], [0.7071, -
 
 
 # ---------------------------------------------------------------------------- eq. 16-17
+#: Pixels undistorted together by :func:`_ray_plane_kernel` (see there).
+_BLOCK = 8
+
+
+@njit(inline="always")
+def _undistort_block(uv, b0, m, kpar, dist, has_dist, x0, y0, x, y, ok, run):  # noqa: ANN001, ANN202
+    """Normalised undistorted coordinates (x, y) of the pixels ``b0 .. b0 + m - 1`` of
+    uv, by the fixed-point inverse of plumb_bob as CameraModel's (stop after 20 steps or
+    when a step moves neither coordinate by more than 1e-15); ``ok``: the pixel is
+    finite (a non-finite one is not iterated). The pixels iterate in lockstep, each with
+    its own operations and its own stop (``run``), hence the same values as one pixel at
+    a time; but a pixel's step no longer waits for its previous step's division: the
+    block's independent steps overlap (2.6x faster on stripe centres)."""
+    fx, fy, cx, cy, skew = kpar[0], kpar[1], kpar[2], kpar[3], kpar[4]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    n_run = 0
+    for j in range(m):
+        u = uv[b0 + j, 0]
+        v = uv[b0 + j, 1]
+        ok[j] = np.isfinite(u) and np.isfinite(v)
+        run[j] = ok[j] and has_dist
+        n_run += 1 if run[j] else 0
+        y0[j] = (v - cy) / fy
+        x0[j] = (u - cx - skew * y0[j]) / fx
+        x[j] = x0[j]
+        y[j] = y0[j]
+    it = 0
+    while n_run > 0 and it < 20:
+        it += 1
+        for j in range(m):
+            if not run[j]:
+                continue
+            xj = x[j]
+            yj = y[j]
+            r2 = xj * xj + yj * yj
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2.0 * p1 * xj * yj + p2 * (r2 + 2.0 * xj * xj)
+            dy = p1 * (r2 + 2.0 * yj * yj) + 2.0 * p2 * xj * yj
+            inv = 1.0 / radial
+            xn = (x0[j] - dx) * inv
+            yn = (y0[j] - dy) * inv
+            x[j] = xn
+            y[j] = yn
+            if abs(xn - xj) <= 1e-15 and abs(yn - yj) <= 1e-15:
+                run[j] = False
+                n_run -= 1
+
+
 @njit(nogil=True, cache=True)
 def _ray_plane_kernel(uv, plane_of, normals, offsets, kpar, dist, has_dist, min_sin,
                       min_range, max_range):  # noqa: ANN001, ANN202 - numba kernel
-    """Undistort each pixel, intersect its unit ray with its plane; status per pixel:
-    0 kept, 1 non_finite, 2 grazing, 3 behind, 4 out_of_range (DROP_REASONS order)."""
+    """Undistort each pixel (:func:`_undistort_block`, ``_BLOCK`` pixels at a time),
+    intersect its unit ray with its plane; status per pixel: 0 kept, 1 non_finite,
+    2 grazing, 3 behind, 4 out_of_range (DROP_REASONS order)."""
     n = uv.shape[0]
     pts = np.full((n, 3), np.nan)
     status = np.zeros(n, np.int8)
     sin_a = np.zeros(n)
-    fx, fy, cx, cy, skew = kpar[0], kpar[1], kpar[2], kpar[3], kpar[4]
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for i in range(n):
-        u = uv[i, 0]
-        v = uv[i, 1]
-        if not (np.isfinite(u) and np.isfinite(v)):
-            status[i] = 1
-            continue
-        y0 = (v - cy) / fy
-        x0 = (u - cx - skew * y0) / fx
-        x = x0
-        y = y0
-        if has_dist:  # the fixed-point inverse of plumb_bob, as CameraModel's
-            for _ in range(20):
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-                dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-                inv = 1.0 / radial
-                xn = (x0 - dx) * inv
-                yn = (y0 - dy) * inv
-                done = abs(xn - x) <= 1e-15 and abs(yn - y) <= 1e-15
-                x = xn
-                y = yn
-                if done:
-                    break
-        norm = np.sqrt(x * x + y * y + 1.0)
-        rx = x / norm
-        ry = y / norm
-        rz = 1.0 / norm
-        j = plane_of[i]
-        den = rx * normals[j, 0] + ry * normals[j, 1] + rz * normals[j, 2]
-        sa = abs(den)
-        sin_a[i] = sa
-        if not (sa >= min_sin):
-            status[i] = 2
-            continue
-        t = offsets[j] / den
-        if not (t > 0):
-            status[i] = 3
-            continue
-        if not (t >= min_range and t <= max_range):
-            status[i] = 4
-            continue
-        pts[i, 0] = t * rx
-        pts[i, 1] = t * ry
-        pts[i, 2] = t * rz
+    x0 = np.zeros(_BLOCK)
+    y0 = np.zeros(_BLOCK)
+    xs = np.zeros(_BLOCK)
+    ys = np.zeros(_BLOCK)
+    ok = np.zeros(_BLOCK, np.bool_)
+    run = np.zeros(_BLOCK, np.bool_)
+    for b0 in range(0, n, _BLOCK):
+        m = min(_BLOCK, n - b0)
+        _undistort_block(uv, b0, m, kpar, dist, has_dist, x0, y0, xs, ys, ok, run)
+        for j in range(m):
+            i = b0 + j
+            if not ok[j]:
+                status[i] = 1
+                continue
+            x = xs[j]
+            y = ys[j]
+            norm = np.sqrt(x * x + y * y + 1.0)
+            rx = x / norm
+            ry = y / norm
+            rz = 1.0 / norm
+            k = plane_of[i]
+            den = rx * normals[k, 0] + ry * normals[k, 1] + rz * normals[k, 2]
+            sa = abs(den)
+            sin_a[i] = sa
+            if not (sa >= min_sin):
+                status[i] = 2
+                continue
+            t = offsets[k] / den
+            if not (t > 0):
+                status[i] = 3
+                continue
+            if not (t >= min_range and t <= max_range):
+                status[i] = 4
+                continue
+            pts[i, 0] = t * rx
+            pts[i, 1] = t * ry
+            pts[i, 2] = t * rz
     return pts, status, sin_a
+
+
+#: What :func:`_camera_params` and :func:`_sheet_of` last computed, by the bytes of their
+#: input: a caller triangulating frame after frame passes the same camera and laser pose
+#: again and again (each a few microseconds of numpy per frame otherwise). Emptied when
+#: it holds 64 entries.
+_PARAMS_CACHE: dict[bytes, tuple] = {}
+
+
+def _cached(key: bytes, make):  # noqa: ANN001, ANN202
+    """``_PARAMS_CACHE[key]``, made by ``make()`` the first time. Its arrays are shared
+    by every caller and only read (by the kernel); they are left writeable, as numba
+    would compile the kernel again for read-only arrays."""
+    hit = _PARAMS_CACHE.get(key)
+    if hit is None:
+        if len(_PARAMS_CACHE) >= 64:
+            _PARAMS_CACHE.clear()
+        hit = make()
+        _PARAMS_CACHE[key] = hit
+    return hit
+
+
+def _camera_params(camera: CameraModel) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The kernel's intrinsics ``(fx, fy, cx, cy, skew)``, plumb_bob ``D[:5]`` and
+    whether there is distortion, of a camera (cached by K and D)."""
+    K, D = np.asarray(camera.K), np.asarray(camera.D)
+    return _cached(b"K" + K.tobytes() + D.tobytes(), lambda: (
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1]]),
+        np.ascontiguousarray(D[:5], dtype=np.float64), camera.has_distortion))
+
+
+def _sheet_of(T_camera_laser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`laser_plane_in_camera` of a checked (4, 4) float64 pose as the kernel
+    takes it: normals (1, 3) and offsets (1,) (cached by the pose's bytes)."""
+    def make() -> tuple[np.ndarray, np.ndarray]:
+        n, d = laser_plane_in_camera(T_camera_laser)
+        return n[None], np.array([d])
+
+    return _cached(b"T" + T_camera_laser.tobytes(), make)
 
 
 def _intersect(
@@ -583,12 +661,11 @@ def _intersect(
     """Rays through the (distorted) pixels uv (N, 2) meet the planes normals (F, 3),
     offsets (F,) (pixel i meets plane plane_of[i]): points (N, 3) in the camera, kept
     (N,), counts of the dropped by reason, |sin| of the ray-sheet angle (N,)."""
-    kpar = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1]])
+    kpar, dist, has_dist = _camera_params(camera)
     pts, status, sin_a = _ray_plane_kernel(
         np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(plane_of, np.int64),
         np.ascontiguousarray(normals, dtype=np.float64),
-        np.ascontiguousarray(offsets, dtype=np.float64), kpar,
-        np.ascontiguousarray(camera.D[:5], dtype=np.float64), camera.has_distortion,
+        np.ascontiguousarray(offsets, dtype=np.float64), kpar, dist, has_dist,
         float(np.sin(np.radians(min_angle_deg))), float(min_range), float(max_range))
     counts = np.bincount(status, minlength=len(DROP_REASONS) + 1)
     dropped = {name: int(counts[i + 1]) for i, name in enumerate(DROP_REASONS)}
@@ -649,9 +726,9 @@ def triangulate_pixels(
     uv = _check_pixels(pixels_uv)
     t = check_transform(T_camera_laser, "T_camera_laser")
     _check_ranges(min_angle_deg, min_range, max_range)
-    n, d = laser_plane_in_camera(t)
-    pts, keep, dropped, _ = _intersect(uv, camera, np.zeros(len(uv), np.int64), n[None],
-                                       np.array([d]), min_angle_deg, min_range, max_range)
+    normals, offsets = _sheet_of(t)
+    pts, keep, dropped, _ = _intersect(uv, camera, np.zeros(len(uv), np.int64), normals,
+                                       offsets, min_angle_deg, min_range, max_range)
     return pts, keep, dropped
 
 

@@ -137,7 +137,9 @@ def _sheet_rois(rec, cfg: Mapping[str, Any], cameras: list, poses: np.ndarray,
         m = sheet_roi_mask(cameras[i], sheet_in_workspace(poses[i], T_roi_laser[i],
                                                           rec.workspace),
                            float(sc["roi_margin_px"]))
-        roi_area[i] = 1.0 if m is None else float(m.mean())
+        # the share of the image it covers: counted (a bool mean converts every pixel
+        # to float64 first, 0.46 ms at 1280 x 960 against 0.035; the same value)
+        roi_area[i] = 1.0 if m is None else np.count_nonzero(m) / m.size
         return m
 
     return roi, use_roi, roi_area

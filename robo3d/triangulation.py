@@ -431,6 +431,24 @@ def sheet_in_workspace(T_base_camera: np.ndarray, T_camera_laser: np.ndarray,
     return pts @ T_cl[:3, :3].T + T_cl[:3, 3]
 
 
+def _clip_near(P: np.ndarray, near: float) -> np.ndarray:
+    """A polygon (N, 3) of the camera frame clipped to ``z >= near`` (Sutherland-Hodgman
+    against one plane, a handful of vertices). A polygon wholly in front, the usual
+    case, is returned as it is: the clip would give back the same vertices in the same
+    order (60 us of small numpy calls per frame)."""
+    z = P[:, 2] - near
+    if np.all(z >= 0):
+        return P
+    nx = (np.arange(len(P)) + 1) % len(P)
+    Q, zq = P[nx], z[nx]
+    keep = P[z >= 0]
+    sel = (z >= 0) != (zq >= 0)
+    tt = z[sel] / (z[sel] - zq[sel])
+    cut = P[sel] + tt[:, None] * (Q[sel] - P[sel])
+    order = np.concatenate([np.flatnonzero(z >= 0) * 2.0, np.flatnonzero(sel) * 2.0 + 1.0])
+    return np.concatenate([keep, cut])[np.argsort(order, kind="stable")]
+
+
 def sheet_roi_mask(camera: CameraModel, polygon_cam: np.ndarray, margin_px: float,
                    near: float = 1e-3) -> np.ndarray | None:
     """The image region where a convex polygon of the camera frame (the sheet inside the
@@ -456,16 +474,7 @@ def sheet_roi_mask(camera: CameraModel, polygon_cam: np.ndarray, margin_px: floa
     mask = np.zeros((H, W), np.uint8)
     if len(P) < 3:
         return None
-    # clip to z >= near (Sutherland-Hodgman against one plane, a handful of vertices)
-    z = P[:, 2] - near
-    nx = (np.arange(len(P)) + 1) % len(P)
-    Q, zq = P[nx], z[nx]
-    keep = P[z >= 0]
-    sel = (z >= 0) != (zq >= 0)
-    tt = z[sel] / (z[sel] - zq[sel])
-    cut = P[sel] + tt[:, None] * (Q[sel] - P[sel])
-    order = np.concatenate([np.flatnonzero(z >= 0) * 2.0, np.flatnonzero(sel) * 2.0 + 1.0])
-    P = np.concatenate([keep, cut])[np.argsort(order, kind="stable")]
+    P = _clip_near(P, near)
     if len(P) < 3:
         return mask.view(bool)
     xy = P[:, :2] / P[:, 2:3]

@@ -229,7 +229,7 @@ class RecordingWriter:
         if self._closed:
             raise ValueError(f"recording writer for {str(self.path)!r} is closed")
 
-    def _channel(self, topic: str, schema_name: str) -> int:
+    def _channel(self, topic: str, schema_name: str, proto_class: Any = None) -> int:
         if not isinstance(topic, str) or not topic:
             raise ValueError(f"topic must be a non-empty string, got {topic!r}")
         if topic in self._channels:
@@ -241,7 +241,7 @@ class RecordingWriter:
         sid = self._schema_ids.get(schema_name)
         if sid is None:
             if self.message_encoding == "protobuf":
-                fds = build_file_descriptor_set(_PROTO_CLASSES[schema_name])
+                fds = build_file_descriptor_set(proto_class or _PROTO_CLASSES[schema_name])
                 sid = self._writer.register_schema(schema_name, "protobuf",
                                                    fds.SerializeToString())
             else:
@@ -260,6 +260,38 @@ class RecordingWriter:
         else:
             data = json.dumps(js, separators=(",", ":")).encode()
         self._writer.add_message(cid, log_time=stamp_ns, data=data, publish_time=stamp_ns)
+
+    def write_protobuf(self, topic: str, stamp_ns: int, message: Any) -> None:
+        """Write any protobuf message (e.g. a ``foxglove.PointCloud`` or
+        ``foxglove.SceneUpdate`` of :mod:`robo3d.foxglove`) with its schema stored as a
+        ``FileDescriptorSet``, so that a reader decodes it without generated code.
+
+        Parameters
+        ----------
+        topic : str
+        stamp_ns : int
+            The message's time, nanoseconds: its MCAP log and publish time.
+        message : google.protobuf.message.Message
+            Its full name (``foxglove.PointCloud``) is the schema's name.
+
+        Raises
+        ------
+        ValueError
+            A writer made with ``message_encoding="json"`` (robo3d keeps JSON schemas only
+            for the recording contract's messages), or a topic that already carries
+            another schema.
+        """
+        self._check_open()
+        stamp = _check_stamp(stamp_ns)
+        if self.message_encoding != "protobuf":
+            raise ValueError("write_protobuf needs a writer with message_encoding='protobuf', "
+                             f"this one writes {self.message_encoding!r}")
+        descriptor = getattr(message, "DESCRIPTOR", None)
+        if descriptor is None or not hasattr(message, "SerializeToString"):
+            raise ValueError(f"message must be a protobuf message, got {type(message).__name__}")
+        cid = self._channel(topic, descriptor.full_name, type(message))
+        self._writer.add_message(cid, log_time=stamp, data=message.SerializeToString(),
+                                 publish_time=stamp)
 
     # ------------------------------------------------------------------ records
     def add_metadata(self, name: str, data: dict[str, str]) -> None:

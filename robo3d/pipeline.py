@@ -33,6 +33,7 @@ from .stages.calibrate import stage_calibrate
 from .stages.carve import stage_carve
 from .stages.common import OPEN3D_STAGES, code_version, log, pin_open3d_threads, topic_map
 from .stages.evaluate import stage_evaluate
+from .stages.foxglove import stage_foxglove
 from .stages.fuse import stage_fuse
 from .stages.silhouettes import stage_silhouettes
 from .stages.simplify import stage_simplify
@@ -56,6 +57,7 @@ __all__ = [
     "stage_fuse",
     "stage_simplify",
     "stage_evaluate",
+    "stage_foxglove",
     "stage_calibrate",
     "STAGES",
     "STAGE_CONFIG",
@@ -247,6 +249,7 @@ STAGES: dict[str, Callable[..., dict[str, Any]]] = {
     "fuse": stage_fuse,
     "simplify": stage_simplify,
     "evaluate": stage_evaluate,
+    "foxglove": stage_foxglove,
     "calibrate": stage_calibrate,
 }
 
@@ -290,6 +293,7 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
     "fuse": ("fusion", "carving", "rerun", "seed"),
     "simplify": ("simplify", "rerun", "seed"),
     "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),
+    "foxglove": ("foxglove", "frames"),
     "calibrate": ("calibration", "laser_sheet", "stripes", "calibration_gates", "topics",
                   "frames", "timing", "seed"),
 }

@@ -611,14 +611,16 @@ def batch_rows(metrics: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def write_batch_table(metrics_paths: list[str], tsv_path: str, html_path: str) -> None:
+def write_batch_table(metrics_paths: list[str], tsv_path: str, html_path: str | None) -> None:
     """Write the batch table of several recordings' ``metrics.json`` as TSV and HTML.
 
     Parameters
     ----------
     metrics_paths : list of str
     tsv_path, html_path : str
-        Outputs (written atomically).
+        Outputs (written atomically). The TSV's columns are :func:`batch_rows`' keys (for
+        tools); ``html_path`` None writes no HTML (the workflow's ``batch.html``, with
+        the columns named in words, is :func:`robo3d.overview.batch_html`'s).
     """
     import html
     import json
@@ -644,6 +646,8 @@ def write_batch_table(metrics_paths: list[str], tsv_path: str, html_path: str) -
     with atomic_path(tsv_path) as tmp:
         lines = ["\t".join(cols)] + ["\t".join(fmt(r.get(c)) for c in cols) for r in rows]
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    if html_path is None:
+        return
     head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(fmt(r.get(c)))}</td>" for c in cols)
                    + "</tr>" for r in rows)

@@ -35,6 +35,7 @@ from .stages.common import OPEN3D_STAGES, code_version, log, pin_open3d_threads,
 from .stages.evaluate import stage_evaluate
 from .stages.foxglove import stage_foxglove
 from .stages.fuse import stage_fuse
+from .stages.pictures import stage_pictures
 from .stages.silhouettes import stage_silhouettes
 from .stages.simplify import stage_simplify
 from .stages.stripes import stage_stripes
@@ -57,6 +58,7 @@ __all__ = [
     "stage_fuse",
     "stage_simplify",
     "stage_evaluate",
+    "stage_pictures",
     "stage_foxglove",
     "stage_calibrate",
     "STAGES",
@@ -249,6 +251,7 @@ STAGES: dict[str, Callable[..., dict[str, Any]]] = {
     "fuse": stage_fuse,
     "simplify": stage_simplify,
     "evaluate": stage_evaluate,
+    "pictures": stage_pictures,
     "foxglove": stage_foxglove,
     "calibrate": stage_calibrate,
 }
@@ -293,6 +296,7 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
     "fuse": ("fusion", "carving", "rerun", "seed"),
     "simplify": ("simplify", "rerun", "seed"),
     "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),
+    "pictures": ("report", "evaluation", "topics", "frames", "timing"),
     "foxglove": ("foxglove", "frames"),
     "calibrate": ("calibration", "laser_sheet", "stripes", "calibration_gates", "topics",
                   "frames", "timing", "seed"),

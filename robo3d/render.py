@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["colormap", "render_mesh", "error_figure"]
+__all__ = ["colormap", "view_basis", "render_mesh", "render_points", "error_figure"]
 
 log = logging.getLogger(__name__)
 
@@ -51,22 +51,62 @@ def colormap(values: np.ndarray, vmax: float, vmin: float = 0.0) -> np.ndarray:
     return out
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+def view_basis(up: np.ndarray | None = None) -> np.ndarray:
+    """A right-handed basis ``(e1, e2, up)`` (rows) for azimuth and elevation about ``up``.
+
+    Azimuth 0 looks from ``e1``: the frame axis least aligned with ``up`` (x for z up),
+    made perpendicular to it, so that z up gives ``(x, y, z)`` and the pictures of a z-up
+    object are those rendered before ``up`` existed; ``e2 = up x e1``.
+    """
+    u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+    if u.shape != (3,) or not np.linalg.norm(u) > 0:
+        raise ValueError(f"up must be a non-zero (3,) vector, got {u!r}")
+    u = u / np.linalg.norm(u)
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    e1 = a - (a @ u) * u
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(u, e1), u])
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     z = target - eye
     z /= np.linalg.norm(z)
-    up = np.array([0.0, 0.0, 1.0])
     x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-6:
-        x = np.array([1.0, 0.0, 0.0])
+    if np.linalg.norm(x) < 1e-6:  # looking straight along up: any side will do
+        x = np.cross(z, view_basis(up)[1])
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return np.stack([x, y, z], axis=1)  # columns: camera axes in world
 
 
+def _key(up: np.ndarray | None) -> np.ndarray:
+    """The key light's direction: from above and to one side, about ``up``."""
+    k = np.array([0.3, -0.4, 0.87]) @ view_basis(up)
+    return k / np.linalg.norm(k)
+
+
+def _camera(points: np.ndarray, azimuth_deg: float, elevation_deg: float,
+            up: np.ndarray | None, width: int, height: int, fov_deg: float):
+    """Eye, rotation (columns: camera axes in world), focal length in pixels and centre of
+    a pinhole camera that frames the points' bounding sphere from the given direction."""
+    if width < 8 or height < 8:
+        raise ValueError(f"image must be at least 8 x 8 pixels, got {width} x {height}")
+    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    radius = max(float(np.linalg.norm(points - centre, axis=1).max()), 1e-9)
+    a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
+    direction = (np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+                 @ view_basis(up))
+    half = min(np.radians(fov_deg) / 2,  # frame the bounding sphere in both directions
+               np.arctan(np.tan(np.radians(fov_deg) / 2) * height / width))
+    eye = centre + radius / np.sin(half) * 1.05 * direction
+    fpx = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
+    return eye, _look_at(eye, centre, view_basis(up)[2]), fpx, centre
+
+
 def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.ndarray | None = None,
                 azimuth_deg: float = 30.0, elevation_deg: float = 35.0, width: int = 480,
                 height: int = 360, fov_deg: float = 30.0, background: float = 1.0,
-                threads: int = 1) -> np.ndarray:
+                threads: int = 1, up: np.ndarray | None = None) -> np.ndarray:
     """Render a triangle mesh headless by ray casting.
 
     Parameters
@@ -76,7 +116,7 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.nd
     vertex_colors : (V, 3) float in [0, 1], optional
         Default: light grey.
     azimuth_deg, elevation_deg : float, degrees
-        Direction from the mesh's centre to the camera (z up).
+        Direction from the mesh's centre to the camera, about ``up`` (:func:`view_basis`).
     width, height : int
         Image size, pixels.
     fov_deg : float
@@ -85,6 +125,8 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.nd
         Grey level of pixels that miss the mesh.
     threads : int
         Ray-casting threads (0: all cores).
+    up : (3,) float, optional
+        The object's up direction, drawn upwards in the image (default +z).
 
     Returns
     -------
@@ -106,16 +148,7 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.nd
     img = np.full((height, width, 3), background, dtype=np.float64)
     if len(f) == 0:
         return (img * 255).round().astype(np.uint8)
-    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-    radius = float(np.linalg.norm(v - centre, axis=1).max())
-    a, e = np.radians(azimuth_deg), np.radians(elevation_deg)
-    direction = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-    half = min(np.radians(fov_deg) / 2,  # frame the bounding sphere in both directions
-               np.arctan(np.tan(np.radians(fov_deg) / 2) * height / width))
-    dist = radius / np.sin(half) * 1.05
-    eye = centre + dist * direction
-    rot = _look_at(eye, centre)
-    fpx = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
+    eye, rot, fpx, centre = _camera(v, azimuth_deg, elevation_deg, up, width, height, fov_deg)
     uu, vv = np.meshgrid(np.arange(width) - (width - 1) / 2, np.arange(height) - (height - 1) / 2)
     d_cam = np.stack([uu / fpx, vv / fpx, np.ones_like(uu)], axis=-1).reshape(-1, 3)
     d = d_cam @ rot.T
@@ -135,9 +168,8 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.nd
          + col[tri[:, 2]] * uv[:, 1:2])
     dd = d[ok]
     n = np.where((np.einsum("ij,ij->i", n, dd) > 0)[:, None], -n, n)  # face the camera
-    key = np.array([0.3, -0.4, 0.87])
-    key /= np.linalg.norm(key)
-    shade = 0.25 + 0.5 * np.abs(np.einsum("ij,ij->i", n, -dd)) + 0.25 * np.clip(n @ key, 0, 1)
+    shade = (0.25 + 0.5 * np.abs(np.einsum("ij,ij->i", n, -dd))
+             + 0.25 * np.clip(n @ _key(up), 0, 1))
     flat = img.reshape(-1, 3)
     flat[ok] = np.clip(c * shade[:, None], 0, 1)
     return (img * 255).round().astype(np.uint8)
@@ -202,3 +234,58 @@ def error_figure(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
     with atomic_path(path) as tmp:
         tmp.write_bytes(buf.tobytes())
     return path
+
+
+def render_points(points: np.ndarray, colors: np.ndarray, *, normals: np.ndarray | None = None,
+                  azimuth_deg: float = 30.0, elevation_deg: float = 35.0, width: int = 480,
+                  height: int = 360, fov_deg: float = 30.0, background: float = 1.0,
+                  up: np.ndarray | None = None, splat_px: int = 2) -> np.ndarray:
+    """Render a point cloud headless: each point a ``splat_px`` square, the nearest point
+    winning each pixel (a z-buffer by sorting, no loop over points).
+
+    Parameters
+    ----------
+    points : (N, 3) float64, metres
+    colors : (N, 3) float in [0, 1]
+    normals : (N, 3) float, optional
+        Shade each point by the angle between its normal and the line of sight (points
+        seen edge-on darker), which gives the cloud its shape; flat colour without.
+    azimuth_deg, elevation_deg, width, height, fov_deg, background, up
+        As :func:`render_mesh` (the camera frames the cloud's bounding sphere).
+    splat_px : int
+        Side of each point's square, pixels.
+
+    Returns
+    -------
+    (height, width, 3) uint8
+        RGB image.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    col = np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+    if col.shape != p.shape:
+        raise ValueError(f"colors must be ({len(p)}, 3), got {col.shape}")
+    img = np.full((height * width, 3), background, dtype=np.float64)
+    if not len(p):
+        return (img.reshape(height, width, 3) * 255).round().astype(np.uint8)
+    eye, rot, fpx, _ = _camera(p, azimuth_deg, elevation_deg, up, width, height, fov_deg)
+    q = (p - eye) @ rot  # camera coordinates
+    z = q[:, 2]
+    if normals is not None:
+        n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        sight = (p - eye) / np.linalg.norm(p - eye, axis=1, keepdims=True)
+        col = col * (0.35 + 0.65 * np.abs(np.einsum("ij,ij->i", n, sight)))[:, None]
+    u = np.floor(fpx * q[:, 0] / z + (width - 1) / 2).astype(np.int64)
+    v = np.floor(fpx * q[:, 1] / z + (height - 1) / 2).astype(np.int64)
+    off = np.arange(splat_px) - (splat_px - 1) // 2
+    ou, ov = np.meshgrid(off, off)
+    uu = (u[:, None] + ou.ravel()).ravel()
+    vv = (v[:, None] + ov.ravel()).ravel()
+    idx = np.repeat(np.arange(len(p)), ou.size)
+    ok = (uu >= 0) & (uu < width) & (vv >= 0) & (vv < height) & (z[idx] > 0)
+    pix = vv[ok] * width + uu[ok]
+    idx = idx[ok]
+    order = np.lexsort((z[idx], pix))  # by pixel, nearest first
+    first = np.unique(pix[order], return_index=True)[1]
+    win = order[first]
+    img[pix[win]] = np.clip(col[idx[win]], 0, 1)
+    return (img.reshape(height, width, 3) * 255).round().astype(np.uint8)

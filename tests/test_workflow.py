@@ -261,11 +261,37 @@ def _planned(batch: Path, tmp_path: Path, change: str) -> set[str]:
     ("alignment: {prior_mm: 0.4}", {"align", "fuse", "simplify", "evaluate"}),
     ("simplify: {target_faces: 15000}", {"simplify", "evaluate"}),
     ("evaluation: {n_samples: 100000}", {"evaluate"}),
+    ("report: {tile_px: 200}", {"pictures", "batch_table"}),
 ])
 def test_a_changed_parameter_re_runs_exactly_its_stages(batch, tmp_path, change, planned):
     """Each rule's params are the config sections its stage reads: a change plans that
     stage and what depends on its outputs (plus the batch table), nothing else."""
-    assert _planned(batch, tmp_path, change) == planned | {"batch_table", "all"}
+    assert _planned(batch, tmp_path, change) == planned | {"pictures", "batch_table",
+                                                           "all"}
+
+
+def test_report_opens_on_the_overview_with_every_stages_pictures(batch, tmp_path):
+    """snakemake --report: the landing page holds the overview (each recording's status,
+    key figures against their targets, a picture); each recording has its six pictures,
+    and a stage the recording has no data for says so instead of drawing nothing."""
+    import cv2
+
+    proc = _snakemake(batch, "--config", f"recordings={batch / 'recs'}", "--report",
+                      str(tmp_path / "report.html"))
+    assert proc.returncode == 0
+    page = (tmp_path / "report.html").read_text()
+    assert "robo3d-overview" in page and "against their targets" in page
+    for name in ("block", "views_only", "laser_only"):
+        pics = batch / "results" / name / "pictures"
+        shapes = {p.stem: cv2.imread(str(p)).shape for p in pics.glob("*.png")}
+        assert set(shapes) == {"masks", "stripes", "hull", "clouds", "mesh", "timings",
+                               "thumbnail"}, name
+        assert all(s[1] <= 1400 for s in shapes.values()), shapes  # a few hundred px a tile
+        assert f"<h2>{name}</h2>" in (batch / "results" / "overview.html").read_text()
+    # a placeholder (one line of text, 60 px high) where the recording has no data
+    assert cv2.imread(str(batch / "results/views_only/pictures/stripes.png")).shape[0] == 60
+    assert cv2.imread(str(batch / "results/laser_only/pictures/masks.png")).shape[0] == 60
+    assert cv2.imread(str(batch / "results/block/pictures/masks.png")).shape[0] > 200
 
 
 def test_a_damaged_ground_truth_tf_costs_only_the_pose_figures(batch, tmp_path, monkeypatch):

@@ -92,6 +92,22 @@ def get_evaluate_inputs(wildcards):
     return out
 
 
+def get_pictures_inputs(wildcards):
+    """What the report's pictures of one recording draw: the recording (images), its
+    metrics, the final mesh, and the stages' outputs it has data for."""
+    stages = recording_stages(RECORDINGS[wildcards.rec])
+    res = f"results/{wildcards.rec}"
+    out = {"recording": RECORDINGS[wildcards.rec].path, **get_calibration(wildcards),
+           "metrics": f"{res}/metrics.json", "mesh": f"{res}/mesh.ply"}
+    if "hull" in stages:
+        out["silhouettes"] = f"{res}/silhouettes.npz"
+        out["hull_mesh"] = f"{res}/hull.ply"
+    if "laser" in stages:
+        out["stripes"] = f"{res}/stripes.npz"
+        out["aligned"] = f"{res}/aligned.npz"
+    return out
+
+
 def get_all_outputs():
     """The public outputs of every recording, as far as its data supports them."""
     out = []
@@ -104,7 +120,7 @@ def get_all_outputs():
         out += [f"results/{name}/fused.ply", f"results/{name}/measured.ply",
                 f"results/{name}/mesh.ply", f"results/{name}/metrics.json"]
     if RECORDINGS:
-        out.append("results/batch.tsv")
+        out += ["results/batch.tsv", "results/overview.html"]
     for name in sorted(CALIBRATIONS):
         out += [f"results/calibration/{name}.yaml", f"results/calibration/{name}_report.json"]
     return out

@@ -1,6 +1,6 @@
 # Evaluation against the ground truth a simulated recording carries, the per-recording
-# summary of what every stage measured (with its time and peak memory), a picture of the
-# final mesh coloured by its error, and the batch table of all recordings.
+# summary of what every stage measured (with its time and peak memory), the report's
+# pictures of every stage, and the batch's overview and tables (snakemake --report).
 
 
 rule evaluate:
@@ -8,13 +8,6 @@ rule evaluate:
         unpack(get_evaluate_inputs),
     output:
         metrics="results/{rec}/metrics.json",
-        picture=report(
-            "results/{rec}/mesh_error.png",
-            caption="../report/mesh_error.rst",
-            category="Meshes",
-            subcategory="{rec}",
-            labels={"recording": "{rec}", "figure": "final mesh, error"},
-        ),
         rrd="results/{rec}/evaluate.rrd",
     params:
         **stage_params("evaluate"),
@@ -31,17 +24,91 @@ rule evaluate:
         "../scripts/evaluate.py"
 
 
+rule pictures:
+    input:
+        unpack(get_pictures_inputs),
+    output:
+        masks=report(
+            "results/{rec}/pictures/masks.png",
+            caption="../report/masks.rst",
+            category="Recordings",
+            subcategory="{rec}",
+            labels={"figure": "1. masks over their images", "recording": "{rec}"},
+        ),
+        stripes=report(
+            "results/{rec}/pictures/stripes.png",
+            caption="../report/stripes.rst",
+            category="Recordings",
+            subcategory="{rec}",
+            labels={"figure": "2. laser stripes over their frames", "recording": "{rec}"},
+        ),
+        hull=report(
+            "results/{rec}/pictures/hull.png",
+            caption="../report/hull.rst",
+            category="Recordings",
+            subcategory="{rec}",
+            labels={"figure": "3. visual hull", "recording": "{rec}"},
+        ),
+        clouds=report(
+            "results/{rec}/pictures/clouds.png",
+            caption="../report/clouds.rst",
+            category="Recordings",
+            subcategory="{rec}",
+            labels={"figure": "4. aligned clouds by sweep", "recording": "{rec}"},
+        ),
+        mesh=report(
+            "results/{rec}/pictures/mesh.png",
+            caption="../report/mesh.rst",
+            category="Recordings",
+            subcategory="{rec}",
+            labels={"figure": "5. final mesh", "recording": "{rec}"},
+        ),
+        timings=report(
+            "results/{rec}/pictures/timings.png",
+            caption="../report/timings.rst",
+            category="Recordings",
+            subcategory="{rec}",
+            labels={"figure": "6. stage timings and memory", "recording": "{rec}"},
+        ),
+        thumbnail="results/{rec}/pictures/thumbnail.png",
+    params:
+        **stage_params("pictures"),
+    log:
+        "logs/pictures/{rec}.log",
+    benchmark:
+        "benchmarks/pictures/{rec}.tsv"
+    group:
+        "scan"
+    conda:
+        "../envs/robo3d.yaml"
+    threads: 1
+    resources:
+        mem_mb=lambda wc, attempt: 1500 * attempt,
+        runtime=lambda wc, attempt: 5 * attempt,
+    script:
+        "../scripts/pictures.py"
+
+
 rule batch_table:
     input:
         metrics=expand("results/{rec}/metrics.json", rec=sorted(RECORDINGS)),
+        pictures=expand("results/{rec}/pictures/thumbnail.png", rec=sorted(RECORDINGS)),
     output:
         tsv="results/batch.tsv",
         html=report(
             "results/batch.html",
             caption="../report/batch.rst",
-            category="Batch",
-            labels={"table": "all recordings"},
+            category="Tables",
+            labels={"table": "every figure, time and memory of every recording"},
         ),
+        overview=report(
+            "results/overview.html",
+            caption="../report/overview.rst",
+            category="Overview",
+            labels={"page": "status, key figures against their targets, one picture"},
+        ),
+    params:
+        vmax_mm=config["evaluation"]["picture_vmax_mm"],
     log:
         "logs/batch_table.log",
     conda:

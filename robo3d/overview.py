@@ -167,12 +167,14 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     skipped = metrics.get("skipped") or {}
     missed = [f["label"] for f in figs if f["met"] is False]
     judged = [f for f in figs if f["met"] is not None]
+    parts = ["done"]
     if "evaluation" in skipped or "surface_evaluation" in skipped:
-        status = "done; no ground truth, so no error against it"
-    elif missed:
-        status = f"done; {len(missed)} of {len(judged)} targets missed"
-    else:
-        status = f"done; all {len(judged)} targets met" if judged else "done"
+        parts.append("no ground truth, so no error against it")
+    if missed:
+        parts.append(f"{len(missed)} of {len(judged)} targets missed")
+    elif judged:
+        parts.append("all targets met" if len(judged) > 1 else "its one target met")
+    status = "; ".join(parts)
     notes = [f"{k}: {v}" for k, v in skipped.items()
              if k not in ("mask_iou", "evaluation", "surface_evaluation")]
     left = metrics.get("views_left_out") or []
@@ -262,7 +264,7 @@ def overview_html(metrics: Sequence[Mapping[str, Any]], pictures: Sequence[bytes
     widen and top-align the Snakemake report's landing column when it holds the
     overview, and do nothing elsewhere)."""
     cards = "".join(_card(m, p, vmax_mm) for m, p in zip(metrics, pictures, strict=True))
-    missed = sum(recording_status(m)[0].split("; ")[-1].endswith("missed") for m in metrics)
+    missed = sum(any(f["met"] is False for f in key_figures(m)) for m in metrics)
     return ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>robo3d overview"
             f"</title>{_CSS}</head><body><div class='robo3d-overview'>"
             f"<h1>robo3d: {len(metrics)} recording(s)</h1><p class='status'>"

@@ -175,8 +175,11 @@ def _mesh(path: str, mesh: tuple[np.ndarray, np.ndarray], rec, metrics: Mapping[
                  else f"{len(F)} faces"]
     else:
         attrs = read_vertex_attributes(path)
-        col = source_colours(attrs.get("source", np.zeros(len(V))))
-        foot = legend([SOURCE_COLOURS[k] for k in sorted(SOURCE_COLOURS)], 4 * tile)
+        source = np.asarray(attrs.get("source", np.zeros(len(V))), dtype=np.int64)
+        col = source_colours(source)
+        present = set(np.unique(np.clip(source, 0, max(SOURCE_COLOURS))).tolist())
+        foot = legend([SOURCE_COLOURS[k] for k in sorted(SOURCE_COLOURS) if k in present],
+                      4 * tile)
         title = "Final mesh, coloured by where its surface came from (no ground truth)"
         inf = (metrics.get("surface_sources") or {}).get("inferred_area_fraction")
         lines = [f"{len(F)} faces" + (f"; {100 * inf:.1f} % of its area inferred, not "

@@ -18,6 +18,9 @@ status. To add a command (``robo3d info``, ...), write the pair and append it.
 ``robo3d status [--results DIR] [--logs DIR] [--json]``
     After a batch: per recording, the stages done, failed (with the first error line of
     their log) and not run; exit status 1 when a recording failed.
+``robo3d view REC [--results DIR] [--web] [--bind ADDR] [--web-port N] [--grpc-port N]``
+    Every stage's rerun log of a recording together, with a designed layout (see
+    :mod:`robo3d.view`); ``--web`` serves the web viewer and prints its address.
 """
 
 from __future__ import annotations
@@ -347,6 +350,44 @@ def _run_status(args: argparse.Namespace) -> int:
     return 1 if status["failed"] or failed_calibrations else 0
 
 
+# --------------------------------------------------------------------------- view
+def _add_view(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", metavar="REC",
+                   help="a recording's name (its logs in RESULTS/REC/) or a folder of .rrd files")
+    p.add_argument("--results", default="results", help="results folder (default %(default)s)")
+    p.add_argument("--web", action="store_true",
+                   help="serve the web viewer (no display needed) and print its address")
+    p.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
+                   help="address the viewer's servers listen on (default %(default)s: this "
+                        "machine only; 0.0.0.0 opens them to the network)")
+    p.add_argument("--web-port", type=int, default=9090, metavar="N",
+                   help="HTTP port of the web viewer (default %(default)s; 0: a free one)")
+    p.add_argument("--grpc-port", type=int, default=9876, metavar="N",
+                   help="port of rerun's gRPC server (default %(default)s; 0: a free one)")
+    p.add_argument("--analytics", action="store_true",
+                   help="let rerun send its anonymous usage data as its own settings say "
+                        "(off by default)")
+    p.add_argument("--save-blueprint", metavar="PATH",
+                   help="only write the layout as a rerun blueprint (.rbl) to PATH and exit "
+                        "(open it with: rerun REC/*.rrd PATH)")
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .view import logged_entities, save_blueprint, stage_logs, view_recording
+
+    folder = Path(args.recording)
+    if not (folder.is_dir() and any(folder.glob("*.rrd"))):
+        folder = Path(args.results) / args.recording
+    if args.save_blueprint:
+        out = save_blueprint(args.save_blueprint, logged_entities(stage_logs(folder)))
+        _log.info("wrote %s", out)
+        return 0
+    return view_recording(folder, web=args.web, bind=args.bind, web_port=args.web_port,
+                          grpc_port=args.grpc_port, analytics=args.analytics)
+
+
 #: The registered subcommands, in the order ``robo3d --help`` lists them.
 COMMANDS: list[Command] = [
     Command("simulate", "simulate a scan recording with ground truth (or the demos)",
@@ -358,6 +399,8 @@ COMMANDS: list[Command] = [
             _add_info, _run_info),
     Command("status", "what a batch run made, and why its failed jobs failed",
             _add_status, _run_status),
+    Command("view", "open a recording's rerun logs together with a designed layout "
+            "(--web: in a browser)", _add_view, _run_view),
 ]
 
 

@@ -87,12 +87,11 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       attributes={"sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
                                                            for c in clouds]).astype(np.int32)})
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        for c in clouds:
-            log_points(rr_stream, f"base/aligned/sweep_{c.sweep:02d}", c.points_base,
+        for c in clouds:  # each sweep in its colour (the legend: reports/summary)
+            log_points(rr_stream, f"base/align/sweep_{c.sweep:02d}", c.points_base,
                        colors=sweep_color(c.sweep))
-        if len(rejected):
-            log_points(rr_stream, "base/rejected/outside_hull", rejected,
-                       colors=[255, 0, 255])
+        if len(rejected):  # dropped: outside a view's silhouette
+            log_points(rr_stream, "base/align/rejected", rejected, colors=[255, 0, 255])
         log_report(rr_stream, "reports/align", report)
     write_json(outputs["report"], report)
     flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]

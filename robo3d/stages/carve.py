@@ -166,19 +166,21 @@ def _log_hull(rrd: str, rec_name: str, grid: VoxelGrid, vertices: np.ndarray, fa
     with rerun_log(rrd, rec_name) as rr_stream:
         import rerun as rr
 
-        log_box(rr_stream, "base/carving_box", box_min, box_max, label="carving box")
-        for i in used:
-            log_camera(rr_stream, f"base/cameras/view_{i:03d}", cameras[i], poses[i])
+        log_box(rr_stream, "base/carve/box", box_min, box_max, label="carving box")
+        for i in used:  # every camera that carved, at once (hidden in the designed view)
+            log_camera(rr_stream, f"base/carve/cameras/view_{i:03d}", cameras[i], poses[i])
         for row in left_out_rows:  # left out: their cameras, masks and why, apart
             i = row["view"]
-            entity = f"base/cameras_left_out/view_{i:03d}"
+            entity = f"base/carve/left_out/view_{i:03d}"
             log_camera(rr_stream, entity, cameras[i], poses[i], mask=masks[i])
             rr_stream.log(f"{entity}/why", rr.TextDocument(
                 f"view {i} left out of the carve: " + "; ".join(row["reasons"])), static=True)
         shell = grid.surface()
-        log_voxels(rr_stream, "base/hull/voxels", grid.index_to_points(np.argwhere(shell)),
+        log_voxels(rr_stream, "base/carve/voxels", grid.index_to_points(np.argwhere(shell)),
                    grid.voxel_size)
-        log_mesh(rr_stream, "base/hull/mesh", vertices, faces, albedo=[120, 160, 220, 160])
+        # the hull is inferred surface: the orange of "inferred from the hull" in the
+        # fused and final meshes, translucent so the laser's clouds show through it
+        log_mesh(rr_stream, "base/carve/hull", vertices, faces, albedo=[240, 120, 30, 110])
         log_report(rr_stream, "reports/carve", report)
 
 

@@ -147,9 +147,10 @@ def pin_open3d_threads() -> None:
 
 
 def sweep_color(k: int) -> list[int]:
-    palette = [[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180],
-               [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212], [0, 128, 128]]
-    return palette[int(k) % len(palette)]
+    """The colour of sweep ``k`` in every cloud (:data:`robo3d.viz.SWEEP_RGB`)."""
+    from ..viz import SWEEP_RGB
+
+    return list(SWEEP_RGB[int(k) % len(SWEEP_RGB)])
 
 
 def silhouette_views(inputs: Mapping[str, str], cfg: Mapping[str, Any]):

@@ -34,7 +34,6 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     """
     from ..evaluate import TRUE_SILHOUETTES
     from ..meshio import read_mesh
-    from ..viz import log_mesh, log_report, rerun_log
 
     t0 = time.perf_counter()
     rec_path = inputs["recording"]
@@ -69,11 +68,8 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                                           "source": "measured inside the job"}
         if metrics["timings"].get("total_seconds") is not None:
             metrics["timings"]["total_seconds"] += metrics["evaluate_seconds"]
-    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        if truth is not None:
-            log_mesh(rr_stream, "base/ground_truth", truth.vertices, truth.faces,
-                     albedo=[120, 220, 120, 90])
-        log_report(rr_stream, "reports/metrics", metrics.get("evaluation", {}))
+    _log_rerun(outputs["rrd"], rec_name, metrics, truth, (V_final, F_final), vertex_error_mm,
+               float(ev["picture_vmax_mm"]))
     write_json(outputs["metrics"], metrics)
     _log_summary(metrics)
     return metrics
@@ -421,6 +417,39 @@ def _displacement_mm(T_est: np.ndarray, T_true: np.ndarray, point: np.ndarray) -
 
     D = T_est @ invert_transform(T_true)
     return float(np.linalg.norm(D[:3, :3] @ point + D[:3, 3] - point) * 1e3)
+
+
+def _log_rerun(rrd: str, rec_name: str, metrics: dict[str, Any], truth, final: tuple,
+               vertex_error_mm: np.ndarray | None, vmax_mm: float) -> None:
+    """To rerun: the ground truth (``base/evaluate/ground_truth``), the final mesh coloured
+    by its distance to it (``base/evaluate/mesh_error``, blue 0 to red ``vmax_mm``), each
+    sweep's pose error after alignment on the ``sweep`` timeline, and the scan's key
+    figures as a short text (``reports/summary``)."""
+    from ..render import colormap
+    from ..viz import (
+        log_mesh,
+        log_scalar,
+        log_text,
+        rerun_log,
+        scan_summary_markdown,
+        set_image_time,
+    )
+
+    with rerun_log(rrd, rec_name) as rr_stream:
+        if truth is not None:
+            log_mesh(rr_stream, "base/evaluate/ground_truth", truth.vertices, truth.faces,
+                     albedo=[120, 220, 120, 90])
+        if vertex_error_mm is not None:
+            colours = (colormap(vertex_error_mm, vmax_mm) * 255).round().astype(np.uint8)
+            log_mesh(rr_stream, "base/evaluate/mesh_error", *final, vertex_colors=colours)
+        poses = (metrics.get("evaluation", {}).get("poses", {}) or {}).get("per_sweep", [])
+        for row in poses or []:
+            set_image_time(rr_stream, sweep=int(row["sweep"]))
+            for key in ("before_mm", "after_mm"):
+                if row.get(key) is not None:
+                    log_scalar(rr_stream, f"metrics/evaluate/pose_error_{key}", row[key])
+        log_text(rr_stream, "reports/summary", scan_summary_markdown(
+            rec_name, metrics, error_vmax_mm=vmax_mm if vertex_error_mm is not None else None))
 
 
 def _log_summary(metrics: Mapping[str, Any]) -> None:

@@ -103,7 +103,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         write_mesh(outputs["measured"], Vm, Fm,
                    attributes={k: a for k, a in attrs_m.items() if k != "source"})
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        log_mesh(rr_stream, "base/fused", V, F, vertex_colors=source_colors(attrs["source"]))
+        log_mesh(rr_stream, "base/fuse/mesh", V, F,
+                 vertex_colors=source_colors(attrs["source"]))
         log_report(rr_stream, "reports/fuse", report)
     write_json(outputs["report"], report)
     lf = report.get("laser_area_fraction")

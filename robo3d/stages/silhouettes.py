@@ -137,16 +137,18 @@ def _report(per_view: list[dict], ws, t0: float) -> dict[str, Any]:
 
 def _log_rerun(path: str, rec_name: str, ws, views: list, cameras: list, poses: np.ndarray,
                masks: list[np.ndarray], report: dict, max_images: int) -> None:
-    """The workspace box, a few evenly spaced views with their masks at their cameras and
-    the report, to rerun."""
-    from ..viz import log_box, log_report, rerun_log, spaced_indices
+    """The workspace box; a few evenly spaced views, each with its mask over it, at its
+    camera as one entity (``base/silhouettes/camera``) along the ``view`` and ``time``
+    timelines, so the viewer shows the current one; the report."""
+    from ..viz import log_box, log_report, rerun_log, set_image_time, spaced_indices
 
     with rerun_log(path, rec_name) as rr_stream:
         if ws is not None:
-            log_box(rr_stream, "base/workspace", ws[0], ws[1], label="workspace")
+            log_box(rr_stream, "base/silhouettes/workspace", ws[0], ws[1], label="workspace")
         for i in spaced_indices(len(views), max_images):
-            log_image_camera(rr_stream, f"base/views/view_{i:03d}", views[i], cameras[i],
-                              poses[i], mask=masks[i])
+            set_image_time(rr_stream, views[i].timestamp_ns, view=int(i))
+            log_image_camera(rr_stream, "base/silhouettes/camera", views[i], cameras[i],
+                             poses[i], mask=masks[i], static=False)
         log_report(rr_stream, "reports/silhouettes", report)
 
 

@@ -56,10 +56,10 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
                        attributes=attrs if key == "ply" else None,
                        unit="m" if key == "ply" else sc["export_unit"])
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        if colours is not None:
-            log_mesh(rr_stream, "base/mesh", V2, F2, vertex_colors=colours)
+        if colours is not None:  # by provenance: grey measured, orange hull, yellow filled
+            log_mesh(rr_stream, "base/simplify/mesh", V2, F2, vertex_colors=colours)
         else:
-            log_mesh(rr_stream, "base/mesh", V2, F2, albedo=[230, 200, 160, 255])
+            log_mesh(rr_stream, "base/simplify/mesh", V2, F2, albedo=[230, 200, 160, 255])
         log_report(rr_stream, "reports/simplify", report)
     write_json(outputs["report"], report)
     summary.info("simplified %d -> %d faces, Hausdorff %.3f mm (%.1f s)", len(F), len(F2),

@@ -17,7 +17,6 @@ from .common import (
     Progress,
     laser_poses,
     log,
-    log_image_camera,
     open_recording,
     stage_threads,
     summary,
@@ -76,12 +75,23 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    "seconds": round(time.perf_counter() - t0, 3)})
     stripes.save(outputs["npz"])
     _log_rerun(outputs["rrd"], rec_name, frames, cameras, poses, found, report,
-               cfg["rerun"]["max_images"])
+               cfg["rerun"]["max_images"], _sweeps_of(frames, cfg))
     write_json(outputs["report"], report)
     summary.info("stripes: %d points in %d frames on %d threads (%.1f s; decoding %.1f s, "
              "detection %.1f s of CPU)", report["n_points"], len(frames), n_threads,
              report["seconds"], decode_s, detect_s)
     return report
+
+
+def _sweeps_of(frames: list, cfg: Mapping[str, Any]) -> np.ndarray:
+    """Each frame's sweep, as the triangulation splits them (``timing.sweep_gap_s``), for
+    the rerun log's ``sweep`` timeline."""
+    from ..triangulation import split_sweeps
+
+    if not frames:
+        return np.zeros(0, dtype=np.int64)
+    stamps = np.array([m.timestamp_ns for m in frames], dtype=np.int64)
+    return split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)))
 
 
 def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
@@ -242,19 +252,40 @@ def _report(stripes: Stripes, sc: Mapping[str, Any], options: StripeOptions, col
 
 
 def _log_rerun(path: str, rec_name: str, frames: list, cameras: list, poses: np.ndarray,
-               found: list, report: dict, max_images: int) -> None:
-    """The stripe points of every frame on the "frame" timeline, the camera where it was;
-    the image itself on a few evenly spaced frames; the report."""
-    from ..viz import log_camera, log_report, rerun_log, spaced_indices
+               found: list, report: dict, max_images: int, sweep_of: np.ndarray) -> None:
+    """The laser camera (``base/stripes/camera``) on a few evenly spaced frames that hold a
+    stripe, each with its image (brightened for the screen: laser frames are dim) and its
+    stripe pixels over it, along the ``time``, ``frame`` and ``sweep`` timelines; the
+    stripe points of every frame as a scalar (``metrics/stripes/points``); the report."""
+    import cv2
 
+    from ..viz import (
+        display_gain,
+        display_image,
+        log_camera,
+        log_report,
+        log_scalar,
+        rerun_log,
+        set_image_time,
+        spaced_indices,
+    )
+
+    with_stripe = np.array([i for i, sp in enumerate(found) if len(sp.pixels_uv)], dtype=int)
+    pool = with_stripe if len(with_stripe) else np.arange(len(frames))
+    chosen = pool[spaced_indices(len(pool), max_images)]
+    images = {int(i): frames[i].decode() for i in chosen}
+    gain = display_gain(list(images.values()))
     with rerun_log(path, rec_name) as rr_stream:
-        with_image = set(spaced_indices(len(frames), max_images).tolist())
         for i, sp in enumerate(found):
-            rr_stream.set_time("frame", sequence=int(i))
-            if i in with_image:
-                log_image_camera(rr_stream, "base/laser_camera", frames[i], cameras[i],
-                                  poses[i], points_uv=sp.pixels_uv, static=False)
-            else:
-                log_camera(rr_stream, "base/laser_camera", cameras[i], poses[i],
-                           points_uv=sp.pixels_uv, static=False)
-        log_report(rr_stream, "reports/stripes", report)
+            set_image_time(rr_stream, frames[i].timestamp_ns, frame=i, sweep=int(sweep_of[i]))
+            log_scalar(rr_stream, "metrics/stripes/points", len(sp.pixels_uv))
+            if i not in images:
+                continue
+            shown = display_image(images[i], gain)
+            if shown.ndim == 3:  # the decoder's RGB; the encoder takes BGR
+                shown = shown[..., ::-1]
+            ok, jpeg = cv2.imencode(".jpg", shown, [cv2.IMWRITE_JPEG_QUALITY, 90])
+            log_camera(rr_stream, "base/stripes/camera", cameras[i], poses[i],
+                       encoded=(jpeg.tobytes(), "image/jpeg") if ok else None,
+                       points_uv=sp.pixels_uv, static=False)
+        log_report(rr_stream, "reports/stripes", {**report, "display_gain": round(gain, 2)})

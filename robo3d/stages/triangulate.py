@@ -56,7 +56,7 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         split_sweeps,
         triangulate_sweep,
     )
-    from ..viz import log_points, log_report, rerun_log
+    from ..viz import log_points, log_report, log_scalar, rerun_log, set_image_time
 
     t0 = time.perf_counter()
     from ..artefacts import Stripes
@@ -116,15 +116,18 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         for c in clouds:
             color = sweep_color(c.sweep)
-            # the sweep's cloud grows profile by profile along the "frame" timeline
+            # the sweep's raw cloud (before alignment) grows profile by profile along the
+            # "frame" and "time" timelines, in the sweep's colour
             frames_c = np.unique(c.frame_index)
             for chunk in np.array_split(frames_c, min(20, len(frames_c))):
                 if len(chunk) == 0:
                     continue
-                rr_stream.set_time("frame", sequence=int(chunk[-1]))
+                set_image_time(rr_stream, int(stamps[chunk[-1]]), frame=int(chunk[-1]),
+                               sweep=c.sweep)
                 sel = c.frame_index <= chunk[-1]
-                log_points(rr_stream, f"base/sweeps/sweep_{c.sweep:02d}", c.points_base[sel],
-                           colors=color, static=False)
+                log_points(rr_stream, f"base/triangulate/sweep_{c.sweep:02d}",
+                           c.points_base[sel], colors=color, static=False)
+            log_scalar(rr_stream, "metrics/triangulate/sweep_points", len(c.points_base))
         log_report(rr_stream, "reports/triangulate", report)
     write_json(outputs["report"], report)
     from ..viz import format_counts

@@ -203,10 +203,9 @@ def rerun_command(files: Sequence[str | os.PathLike[str]], *, web: bool = False,
     viewer, or with ``web`` the web viewer served over HTTP (no browser opened), each
     server bound to ``bind``; port 0 picks a free one."""
     exe = Path(sys.executable).with_name("rerun")
-    cmd = [str(exe) if exe.exists() else "rerun", "--bind", bind]
+    cmd = [str(exe) if exe.exists() else "rerun", "--bind", bind, "--port", str(grpc_port)]
     if web:
-        cmd += ["--serve-web", "--web-viewer-port", str(web_port),
-                "--port", str(grpc_port)]
+        cmd += ["--serve-web", "--web-viewer-port", str(web_port)]
     return cmd + [str(f) for f in files]
 
 

@@ -292,8 +292,9 @@ def test_view_without_display_asks_for_web(scan, monkeypatch):
 
 def test_view_web_serves_on_localhost_and_stops(scan):
     """``robo3d view --web`` on free ports: prints an address on 127.0.0.1 that answers
-    over HTTP with rerun's web viewer, listens on no other interface, and stops (with
-    rerun) on SIGTERM; bounded in time throughout."""
+    over HTTP with rerun's web viewer under a policy that lets the page connect to this
+    machine only, listens on no other interface, and stops (with rerun) on SIGTERM;
+    bounded in time throughout."""
     import queue
     import threading
 
@@ -310,6 +311,10 @@ def test_view_web_serves_on_localhost_and_stops(scan):
         assert "127.0.0.1" in m.group(3) and "localhost" not in m.group(3)
         with urllib.request.urlopen(f"http://127.0.0.1:{m.group(2)}/", timeout=20) as r:
             assert r.status == 200 and b"re_viewer" in r.read()
+            # no usage data from the browser: the page may connect to this machine only
+            grpc = re.search(r"127\.0\.0\.1%3A(\d+)", m.group(3)).group(1)
+            assert (f"connect-src 'self' http://127.0.0.1:{grpc};"
+                    in r.headers["Content-Security-Policy"])
         if Path("/proc/net/tcp").exists():  # listening sockets: 127.0.0.1 only
             listening = [ln.split()[1] for ln in Path("/proc/net/tcp").read_text().splitlines()[1:]
                          if ln.split()[3] == "0A"]

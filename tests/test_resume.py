@@ -76,7 +76,7 @@ def _planned(work: Path, *args: str) -> set[tuple[str, str]]:
     out = _snakemake(work, "-n", *args).stdout
     jobs, rule = set(), None
     for line in out.splitlines():
-        m = re.match(r"^(?:local)?rule (\w+):", line)
+        m = re.match(r"^\s*(?:local)?rule (\w+):", line)  # indented inside a group job
         if m:
             rule = m.group(1)
         m = re.search(r"wildcards: rec=(\S+)", line)

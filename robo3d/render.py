@@ -17,11 +17,13 @@ Choices
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["colormap", "view_basis", "render_mesh", "render_points", "error_figure"]
+__all__ = ["colormap", "view_basis", "render_mesh", "render_mesh_views", "render_points",
+           "error_figure"]
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +135,24 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.nd
     (height, width, 3) uint8
         RGB image.
     """
+    return render_mesh_views(vertices, faces, ((azimuth_deg, elevation_deg),),
+                             vertex_colors=vertex_colors, width=width, height=height,
+                             fov_deg=fov_deg, background=background, threads=threads, up=up)[0]
+
+
+def render_mesh_views(vertices: np.ndarray, faces: np.ndarray,
+                      views: Sequence[tuple[float, float]], *,
+                      vertex_colors: np.ndarray | None = None, width: int = 480,
+                      height: int = 360, fov_deg: float = 30.0, background: float = 1.0,
+                      threads: int = 1, up: np.ndarray | None = None) -> list[np.ndarray]:
+    """:func:`render_mesh` from several ``(azimuth_deg, elevation_deg)`` directions,
+    building the ray-casting scene (its BVH, most of the cost) once for all of them.
+
+    Returns
+    -------
+    list of (height, width, 3) uint8
+        One RGB image per view, each the same as :func:`render_mesh` gives.
+    """
     import open3d as o3d
 
     v = np.asarray(vertices, dtype=np.float64)
@@ -145,34 +165,36 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, *, vertex_colors: np.nd
            else np.asarray(vertex_colors, dtype=np.float64))
     if col.shape != (len(v), 3):
         raise ValueError(f"vertex_colors must be ({len(v)}, 3), got {col.shape}")
-    img = np.full((height, width, 3), background, dtype=np.float64)
+    blank = (np.full((height, width, 3), background) * 255).round().astype(np.uint8)
     if len(f) == 0:
-        return (img * 255).round().astype(np.uint8)
-    eye, rot, fpx, centre = _camera(v, azimuth_deg, elevation_deg, up, width, height, fov_deg)
-    uu, vv = np.meshgrid(np.arange(width) - (width - 1) / 2, np.arange(height) - (height - 1) / 2)
-    d_cam = np.stack([uu / fpx, vv / fpx, np.ones_like(uu)], axis=-1).reshape(-1, 3)
-    d = d_cam @ rot.T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return [blank.copy() for _ in views]
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
     scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))
     scene.add_triangles(o3d.core.Tensor((v - centre).astype(np.float32)),
                         o3d.core.Tensor(f.astype(np.uint32)))
-    rays = np.hstack([np.broadcast_to(eye - centre, d.shape), d]).astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(rays))
-    t = hit["t_hit"].numpy()
-    ok = np.isfinite(t)
-    prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
-    uv = hit["primitive_uvs"].numpy()[ok].astype(np.float64)
-    n = hit["primitive_normals"].numpy()[ok].astype(np.float64)
-    tri = f[prim]
-    c = (col[tri[:, 0]] * (1 - uv[:, 0] - uv[:, 1])[:, None] + col[tri[:, 1]] * uv[:, 0:1]
-         + col[tri[:, 2]] * uv[:, 1:2])
-    dd = d[ok]
-    n = np.where((np.einsum("ij,ij->i", n, dd) > 0)[:, None], -n, n)  # face the camera
-    shade = (0.25 + 0.5 * np.abs(np.einsum("ij,ij->i", n, -dd))
-             + 0.25 * np.clip(n @ _key(up), 0, 1))
-    flat = img.reshape(-1, 3)
-    flat[ok] = np.clip(c * shade[:, None], 0, 1)
-    return (img * 255).round().astype(np.uint8)
+    uu, vv = np.meshgrid(np.arange(width) - (width - 1) / 2, np.arange(height) - (height - 1) / 2)
+    out = []
+    for azimuth_deg, elevation_deg in views:
+        eye, rot, fpx, _ = _camera(v, azimuth_deg, elevation_deg, up, width, height, fov_deg)
+        d = np.stack([uu / fpx, vv / fpx, np.ones_like(uu)], axis=-1).reshape(-1, 3) @ rot.T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        rays = np.hstack([np.broadcast_to(eye - centre, d.shape), d]).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        ok = np.isfinite(hit["t_hit"].numpy())
+        prim = hit["primitive_ids"].numpy()[ok].astype(np.int64)
+        uv = hit["primitive_uvs"].numpy()[ok].astype(np.float64)
+        n = hit["primitive_normals"].numpy()[ok].astype(np.float64)
+        tri = f[prim]
+        c = (col[tri[:, 0]] * (1 - uv[:, 0] - uv[:, 1])[:, None] + col[tri[:, 1]] * uv[:, 0:1]
+             + col[tri[:, 2]] * uv[:, 1:2])
+        dd = d[ok]
+        n = np.where((np.einsum("ij,ij->i", n, dd) > 0)[:, None], -n, n)  # face the camera
+        shade = (0.25 + 0.5 * np.abs(np.einsum("ij,ij->i", n, -dd))
+                 + 0.25 * np.clip(n @ _key(up), 0, 1))
+        img = np.full((height * width, 3), background, dtype=np.float64)
+        img[ok] = np.clip(c * shade[:, None], 0, 1)
+        out.append((img.reshape(height, width, 3) * 255).round().astype(np.uint8))
+    return out
 
 
 def error_figure(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
@@ -210,8 +232,8 @@ def error_figure(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
     if err.shape != (len(vertices),):
         raise ValueError(f"errors_mm must be ({len(vertices)},), got {err.shape}")
     col = colormap(err, vmax_mm)
-    tiles = [render_mesh(vertices, faces, vertex_colors=col, azimuth_deg=a, elevation_deg=e,
-                         width=width, height=height) for a, e in views]
+    tiles = render_mesh_views(vertices, faces, views, vertex_colors=col, width=width,
+                              height=height)
     row = np.concatenate(tiles, axis=1)
     bar_h, pad = 40, 10
     bar = np.full((bar_h + 30, row.shape[1], 3), 255, dtype=np.uint8)

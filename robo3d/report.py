@@ -386,11 +386,10 @@ def mesh_views(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | No
                views: Sequence[tuple[float, float]] = ((30, 30), (150, 30), (270, 30),
                                                        (0, 88))) -> list[np.ndarray]:
     """A mesh ray cast from several (azimuth, elevation) directions about ``up``."""
-    from .render import render_mesh
+    from .render import render_mesh_views
 
-    h = int(round(tile_px * 0.75))
-    return [render_mesh(vertices, faces, vertex_colors=colours, azimuth_deg=a, elevation_deg=e,
-                        width=tile_px, height=h, up=up) for a, e in views]
+    return render_mesh_views(vertices, faces, views, vertex_colors=colours, width=tile_px,
+                             height=int(round(tile_px * 0.75)), up=up)
 
 
 def points_views(points: np.ndarray, colours: np.ndarray, up: np.ndarray, *,

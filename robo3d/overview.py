@@ -168,15 +168,16 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     missed = [f["label"] for f in figs if f["met"] is False]
     judged = [f for f in figs if f["met"] is not None]
     parts = ["done"]
-    if "evaluation" in skipped or "surface_evaluation" in skipped:
+    if "evaluation" in skipped:
         parts.append("no ground truth, so no error against it")
+    elif "surface_evaluation" in skipped:
+        parts.append("no true surface, so no mesh error (see the notes)")
     if missed:
         parts.append(f"{len(missed)} of {len(judged)} targets missed")
     elif judged:
         parts.append("all targets met" if len(judged) > 1 else "its one target met")
     status = "; ".join(parts)
-    notes = [f"{k}: {v}" for k, v in skipped.items()
-             if k not in ("mask_iou", "evaluation", "surface_evaluation")]
+    notes = [f"{k}: {v}" for k, v in skipped.items() if k not in ("mask_iou", "evaluation")]
     left = metrics.get("views_left_out") or []
     if left:
         notes.append(f"{len(left)} view(s) left out of the hull by the agreement check")

@@ -210,6 +210,11 @@ def test_key_figures_against_their_targets_and_the_status():
     assert status == "done; 2 of 8 targets missed"
     status, notes = recording_status(_metrics(False))
     assert "no ground truth" in status and notes == []
+    masks_only = {**_metrics(True), "skipped": {"surface_evaluation": "no ground_truth/mesh.ply"}}
+    del masks_only["evaluation"]["mesh"]
+    status, notes = recording_status(masks_only)  # true silhouettes, no true surface
+    assert "no true surface" in status and notes == ["surface_evaluation: no ground_truth/"
+                                                     "mesh.ply"]
     judged = [f["label"] for f in key_figures(_metrics(False)) if f["met"] is not None]
     assert judged == ["Time of all stages (job time, one core each)"]  # no truth: no error
 

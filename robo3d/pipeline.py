@@ -48,6 +48,7 @@ __all__ = [
     "recording_kind",
     "scan_calibrations",
     "export_library_path",
+    "machine_memory_mb",
     "recording_stages",
     "topic_map",
     "stage_silhouettes",
@@ -240,6 +241,12 @@ def export_library_path(repo_root: str) -> None:
     parts = [str(repo_root)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
                                 if p and p != str(repo_root)]
     os.environ["PYTHONPATH"] = os.pathsep.join(parts)
+
+
+def machine_memory_mb() -> int:
+    """This machine's physical memory in MB: on a local run, the jobs that run at once
+    declare no more memory (``resources: mem_mb``) than this."""
+    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 1_000_000
 
 
 STAGES: dict[str, Callable[..., dict[str, Any]]] = {

@@ -20,6 +20,7 @@ rule calibrate:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=4000,
+        mem_mb=lambda wc, attempt: 4000 * attempt,
+        runtime=lambda wc, attempt: 30 * attempt,
     script:
         "../scripts/calibrate.py"

@@ -4,6 +4,7 @@ from robo3d.pipeline import (
     code_version,
     export_library_path,
     find_recordings,
+    machine_memory_mb,
     recording_stages,
     scan_calibrations,
     split_by_kind,
@@ -13,6 +14,12 @@ from robo3d.pipeline import (
 config.update(validate_config(config))
 
 export_library_path(workflow.basedir)
+
+# A local run keeps the declared memory (each rule's resources: mem_mb) of the jobs it runs
+# at once within this machine's memory; --resources mem_mb=N sets another budget. On a
+# cluster (--executor slurm) the scheduler packs the jobs on its nodes instead.
+if workflow.global_resources["_nodes"].value is None:
+    workflow.global_resources.setdefault("mem_mb", machine_memory_mb())
 
 # the scans, and the kind=calibration recordings (each makes results/calibration/<calib>.yaml)
 RECORDINGS, CALIBRATIONS = split_by_kind(find_recordings(config["recordings"],

@@ -3,6 +3,12 @@
 # pictures of every stage, and the batch's overview and tables (snakemake --report).
 
 
+# the batch table reads the recordings' metrics.json: on a cluster it runs on the host
+# that submits the jobs, not as a job of its own
+localrules:
+    batch_table,
+
+
 rule evaluate:
     input:
         unpack(get_evaluate_inputs),
@@ -15,11 +21,14 @@ rule evaluate:
         "logs/evaluate/{rec}.log",
     benchmark:
         "benchmarks/evaluate/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=4000,
+        mem_mb=lambda wc, attempt: 1500 * attempt,
+        runtime=lambda wc, attempt: 15 * attempt,
     script:
         "../scripts/evaluate.py"
 
@@ -115,6 +124,7 @@ rule batch_table:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=500,
+        mem_mb=lambda wc, attempt: 500 * attempt,
+        runtime=lambda wc, attempt: 5 * attempt,
     script:
         "../scripts/batch_table.py"

@@ -15,11 +15,14 @@ rule stripes:
         "logs/stripes/{rec}.log",
     benchmark:
         "benchmarks/stripes/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 2  # frames are decoded and searched in parallel
     resources:
-        mem_mb=2000,
+        mem_mb=lambda wc, attempt: 1000 * attempt,
+        runtime=lambda wc, attempt: 15 * attempt,
     script:
         "../scripts/stripes.py"
 
@@ -38,10 +41,13 @@ rule triangulate:
         "logs/triangulate/{rec}.log",
     benchmark:
         "benchmarks/triangulate/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=2000,
+        mem_mb=lambda wc, attempt: 1000 * attempt,
+        runtime=lambda wc, attempt: 10 * attempt,
     script:
         "../scripts/triangulate.py"

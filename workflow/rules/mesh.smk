@@ -16,11 +16,14 @@ rule align:
         "logs/align/{rec}.log",
     benchmark:
         "benchmarks/align/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=4000,
+        mem_mb=lambda wc, attempt: 1500 * attempt,
+        runtime=lambda wc, attempt: 20 * attempt,
     script:
         "../scripts/align.py"
 
@@ -39,11 +42,14 @@ rule fuse:
         "logs/fuse/{rec}.log",
     benchmark:
         "benchmarks/fuse/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 2  # ray casting; fusion waits for alignment, so a lone recording has both cores
     resources:
-        mem_mb=6000,
+        mem_mb=lambda wc, attempt: 2500 * attempt,
+        runtime=lambda wc, attempt: 20 * attempt,
     script:
         "../scripts/fuse.py"
 
@@ -63,10 +69,13 @@ rule simplify:
         "logs/simplify/{rec}.log",
     benchmark:
         "benchmarks/simplify/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=2000,
+        mem_mb=lambda wc, attempt: 1500 * attempt,
+        runtime=lambda wc, attempt: 20 * attempt,
     script:
         "../scripts/simplify.py"

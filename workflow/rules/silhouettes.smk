@@ -15,11 +15,14 @@ rule silhouettes:
         "logs/silhouettes/{rec}.log",
     benchmark:
         "benchmarks/silhouettes/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
     resources:
-        mem_mb=2000,
+        mem_mb=lambda wc, attempt: 1000 * attempt,
+        runtime=lambda wc, attempt: 10 * attempt,
     script:
         "../scripts/silhouettes.py"
 
@@ -38,11 +41,14 @@ rule carve:
         "logs/carve/{rec}.log",
     benchmark:
         "benchmarks/carve/{rec}.tsv"
+    group:
+        "scan"
     conda:
         "../envs/robo3d.yaml"
     # the octree kernel's threads (carving.threads, 0 = all cores)
     threads: config["carving"]["threads"] or workflow.cores
     resources:
-        mem_mb=4000,
+        mem_mb=lambda wc, attempt: 1000 * attempt,
+        runtime=lambda wc, attempt: 10 * attempt,
     script:
         "../scripts/carve.py"

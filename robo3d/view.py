@@ -202,11 +202,26 @@ def rerun_command(files: Sequence[str | os.PathLike[str]], *, web: bool = False,
     """The rerun command line that opens ``files`` (logs and a blueprint): the native
     viewer, or with ``web`` the web viewer served over HTTP (no browser opened), each
     server bound to ``bind``; port 0 picks a free one."""
-    exe = Path(sys.executable).with_name("rerun")
-    cmd = [str(exe) if exe.exists() else "rerun", "--bind", bind, "--port", str(grpc_port)]
+    cmd = [_rerun_executable(), "--bind", bind, "--port", str(grpc_port)]
     if web:
         cmd += ["--serve-web", "--web-viewer-port", str(web_port)]
     return cmd + [str(f) for f in files]
+
+
+def _rerun_executable() -> str:
+    """The rerun binary itself (``rerun_cli/rerun``), not the ``rerun`` console script,
+    which runs it as a child of its own: stopping the script would leave the viewer's
+    servers running."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).with_name("rerun" + (".exe" if os.name == "nt" else ""))
+        if exe.exists():
+            return str(exe)
+    except ImportError:
+        pass
+    script = Path(sys.executable).with_name("rerun")
+    return str(script) if script.exists() else "rerun"
 
 
 def web_viewer_url(rerun_line: str, bind: str) -> str | None:

@@ -106,6 +106,19 @@ def _timelines(path: Path) -> set[str]:
     return {t for chunk in RrdReader(path).stream() for t in chunk.timeline_names}
 
 
+def _processes_naming(text: str) -> list[str]:
+    """Command lines of running processes that contain ``text`` (Linux; [] elsewhere)."""
+    found = []
+    for f in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            line = f.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if text in line:
+            found.append(line)
+    return found
+
+
 def _rgb(packed: int) -> tuple[int, int, int]:
     """A rerun colour (0xRRGGBBAA) as RGB."""
     return (packed >> 24) & 255, (packed >> 16) & 255, (packed >> 8) & 255
@@ -328,6 +341,8 @@ def test_view_web_serves_on_localhost_and_stops(scan):
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+    time.sleep(1)  # rerun went with it: no process of this scan's logs left behind
+    assert not _processes_naming(str(scan))
     t0 = time.monotonic()
     with pytest.raises(OSError):
         urllib.request.urlopen(f"http://127.0.0.1:{m.group(2)}/", timeout=5)

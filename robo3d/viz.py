@@ -159,8 +159,19 @@ def display_gain(images: list[np.ndarray], *, bright: float = 128.0,
     that they compare; the stripe's pixels come from the recorded frames, not these."""
     if not images:
         return 1.0
-    ref = max(float(np.percentile(_as_8bit_scale(im), 99.9)) for im in images)
+    ref = max(_high_percentile(im, 99.9) for im in images)
     return float(np.clip(bright / max(ref, 1.0), 1.0, max_gain))
+
+
+def _high_percentile(image: np.ndarray, q: float) -> float:
+    """The ``q``-th percentile of an image's values on the 8-bit scale; for 8-bit images
+    from a histogram (one pass, no sort: ``np.percentile`` on 40 full 1280 x 960 frames
+    cost about a second per recording), the smallest level reaching the fraction."""
+    a = np.asarray(image)
+    if a.dtype != np.uint8:
+        return float(np.percentile(_as_8bit_scale(a), q))
+    cum = np.cumsum(np.bincount(a.ravel(), minlength=256))
+    return float(np.searchsorted(cum, q / 100.0 * cum[-1]))
 
 
 def display_image(image: np.ndarray, gain: float = 1.0) -> np.ndarray:

@@ -18,6 +18,7 @@ include: "workflow/rules/silhouettes.smk"
 include: "workflow/rules/laser.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/foxglove.smk"
 include: "workflow/rules/calibration.smk"
 
 

@@ -140,7 +140,8 @@ def test_interrupt_crash_resume_and_a_bad_recording(work: Path) -> None:
     # a resume redoes only what is missing: not the silhouettes
     plan = _planned(work, *BATCH_FLAGS)
     good_jobs = {r for r, rec in plan if rec == "good"}
-    assert good_jobs == {"carve", "fuse", "simplify", "evaluate", "pictures"}, plan
+    assert good_jobs == {"carve", "fuse", "simplify", "evaluate", "foxglove",
+                         "pictures"}, plan
 
     # ---- 2. the resumed carve job is killed (SIGKILL) as it publishes hull.ply
     proc = _snakemake(work, *BATCH_FLAGS, hook="kill")

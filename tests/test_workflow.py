@@ -199,11 +199,11 @@ def test_deterministic_outputs(runs):
     res_a, res_b = batch / "results" / "laser_only", again / "results" / "laser_only"
     compared = 0
     for f in ("stripes.npz", "clouds.npz", "aligned.npz", "aligned.ply", "fused.ply",
-              "measured.ply", "mesh.ply", "mesh.stl"):
+              "measured.ply", "mesh.ply", "mesh.stl", "results.mcap"):
         if (res_a / f).exists() or (res_b / f).exists():
             assert (res_a / f).read_bytes() == (res_b / f).read_bytes(), f
             compared += 1
-    assert compared >= 7
+    assert compared >= 8
     ma = without_run_details(_metrics(batch, "laser_only"))
     mb = without_run_details(_metrics(again, "laser_only"))
     assert ma["evaluation"]["mesh"]["median_mm"] > 0  # scored, not an empty comparison
@@ -254,20 +254,54 @@ def _planned(batch: Path, tmp_path: Path, change: str) -> set[str]:
 
 @pytest.mark.parametrize("change, planned", [
     ("segmentation: {edge_refine_px: 2}",
-     {"silhouettes", "carve", "align", "fuse", "simplify", "evaluate"}),
-    ("carving: {resolution: 64}", {"carve", "fuse", "simplify", "evaluate"}),
+     {"silhouettes", "carve", "align", "fuse", "simplify", "evaluate", "foxglove"}),
+    ("carving: {resolution: 64}", {"carve", "fuse", "simplify", "evaluate", "foxglove"}),
     ("stripes: {min_peak: 9.0}", {"stripes", "triangulate", "align", "fuse", "simplify",
-                                  "evaluate"}),
-    ("alignment: {prior_mm: 0.4}", {"align", "fuse", "simplify", "evaluate"}),
-    ("simplify: {target_faces: 15000}", {"simplify", "evaluate"}),
+                                  "evaluate", "foxglove"}),
+    ("alignment: {prior_mm: 0.4}", {"align", "fuse", "simplify", "evaluate", "foxglove"}),
+    ("simplify: {target_faces: 15000}", {"simplify", "evaluate", "foxglove"}),
     ("evaluation: {n_samples: 100000}", {"evaluate"}),
     ("report: {tile_px: 200}", {"pictures", "batch_table"}),
+    ("foxglove: {max_points: 5000}", {"foxglove"}),
 ])
 def test_a_changed_parameter_re_runs_exactly_its_stages(batch, tmp_path, change, planned):
     """Each rule's params are the config sections its stage reads: a change plans that
-    stage and what depends on its outputs (plus the batch table), nothing else."""
-    assert _planned(batch, tmp_path, change) == planned | {"pictures", "batch_table",
-                                                           "all"}
+    stage and what depends on its outputs (plus the batch table after a new evaluation),
+    nothing else."""
+    also = {"pictures", "batch_table"} if "evaluate" in planned else set()
+    assert _planned(batch, tmp_path, change) == planned | also | {"all"}
+
+
+def test_results_mcap_holds_each_recordings_clouds_and_meshes(batch):
+    """results.mcap beside each recording's results, read by rerun's MCAP importer (not
+    the writer's code; tests/foxglove_reader.py): in base, inside the recording's own
+    time range, every point of clouds.npz and aligned.npz, mesh.ply's and hull.ply's
+    triangles, and only what the recording has (no hull without views, no clouds
+    without laser frames)."""
+    from foxglove_reader import read_results
+    from rerun.chunk import McapReader
+
+    from robo3d.artefacts import load_clouds_npz
+    from robo3d.meshio import read_mesh
+
+    for name in ("block", "views_only", "laser_only"):
+        out = batch / "results" / name
+        res = read_results(out / "results.mcap")
+        rec = McapReader(batch / "recs" / f"{name}.mcap").info()
+        assert rec.message_start_time_ns <= res.start_ns <= res.end_ns <= \
+            rec.message_end_time_ns, name
+        assert {c.frame_id for c in res.clouds} <= {"base"}
+        assert {m.frame_id for m in res.meshes} == {"base"}
+        for key, topic in (("clouds", "/results/raw/"), ("aligned", "/results/aligned/sweep")):
+            got = sum(len(c.positions) for c in res.clouds if c.topic.startswith(topic))
+            want = sum(len(c) for c in load_clouds_npz(out / f"{key}.npz")) \
+                if (out / f"{key}.npz").exists() else 0
+            assert got == want, (name, key)
+        meshes = {m.entity_id: m.n_triangles for m in res.meshes}
+        assert meshes["mesh"] == len(read_mesh(out / "mesh.ply")[1])
+        assert meshes.get("hull", 0) == (len(read_mesh(out / "hull.ply")[1])
+                                         if (out / "hull.ply").exists() else 0)
+        assert (name == "views_only") == (not res.clouds)
 
 
 def test_report_opens_on_the_overview_with_every_stages_pictures(batch, tmp_path):

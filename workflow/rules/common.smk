@@ -115,6 +115,23 @@ def get_pictures_inputs(wildcards):
     return out
 
 
+def get_foxglove_inputs(wildcards):
+    """The clouds with the laser frames' stamps, the views' stamps, and the meshes of
+    config foxglove.meshes that the recording has (no hull without views)."""
+    stages = recording_stages(RECORDINGS[wildcards.rec])
+    res = f"results/{wildcards.rec}"
+    out = {}
+    if "laser" in stages:
+        out.update(stripes=f"{res}/stripes.npz", clouds=f"{res}/clouds.npz",
+                   aligned=f"{res}/aligned.npz")
+    if "hull" in stages:
+        out["silhouettes"] = f"{res}/silhouettes.npz"
+    for mesh in config["foxglove"]["meshes"]:
+        if mesh != "hull" or "hull" in stages:
+            out[mesh] = f"{res}/{mesh}.ply"
+    return out
+
+
 def get_all_outputs():
     """The public outputs of every recording, as far as its data supports them."""
     out = []
@@ -126,6 +143,8 @@ def get_all_outputs():
             out.append(f"results/{name}/aligned.ply")
         out += [f"results/{name}/fused.ply", f"results/{name}/measured.ply",
                 f"results/{name}/mesh.ply", f"results/{name}/metrics.json"]
+        if config["foxglove"]["enabled"]:
+            out.append(f"results/{name}/results.mcap")
     if RECORDINGS:
         out += ["results/batch.tsv", "results/overview.html"]
     for name in sorted(CALIBRATIONS):

@@ -17,14 +17,18 @@ under a second or two at a few hundred pixels a tile: clouds are decimated for d
 Up axis
 -------
 A recording's ``base`` frame need not have z up (a turntable photo set, a capture rig's
-world frame with y up). :func:`find_up` takes it from where the cameras were: people and
-robots look at an object on a table from above and around it, never from below the
-table, so the mean direction from the object's centre to the cameras points up. When
-that mean is short (cameras on a ring level with the object) the ring's axis (the
-smallest principal axis of the camera positions) is up, signed toward the mean. The
-direction is snapped to the nearest axis of the frame when within 25 degrees of it (rigs
-and robot bases are set up level, and a dome that leans to one side should not tilt the
-picture). Without cameras, +z (the convention of robot base frames, ROS REP 103).
+world frame with y up). :func:`find_up` takes it from the cameras. First from how they
+were held: a camera held level (a person's, most robots') keeps its image rows
+horizontal whatever it looks at, so up is perpendicular to every view's image rows; a
+rig that turned its camera a quarter keeps the columns horizontal instead. When the
+views' rows (or columns) lie in one plane (flatness, smallest over middle singular
+value, under 0.25), up is that plane's normal, signed as the images' up (or toward the
+cameras). Otherwise from where the cameras were: people and robots look at an object on
+a table from above and around it, never from below the table, so the mean direction from
+the object to the cameras points up; when that mean is short (a ring level with the
+object) the ring's axis is up. The direction is snapped to the nearest axis of the frame
+when within 25 degrees of it (rigs and robot bases are set up level). Without cameras,
++z (the convention of robot base frames, ROS REP 103).
 """
 
 from __future__ import annotations
@@ -56,17 +60,40 @@ SOURCE_COLOURS = {0: ((0.72, 0.72, 0.72), "measured by the laser"),
                   2: ((0.95, 0.85, 0.25), "filled (gap closed)")}
 _FONT = 0  # cv2.FONT_HERSHEY_SIMPLEX
 _SNAP_DEG = 25.0
+_LEVEL_FLATNESS = 0.25
 
 
 # ------------------------------------------------------------------------- up axis
-def find_up(object_centre: np.ndarray, camera_centres: np.ndarray | None) -> tuple[np.ndarray, str]:
-    """The object's up direction in its frame, from where the cameras were (module notes).
+def _level_axis(R: np.ndarray) -> tuple[np.ndarray, float, int] | None:
+    """The direction perpendicular to one image axis of every camera, when there is one.
+
+    A camera held level (no roll: a person's, most robots') has its image rows (camera x)
+    horizontal, whatever it looks at; one turned a quarter has its columns (camera y)
+    horizontal. The axis (x or y) whose directions over the views span a plane, and
+    only a plane, gives up as that plane's normal. Returns (normal, flatness, axis) for
+    the flatter of the two (flatness: smallest over middle singular value), or None
+    when neither spans a plane (fewer than 3 views, or all turned alike)."""
+    best = None
+    for k in (0, 1):
+        s, vt = np.linalg.svd(R[:, :, k], full_matrices=False)[1:]
+        if s[1] < 0.2 * s[0]:  # the views' axes all alike: no plane
+            continue
+        flat = float(s[2] / s[1])
+        if flat < _LEVEL_FLATNESS and (best is None or flat < best[1]):
+            best = (vt[2], flat, k)
+    return best
+
+
+def find_up(object_centre: np.ndarray,
+            camera_poses: Sequence[np.ndarray] = ()) -> tuple[np.ndarray, str]:
+    """The object's up direction in its frame, found from the cameras (module notes).
 
     Parameters
     ----------
     object_centre : (3,) float64, metres
-    camera_centres : (N, 3) float64, metres, or None
-        The cameras' positions (silhouette views and laser frames) in the same frame.
+    camera_poses : sequence of (N, 4, 4) float64
+        ``T_base_camera`` of the views of each camera (e.g. the silhouette views, the
+        laser frames): each group is checked for a level image axis on its own.
 
     Returns
     -------
@@ -76,25 +103,33 @@ def find_up(object_centre: np.ndarray, camera_centres: np.ndarray | None) -> tup
         How it was found, for the pictures' captions.
     """
     c = np.asarray(object_centre, dtype=np.float64).reshape(3)
-    cams = (np.zeros((0, 3)) if camera_centres is None
-            else np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3))
-    cams = cams[np.all(np.isfinite(cams), axis=1)]
-    if len(cams) < 3:
+    groups = [np.asarray(T, dtype=np.float64).reshape(-1, 4, 4) for T in camera_poses]
+    groups = [T[np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)] for T in groups]
+    groups = [T for T in groups if len(T) >= 3]
+    if not groups:
         return np.array([0.0, 0.0, 1.0]), "+z (no cameras to tell)"
+    cams = np.concatenate([T[:, :3, 3] for T in groups])
     d = cams - c
     d = d[np.linalg.norm(d, axis=1) > 0]
     mean = (d / np.linalg.norm(d, axis=1, keepdims=True)).mean(axis=0)
-    if np.linalg.norm(mean) >= 0.25:
+    level = [(r, T) for T in groups if (r := _level_axis(T[:, :3, :3])) is not None]
+    if level:
+        (up, _, k), T = min(level, key=lambda x: x[0][1])
+        # toward the cameras (above the table); for level rows, toward the images' up
+        side = -T[:, :3, 1].mean(axis=0) if k == 0 else mean
+        up = up if up @ side >= 0 else -up
+        how = f"normal to the cameras' level image {'rows' if k == 0 else 'columns'}"
+    elif np.linalg.norm(mean) >= 0.25:
         up, how = mean / np.linalg.norm(mean), "the cameras' mean direction from the object"
     else:  # a ring level with the object: its axis, toward the cameras' side
-        _, _, vt = np.linalg.svd(cams - cams.mean(axis=0), full_matrices=False)
+        vt = np.linalg.svd(cams - cams.mean(axis=0), full_matrices=False)[2]
         up = vt[2] if vt[2] @ mean >= 0 else -vt[2]
         how = "the axis of the cameras' ring"
     k = int(np.argmax(np.abs(up)))
     if np.degrees(np.arccos(min(1.0, abs(up[k])))) <= _SNAP_DEG:
         up = np.sign(up[k]) * np.eye(3)[k]
         how += f", snapped to {'+-'[int(up[k] < 0)]}{'xyz'[k]}"
-    return up, how
+    return up / np.linalg.norm(up), how
 
 
 def source_colours(source: np.ndarray) -> np.ndarray:

@@ -25,12 +25,37 @@ from robo3d.report import (
 Z_TO_Y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-def _dome(n: int = 24, elevation_deg: float = 40.0, r: float = 0.4) -> np.ndarray:
-    """Cameras on a ring above the origin (z up), as a robot places them."""
-    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+def _dome(n: int = 24, elevation_deg: float = 40.0, r: float = 0.4,
+          azimuths_deg: tuple[float, float] = (0.0, 360.0)) -> np.ndarray:
+    """Camera centres on a ring above the origin (z up), as a robot places them."""
+    full = azimuths_deg[1] - azimuths_deg[0] >= 360
+    a = np.radians(np.linspace(*azimuths_deg, n, endpoint=not full))
     e = np.radians(elevation_deg)
     return r * np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a),
                          np.full(n, np.sin(e))], axis=1)
+
+
+def _looking_at_origin(centres: np.ndarray, roll_deg: np.ndarray | float = 0.0,
+                       up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """T_base_camera (N, 4, 4) of cameras at ``centres`` looking at the origin (camera z
+    forward, y down), level (image rows horizontal about ``up``), then rolled."""
+    f = -centres / np.linalg.norm(centres, axis=1, keepdims=True)
+    x = np.cross(f, np.asarray(up))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(f, x)
+    r = np.radians(np.broadcast_to(roll_deg, (len(f),)))[:, None]
+    x, y = np.cos(r) * x + np.sin(r) * y, -np.sin(r) * x + np.cos(r) * y
+    T = np.tile(np.eye(4), (len(f), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, f, centres
+    return T
+
+
+def _turned(T: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Poses ``T`` in a frame turned by ``R`` (positions and orientations)."""
+    out = T.copy()
+    out[:, :3, :3] = R @ T[:, :3, :3]
+    out[:, :3, 3] = T[:, :3, 3] @ R.T
+    return out
 
 
 def _capped_cylinder():
@@ -45,24 +70,46 @@ def _capped_cylinder():
 
 
 # ------------------------------------------------------------------------- up axis
-def test_up_from_cameras_above_a_z_up_and_a_y_up_scene():
-    cams = _dome() + [0.01, 0.02, 0.0]
-    up, how = find_up(np.zeros(3), cams)
-    assert np.allclose(up, [0, 0, 1]) and "snapped to +z" in how
-    up_y, how_y = find_up(np.zeros(3), cams @ Z_TO_Y.T)
+def test_up_from_level_cameras_in_a_z_up_and_a_y_up_scene():
+    T = _looking_at_origin(_dome())
+    up, how = find_up(np.zeros(3), [T])
+    assert np.allclose(up, [0, 0, 1]) and how == ("normal to the cameras' level image rows, "
+                                                  "snapped to +z")
+    up_y, how_y = find_up(np.zeros(3), [_turned(T, Z_TO_Y)])
     assert np.allclose(up_y, [0, 1, 0]) and "snapped to +y" in how_y
-    # a dome leaning by 40 degrees is not snapped: its mean direction is kept
-    lean = np.array([[1, 0, 0], [0, np.cos(0.7), -np.sin(0.7)], [0, np.sin(0.7), np.cos(0.7)]])
-    up_l, how_l = find_up(np.zeros(3), _dome(elevation_deg=60) @ lean.T)
-    assert np.degrees(np.arccos(np.clip(up_l @ lean[:, 2], -1, 1))) < 1.0 and "snapped" not in how_l
 
 
-def test_up_of_a_level_ring_is_its_axis_and_without_cameras_z():
-    ring = _dome(elevation_deg=0.0) @ Z_TO_Y.T  # cameras level with the object, y up
-    ring[0, 1] += 0.01  # a slight lift tells the side
-    up, how = find_up(np.zeros(3), ring)
+def test_up_of_a_cap_of_views_in_front_comes_from_the_level_rows_not_the_mean():
+    """A robot's views from one side only (azimuths -60..60 degrees, 40 degrees up, as
+    DTU's), in a frame turned by 35 degrees (not snapped): the level image rows give up
+    within a degree; the cameras' mean direction would lean 40 degrees toward them."""
+    lean = np.array([[1, 0, 0], [0, np.cos(0.61), -np.sin(0.61)],
+                     [0, np.sin(0.61), np.cos(0.61)]])
+    cap = _dome(12, 40.0, azimuths_deg=(-60.0, 60.0))
+    T = _turned(_looking_at_origin(cap), lean)
+    up, how = find_up(np.zeros(3), [T])
+    assert np.degrees(np.arccos(np.clip(up @ lean[:, 2], -1, 1))) < 1.0
+    assert how == "normal to the cameras' level image rows"
+    mean = T[:, :3, 3].mean(axis=0)
+    assert np.degrees(np.arccos(mean @ lean[:, 2] / np.linalg.norm(mean))) > 30
+
+
+def test_up_from_columns_a_ring_and_without_cameras():
+    # a camera turned a quarter (the Middlebury temple's): its columns are level
+    T = _turned(_looking_at_origin(_dome(16, 20.0), roll_deg=90.0), Z_TO_Y)
+    up, how = find_up(np.zeros(3), [T])
+    assert np.allclose(up, [0, 1, 0]) and "level image columns" in how
+    # a ring level with the object, every view rolled at random: the ring's axis
+    rolls = np.random.default_rng(1).uniform(-180, 180, 24)
+    ring = _dome(24, 0.0) + [0, 0, 0.005]
+    up, how = find_up(np.zeros(3), [_turned(_looking_at_origin(ring, rolls), Z_TO_Y)])
     assert np.allclose(up, [0, 1, 0]) and "ring" in how
-    up0, how0 = find_up(np.zeros(3), None)
+    # views above, all turned alike (no plane of rows): their mean direction
+    T = _looking_at_origin(_dome(8, 60.0))
+    T[:, :3, :3] = T[0, :3, :3]
+    up, how = find_up(np.zeros(3), [T])
+    assert np.allclose(up, [0, 0, 1]) and "mean direction" in how
+    up0, how0 = find_up(np.zeros(3), [])
     assert np.allclose(up0, [0, 0, 1]) and "no cameras" in how0
 
 
@@ -74,7 +121,7 @@ def test_a_y_up_object_is_drawn_upright_with_the_found_up():
 
     v, f, col = _capped_cylinder()
     v_y = v @ Z_TO_Y.T
-    up, _ = find_up(v_y.mean(axis=0), _dome() @ Z_TO_Y.T)
+    up, _ = find_up(v_y.mean(axis=0), [_turned(_looking_at_origin(_dome()), Z_TO_Y)])
 
     def rows_cols(img):
         red = (img[:, :, 0] > 120) & (img[:, :, 1] < 60)

@@ -47,9 +47,8 @@ def stage_pictures(inputs: Mapping[str, str], outputs: Mapping[str, str],
     V, F = read_mesh(inputs["mesh"])
     sil = Silhouettes.load(inputs["silhouettes"]) if inputs.get("silhouettes") else None
     stripes = Stripes.load(inputs["stripes"]) if inputs.get("stripes") else None
-    cams = [a.T_base_camera[:, :3, 3] for a in (sil, stripes) if a is not None]
     centre = 0.5 * (V.min(axis=0) + V.max(axis=0)) if len(V) else np.zeros(3)
-    up, how = find_up(centre, np.concatenate(cams) if cams else None)
+    up, how = find_up(centre, [a.T_base_camera for a in (sil, stripes) if a is not None])
     roles = tuple(r for r, a in (("views", sil), ("laser", stripes)) if a is not None)
     rec = open_recording(inputs["recording"], cfg, roles=roles, require=False,
                          calibration=inputs.get("calibration"))

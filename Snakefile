@@ -29,12 +29,20 @@ rule all:
 
 
 onsuccess:
-    from robo3d.info import format_run_summary
+    from robo3d.info import batch_summary, format_run_summary, write_batch_summary
 
+    # results/batch.csv: every recording's figures and, when one failed, its failure
+    write_batch_summary(batch_summary("results", "logs", RECORDINGS), "results/batch.csv")
     print("\n" + format_run_summary("results", "logs", RECORDINGS), file=sys.stderr)
 
 
 onerror:
-    from robo3d.info import batch_status, format_batch_status
+    from robo3d.info import (
+        batch_status,
+        batch_summary,
+        format_batch_status,
+        write_batch_summary,
+    )
 
+    write_batch_summary(batch_summary("results", "logs", RECORDINGS), "results/batch.csv")
     print(format_batch_status(batch_status("results", "logs", RECORDINGS)), file=sys.stderr)

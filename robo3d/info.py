@@ -14,7 +14,10 @@ calls for cannot run.
 
 :func:`batch_status` looks at ``results/`` and ``logs/`` after a batch: per recording,
 which stages finished, which failed (with the first error line of their log) and which
-never ran; :func:`format_batch_status` renders it.
+never ran; :func:`format_batch_status` renders it. :func:`batch_summary` is the batch's
+table, one row per recording, failed ones included (status, failed stage, first error line
+beside the figures), and :func:`write_batch_summary` writes it as CSV
+(``results/batch.csv``, at the end of every run).
 
 Choices
 -------
@@ -63,6 +66,8 @@ __all__ = [
     "batch_status",
     "calibration_status",
     "format_batch_status",
+    "batch_summary",
+    "write_batch_summary",
 ]
 
 _log = logging.getLogger(__name__)
@@ -690,6 +695,88 @@ def batch_status(results_dir: str | os.PathLike[str] = "results",
             out["done"].append(name)
     out["calibrations"] = calibration_status(results, logs)
     return out
+
+
+def _stage_benchmark(benchmarks: Path, stage: str, name: str) -> tuple[float | None,
+                                                                       float | None]:
+    """A job's wall time (s) and peak resident memory (MB) from its Snakemake
+    ``benchmark:`` file, or Nones."""
+    try:
+        head, row = (benchmarks / stage / f"{name}.tsv").read_text().splitlines()[:2]
+        rec = dict(zip(head.split("\t"), row.split("\t"), strict=False))
+        return float(rec["s"]), float(rec["max_rss"])
+    except (OSError, ValueError, KeyError):
+        return None, None
+
+
+def batch_summary(results_dir: str | os.PathLike[str] = "results",
+                  logs_dir: str | os.PathLike[str] = "logs",
+                  recordings: Iterable[str] | None = None,
+                  benchmarks_dir: str | os.PathLike[str] = "benchmarks",
+                  ) -> list[dict[str, Any]]:
+    """The batch's table: one row per recording, whether it finished or failed.
+
+    Parameters
+    ----------
+    results_dir, logs_dir, recordings
+        As :func:`batch_status`.
+    benchmarks_dir : path-like
+        The workflow's ``benchmarks/`` folder (the jobs' ``benchmark:`` files).
+
+    Returns
+    -------
+    list of dict
+        ``recording``, ``status`` (as :func:`batch_status`), ``failed_stage``, ``error``
+        (its first error line) and ``log`` (None when nothing failed), then the figures of
+        :func:`robo3d.evaluate.batch_rows` when the recording has its ``metrics.json``;
+        without one (failed, not finished), ``<stage>_s`` and ``<stage>_mb`` of the stages
+        that ran, from their benchmark files.
+    """
+    from .evaluate import batch_rows
+
+    results, benchmarks = Path(results_dir), Path(benchmarks_dir)
+    rows = []
+    for name, r in batch_status(results_dir, logs_dir, recordings)["recordings"].items():
+        failed = next(((s, v) for s, v in r["stages"].items() if v["status"] == "failed"),
+                      None)
+        row: dict[str, Any] = {"recording": name, "status": r["status"],
+                               "failed_stage": failed[0] if failed else None,
+                               "error": failed[1]["error"] if failed else None,
+                               "log": failed[1]["log"] if failed else None}
+        try:
+            metrics = json.loads((results / name / "metrics.json").read_text())
+        except (OSError, ValueError):
+            metrics = None
+        if metrics is not None:
+            row.update({k: v for k, v in batch_rows([metrics])[0].items() if k != "recording"})
+        else:
+            for stage in STAGES:
+                row[f"{stage}_s"], row[f"{stage}_mb"] = _stage_benchmark(benchmarks, stage, name)
+        rows.append(row)
+    return rows
+
+
+def write_batch_summary(rows: Iterable[Mapping[str, Any]],
+                        csv_path: str | os.PathLike[str]) -> None:
+    """:func:`batch_summary`'s rows as CSV (the union of their columns in order of
+    appearance; empty cells: not measured), written atomically."""
+    import csv
+    import io
+
+    from .atomic import atomic_path
+
+    rows = list(rows)
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if v is None else f"{v:.6g}" if isinstance(v, float) else v)
+                    for k, v in r.items()})
+    with atomic_path(csv_path) as tmp:
+        tmp.write_text(buf.getvalue(), encoding="utf-8")
 
 
 def calibration_status(results_dir: str | os.PathLike[str] = "results",

@@ -12,6 +12,7 @@ kills itself with SIGKILL.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
@@ -177,5 +178,13 @@ def test_interrupt_crash_resume_and_a_bad_recording(work: Path) -> None:
     cli = subprocess.run([sys.executable, "-m", "robo3d.cli", "status", "--results", str(res),
                           "--logs", str(work / "logs")], capture_output=True, text=True)
     assert cli.returncode == 1 and "not an MCAP file" in cli.stdout
+    # ---- so does the batch table (results/batch.csv, written at the end of every run):
+    # the good recording's figures, the bad one's failure with its first error line
+    with open(res / "batch.csv", newline="") as f:
+        rows = {r["recording"]: r for r in csv.DictReader(f)}
+    assert rows["good"]["status"] == "done" and float(rows["good"]["hull_iou"]) > 0.5
+    assert float(rows["good"]["carve_s"]) > 0 and not rows["good"]["error"]
+    assert rows["bad"]["status"] == "failed" and rows["bad"]["failed_stage"] == "silhouettes"
+    assert "not an MCAP file" in rows["bad"]["error"] and not rows["bad"]["hull_iou"]
     # ---- and nothing is left to do for the good recording
     assert {rec for _, rec in _planned(work, *BATCH_FLAGS)} == {"bad"}

@@ -29,6 +29,17 @@ SCAN_CALIBRATION = scan_calibrations(config["scan_calibration"], RECORDINGS, CAL
 CODE_VERSION = code_version()
 
 
+def stage_threads(wanted):
+    """Threads of a stage that can use several (stripes, carve, fuse): what it wants while
+    the recordings are fewer than the cores, else one each. A batch fills the cores with
+    recordings instead: these stages use about one core on small scans while holding two,
+    and holding two kept the other recordings' jobs waiting (20 small recordings on 2
+    cores ran at 1.23x one core's throughput, benchmarks/results/batch.json). The results
+    do not depend on the number of threads (benchmarks/results/determinism.json)."""
+    cores = workflow.cores or wanted
+    return max(1, min(int(wanted), int(cores) // max(1, len(RECORDINGS))))
+
+
 def stage_params(stage):
     """A rule's params: the config sections its stage reads and robo3d's code version;
     a change to either re-runs the rule (and what depends on its outputs)."""

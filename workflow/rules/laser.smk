@@ -19,7 +19,7 @@ rule stripes:
         "scan"
     conda:
         "../envs/robo3d.yaml"
-    threads: 2  # frames are decoded and searched in parallel
+    threads: stage_threads(2)  # frames are decoded and searched in parallel
     resources:
         mem_mb=lambda wc, attempt: 1000 * attempt,
         runtime=lambda wc, attempt: 15 * attempt,

@@ -46,7 +46,7 @@ rule fuse:
         "scan"
     conda:
         "../envs/robo3d.yaml"
-    threads: 2  # ray casting; fusion waits for alignment, so a lone recording has both cores
+    threads: stage_threads(2)  # ray casting; fusion waits for alignment, so a lone recording has both cores
     resources:
         mem_mb=lambda wc, attempt: 2500 * attempt,
         runtime=lambda wc, attempt: 20 * attempt,

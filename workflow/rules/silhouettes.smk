@@ -46,7 +46,7 @@ rule carve:
     conda:
         "../envs/robo3d.yaml"
     # the octree kernel's threads (carving.threads, 0 = all cores)
-    threads: config["carving"]["threads"] or workflow.cores
+    threads: stage_threads(config["carving"]["threads"] or workflow.cores)
     resources:
         mem_mb=lambda wc, attempt: 1000 * attempt,
         runtime=lambda wc, attempt: 10 * attempt,

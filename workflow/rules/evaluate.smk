@@ -21,8 +21,6 @@ rule evaluate:
         "logs/evaluate/{rec}.log",
     benchmark:
         "benchmarks/evaluate/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
@@ -86,8 +84,6 @@ rule pictures:
         "logs/pictures/{rec}.log",
     benchmark:
         "benchmarks/pictures/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1

@@ -14,8 +14,6 @@ rule foxglove:
         "logs/foxglove/{rec}.log",
     benchmark:
         "benchmarks/foxglove/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1

@@ -15,8 +15,6 @@ rule stripes:
         "logs/stripes/{rec}.log",
     benchmark:
         "benchmarks/stripes/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: stage_threads(2)  # frames are decoded and searched in parallel
@@ -41,8 +39,6 @@ rule triangulate:
         "logs/triangulate/{rec}.log",
     benchmark:
         "benchmarks/triangulate/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1

@@ -16,8 +16,6 @@ rule align:
         "logs/align/{rec}.log",
     benchmark:
         "benchmarks/align/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
@@ -42,8 +40,6 @@ rule fuse:
         "logs/fuse/{rec}.log",
     benchmark:
         "benchmarks/fuse/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: stage_threads(2)  # ray casting; fusion waits for alignment, so a lone recording has both cores
@@ -69,8 +65,6 @@ rule simplify:
         "logs/simplify/{rec}.log",
     benchmark:
         "benchmarks/simplify/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1

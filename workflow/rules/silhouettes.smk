@@ -15,8 +15,6 @@ rule silhouettes:
         "logs/silhouettes/{rec}.log",
     benchmark:
         "benchmarks/silhouettes/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     threads: 1
@@ -41,8 +39,6 @@ rule carve:
         "logs/carve/{rec}.log",
     benchmark:
         "benchmarks/carve/{rec}.tsv"
-    group:
-        "scan"
     conda:
         "../envs/robo3d.yaml"
     # the octree kernel's threads (carving.threads, 0 = all cores)

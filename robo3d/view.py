@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import Robo3dError
+from .info import STAGES
 from .viz import APPLICATION_ID
 
 __all__ = [
@@ -61,9 +62,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: The stages' logs in the order of the data flow (``results/<rec>/<stage>.rrd``).
-STAGE_ORDER = ("silhouettes", "carve", "stripes", "triangulate", "align", "fuse", "simplify",
-               "evaluate")
+#: The stages' logs in the order of the data flow (``results/<rec>/<stage>.rrd``): the
+#: workflow's stages, as :mod:`robo3d.info` lists them.
+STAGE_ORDER = STAGES
 
 #: Subtrees of the 3D view hidden at first (the user ticks them on in the blueprint
 #: panel): what lies on top of the result and hides it.

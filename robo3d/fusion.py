@@ -117,6 +117,16 @@ __all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "range_surface", "crop_me
 #: between the laser's observed and seen-empty space.
 SOURCES: tuple[str, ...] = ("measured", "hull", "filled")
 MEASURED, HULL, FILLED = 0, 1, 2
+#: Vertex colours of each provenance (:data:`SOURCES`) wherever a mesh is coloured by it:
+#: fused.ply and mesh.ply, their rerun logs, results.mcap and the report's pictures:
+#: measured grey, inferred from the hull orange, filled yellow.
+SOURCE_RGB = np.array([[190, 190, 190], [240, 120, 30], [240, 210, 40]], dtype=np.uint8)
+
+
+def source_colors(source: np.ndarray) -> np.ndarray:
+    """RGB (uint8) per vertex for its provenance (:data:`SOURCES`; an unknown code takes
+    the last colour)."""
+    return SOURCE_RGB[np.clip(np.asarray(source, np.int64), 0, len(SOURCE_RGB) - 1)]
 #: Coarsening of the grid on which the lines of sight carve beyond ``carve_depth_m``.
 _FAR = 4
 #: What fusion does where the laser saw nothing (``fusion.close``).

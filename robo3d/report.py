@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from .fusion import SOURCE_RGB, source_colors
+
 __all__ = ["find_up", "SWEEP_COLOURS", "SOURCE_COLOURS", "source_colours", "mask_overlay",
            "stripe_overlay",
            "to_rgb8", "tile_grid", "titled", "legend", "colour_bar", "placeholder",
@@ -55,9 +57,10 @@ SWEEP_COLOURS = np.array([[0.12, 0.47, 0.71], [1.00, 0.50, 0.05], [0.17, 0.63, 0
                           [0.09, 0.75, 0.81]])
 #: Colours of a mesh vertex's ``source`` (0 measured by the laser, 1 inferred from the
 #: visual hull, 2 filled), as in rerun: grey, orange, yellow.
-SOURCE_COLOURS = {0: ((0.72, 0.72, 0.72), "measured by the laser"),
-                  1: ((0.95, 0.55, 0.15), "inferred from the visual hull"),
-                  2: ((0.95, 0.85, 0.25), "filled (gap closed)")}
+SOURCE_COLOURS = {k: (tuple(float(c) / 255.0 for c in SOURCE_RGB[k]), label)
+                  for k, label in enumerate(("measured by the laser",
+                                             "inferred from the visual hull",
+                                             "filled (gap closed)"))}
 _FONT = 0  # cv2.FONT_HERSHEY_SIMPLEX
 _SNAP_DEG = 25.0
 _LEVEL_FLATNESS = 0.25
@@ -135,8 +138,7 @@ def find_up(object_centre: np.ndarray,
 def source_colours(source: np.ndarray) -> np.ndarray:
     """Colours (V, 3) in [0, 1] of mesh vertices by their ``source`` (:data:`SOURCE_COLOURS`;
     an unknown code takes the last one's)."""
-    palette = np.array([SOURCE_COLOURS[k][0] for k in sorted(SOURCE_COLOURS)])
-    return palette[np.clip(np.asarray(source, dtype=np.int64).ravel(), 0, len(palette) - 1)]
+    return source_colors(np.ravel(source)).astype(np.float64) / 255.0
 
 
 # ------------------------------------------------------------------------- image helpers

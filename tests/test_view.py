@@ -204,8 +204,8 @@ def test_one_recording_id_for_every_stage(scan):
 def test_clouds_and_meshes_carry_colours_that_mean_something(scan):
     """Clouds by sweep (the sweep palette), the fused and final meshes by provenance,
     the final mesh by its error against the ground truth (not one colour)."""
+    from robo3d.fusion import SOURCE_RGB as _SOURCE_RGB
     from robo3d.stages.common import sweep_color
-    from robo3d.stages.fuse import _SOURCE_RGB
 
     for k in range(N_SWEEPS):
         for stage in ("triangulate", "align"):

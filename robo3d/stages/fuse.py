@@ -12,6 +12,7 @@ import numpy as np
 
 from ..atomic import write_json
 from ..errors import StageError
+from ..fusion import source_colors
 from .common import stage_threads, summary
 
 
@@ -122,16 +123,6 @@ def _area_fraction(V: np.ndarray, F: np.ndarray, flag: np.ndarray) -> float:
                                 axis=1)
     total = float(area.sum())
     return float(area[np.any(flag[F], axis=1)].sum() / total) if total > 0 else 0.0
-
-
-#: Vertex colours of the provenance in fused.ply and mesh.ply (and their rerun logs):
-#: measured grey, inferred from the hull orange, filled yellow.
-_SOURCE_RGB = np.array([[190, 190, 190], [240, 120, 30], [240, 210, 40]], dtype=np.uint8)
-
-
-def source_colors(source: np.ndarray) -> np.ndarray:
-    """RGB per vertex for its provenance (:data:`robo3d.fusion.SOURCES`)."""
-    return _SOURCE_RGB[np.clip(np.asarray(source, np.int64), 0, len(_SOURCE_RGB) - 1)]
 
 
 def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float, far_m: float

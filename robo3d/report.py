@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from .fusion import SOURCE_RGB, source_colors
+from .viz import SWEEP_RGB
 
 __all__ = ["find_up", "SWEEP_COLOURS", "SOURCE_COLOURS", "source_colours", "mask_overlay",
            "stripe_overlay",
@@ -50,11 +51,8 @@ __all__ = ["find_up", "SWEEP_COLOURS", "SOURCE_COLOURS", "source_colours", "mask
 
 log = logging.getLogger(__name__)
 
-#: Colours of sweeps 0, 1, 2, ... (cycled): distinct, readable on white (RGB, 0-1).
-SWEEP_COLOURS = np.array([[0.12, 0.47, 0.71], [1.00, 0.50, 0.05], [0.17, 0.63, 0.17],
-                          [0.84, 0.15, 0.16], [0.58, 0.40, 0.74], [0.55, 0.34, 0.29],
-                          [0.89, 0.47, 0.76], [0.50, 0.50, 0.50], [0.74, 0.74, 0.13],
-                          [0.09, 0.75, 0.81]])
+#: Colours of sweeps 0, 1, 2, ... (cycled), RGB 0-1: viz.SWEEP_RGB, as in rerun and results.mcap.
+SWEEP_COLOURS = np.asarray(SWEEP_RGB, dtype=np.float64) / 255.0
 #: Colours of a mesh vertex's ``source`` (0 measured by the laser, 1 inferred from the
 #: visual hull, 2 filled), as in rerun: grey, orange, yellow.
 SOURCE_COLOURS = {k: (tuple(float(c) / 255.0 for c in SOURCE_RGB[k]), label)

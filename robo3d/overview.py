@@ -10,7 +10,12 @@
   ``batch.html`` (the figures and, apart, the time and peak memory of every stage) and
   ``overview.html`` (per recording: status, key figures against their targets, one
   picture), the overview self-contained (pictures inlined) so that the Snakemake
-  report's landing page can show it as it is.
+  report's landing page can show it as it is. A recording that did not finish (a stage
+  failed, or the run stopped) has its card and its row too, with the stage that failed,
+  its first error line and its log.
+- :func:`write_unfinished_batch_report`: the same pages after a run in which recordings
+  failed (the workflow's ``onerror``; rule ``batch_table`` cannot run then), so that
+  ``snakemake --report`` shows the finished recordings and the failures.
 """
 
 from __future__ import annotations
@@ -24,7 +29,8 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["KeyFigure", "KEY_FIGURES", "TABLE_GROUPS", "STAGE_NAMES", "key_figures",
-           "recording_status", "batch_html", "overview_html", "write_batch_report"]
+           "recording_status", "batch_html", "overview_html", "write_batch_report",
+           "write_unfinished_batch_report"]
 
 
 @dataclass(frozen=True)
@@ -257,19 +263,45 @@ def _card(metrics: Mapping[str, Any], picture: bytes | None, vmax_mm: float | No
             f"{'<ul>' + note + '</ul>' if note else ''}</div></div>")
 
 
+def _failure_text(row: Mapping[str, Any]) -> str:
+    """What happened to a recording that did not finish, in a line."""
+    if row.get("status") == "failed":
+        stage = STAGE_NAMES.get(row.get("failed_stage"), row.get("failed_stage"))
+        return f"failed in the {stage} stage" + (f": {row['error']}" if row.get("error") else "")
+    return {"incomplete": "not finished: a stage was stopped before it ended",
+            "not started": "not started"}.get(str(row.get("status")),
+                                              f"not finished ({row.get('status')})")
+
+
+def _failed_card(row: Mapping[str, Any]) -> str:
+    name = html.escape(str(row.get("recording", "?")))
+    log = (f"<div class='key'>Log: {html.escape(str(row['log']))}. Re-run the workflow "
+           "after fixing it: what finished is kept.</div>") if row.get("log") else ""
+    return (f"<div class='card'><h2>{name}</h2><p class='status miss'>"
+            f"{html.escape(_failure_text(row))}</p>{log}</div>")
+
+
 def overview_html(metrics: Sequence[Mapping[str, Any]], pictures: Sequence[bytes | None],
-                  vmax_mm: float | None = None) -> str:
+                  vmax_mm: float | None = None,
+                  failures: Sequence[Mapping[str, Any]] = ()) -> str:
     """The overview page: per recording its status, key figures against their targets
     and one picture (PNG bytes, inlined). Self-contained: its styles are scoped to
     ``.robo3d-overview`` so that the page can also be placed inside another (two rules
     widen and top-align the Snakemake report's landing column when it holds the
-    overview, and do nothing elsewhere)."""
-    cards = "".join(_card(m, p, vmax_mm) for m, p in zip(metrics, pictures, strict=True))
+    overview, and do nothing elsewhere). ``failures``: rows of
+    :func:`robo3d.info.batch_summary` of the recordings that did not finish, each a card
+    with the stage that failed, its error and its log, first."""
+    cards = "".join(_failed_card(r) for r in failures) + "".join(
+        _card(m, p, vmax_mm) for m, p in zip(metrics, pictures, strict=True))
     missed = sum(any(f["met"] is False for f in key_figures(m)) for m in metrics)
+    failed = sum(r.get("status") == "failed" for r in failures)
+    unfinished = (f"{failed} failed, " if failed else "") + (
+        f"{len(failures) - failed} not finished, " if len(failures) > failed else "")
     return ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>robo3d overview"
             f"</title>{_CSS}</head><body><div class='robo3d-overview'>"
-            f"<h1>robo3d: {len(metrics)} recording(s)</h1><p class='status'>"
-            f"{len(metrics) - missed} without a missed target, {missed} with. Targets: "
+            f"<h1>robo3d: {len(metrics) + len(failures)} recording(s)</h1><p class='status'>"
+            f"{unfinished}{len(metrics) - missed} without a missed target, {missed} with. "
+            "Targets: "
             "what the benchmarks hold the pipeline to (robo3d/overview.py). Every "
             "stage's pictures are under <b>Recordings</b>, every figure under <b>Tables"
             f"</b>.</p>{cards}</div></body></html>\n")
@@ -299,17 +331,24 @@ def _mb(v: Any) -> str:
     return f"{_fmt(v, 0)} MB" if _number(v) else "memory not measured"
 
 
-def batch_html(rows: Sequence[Mapping[str, Any]]) -> str:
+def batch_html(rows: Sequence[Mapping[str, Any]],
+               failures: Sequence[Mapping[str, Any]] = ()) -> str:
     """``batch.html``: every recording's figures (grouped, named in words with their
     units, a target row where a figure has one) and, apart, each stage's time and peak
-    memory."""
+    memory. ``failures`` (rows of :func:`robo3d.info.batch_summary` of recordings that did
+    not finish): a row each saying what failed, and the time and memory of the stages
+    that ran."""
     groups = _columns(rows)
+    width = max(1, sum(len(c) for _, c in groups))
     head1 = "<th rowspan='2'>recording</th>" + "".join(
         f"<th colspan='{len(c)}'>{html.escape(g)}</th>" for g, c in groups)
     head2 = "".join(f"<th>{html.escape(lab)}</th>" for _, c in groups for _, lab, _, _ in c)
     body = "".join("<tr><td>" + html.escape(str(r.get("recording"))) + "</td>" + "".join(
         f"<td class='num'>{_fmt(r.get(k), d, s)}</td>" for _, c in groups for k, _, s, d in c)
-        + "</tr>" for r in rows)
+        + "</tr>" for r in rows) + "".join(
+        "<tr><td>" + html.escape(str(r.get("recording"))) + f"</td><td colspan='{width}' "
+        "class='fail'>" + html.escape(_failure_text(r)) + "</td></tr>" for r in failures)
+    rows = [*rows, *failures]
     stages = [s for s in STAGE_NAMES if any(r.get(f"{s}_s") is not None for r in rows)]
     t_head = "".join(f"<th>{html.escape(STAGE_NAMES[s])}</th>" for s in stages)
     t_body = "".join("<tr><td>" + html.escape(str(r.get("recording"))) + "</td>" + "".join(
@@ -319,7 +358,7 @@ def batch_html(rows: Sequence[Mapping[str, Any]]) -> str:
     css = ("<style>body{font-family:system-ui,sans-serif;font-size:13px;color:#222}"
            "table{border-collapse:collapse;margin:6px 0 16px}td,th{border:1px solid #ddd;"
            "padding:3px 6px}th{background:#f3f3f3;font-weight:600;font-size:12px}"
-           "td.num{text-align:right;white-space:nowrap}</style>")
+           "td.num{text-align:right;white-space:nowrap}td.fail{color:#c62828}</style>")
     return ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>robo3d batch</title>"
             f"{css}</head><body><h1>robo3d batch: {len(rows)} recording(s)</h1>"
             "<p>Pose errors: the worst sweep; at the object: the displacement of the "
@@ -335,10 +374,13 @@ def batch_html(rows: Sequence[Mapping[str, Any]]) -> str:
 
 def write_batch_report(metrics_paths: Sequence[str], picture_paths: Sequence[str],
                        tsv_path: str, html_path: str, overview_path: str,
-                       vmax_mm: float | None = None) -> None:
+                       vmax_mm: float | None = None,
+                       failures: Sequence[Mapping[str, Any]] = ()) -> None:
     """Write ``batch.tsv`` (:func:`robo3d.evaluate.write_batch_table`), ``batch.html``
     (:func:`batch_html`) and ``overview.html`` (:func:`overview_html`, one picture per
-    recording: ``picture_paths`` in the order of ``metrics_paths``), atomically."""
+    recording: ``picture_paths`` in the order of ``metrics_paths``), atomically;
+    ``failures`` as :func:`overview_html` (the TSV holds the finished recordings' figures;
+    ``results/batch.csv`` every recording's, failures too)."""
     from .atomic import atomic_path
     from .evaluate import batch_rows, write_batch_table
 
@@ -348,7 +390,35 @@ def write_batch_report(metrics_paths: Sequence[str], picture_paths: Sequence[str
     metrics = [json.loads(Path(p).read_text(encoding="utf-8")) for p in metrics_paths]
     write_batch_table(list(metrics_paths), tsv_path, None)
     pictures = [Path(p).read_bytes() if Path(p).is_file() else None for p in picture_paths]
-    for path, text in ((html_path, batch_html(batch_rows(metrics))),
-                       (overview_path, overview_html(metrics, pictures, vmax_mm))):
+    for path, text in ((html_path, batch_html(batch_rows(metrics), failures)),
+                       (overview_path, overview_html(metrics, pictures, vmax_mm, failures))):
         with atomic_path(path) as tmp:
             tmp.write_text(text, encoding="utf-8")
+
+
+def write_unfinished_batch_report(recordings: Sequence[str], results_dir: str = "results",
+                                  logs_dir: str = "logs", benchmarks_dir: str = "benchmarks",
+                                  vmax_mm: float | None = None) -> list[str]:
+    """The batch's pages (``batch.tsv``, ``batch.html``, ``overview.html`` in
+    ``results_dir``) after a run that did not finish every recording: the finished ones
+    (``metrics.json`` and the pictures' thumbnail written) with their figures, the others
+    with what failed (:func:`robo3d.info.batch_summary`). Rule ``batch_table`` needs every
+    recording, so the workflow's ``onerror`` writes these instead. The files get a
+    modification time of 1970: they stand in for the rule's outputs, and the next run
+    that can run the rule re-makes them. Returns the finished recordings' names."""
+    import os
+
+    from .info import batch_summary
+
+    res = Path(results_dir)
+    done = [n for n in sorted(recordings) if (res / n / "metrics.json").is_file()
+            and (res / n / "pictures" / "thumbnail.png").is_file()]
+    failures = [r for r in batch_summary(results_dir, logs_dir, recordings, benchmarks_dir)
+                if r["recording"] not in done]
+    paths = [str(res / n) for n in ("batch.tsv", "batch.html", "overview.html")]
+    write_batch_report([str(res / n / "metrics.json") for n in done],
+                       [str(res / n / "pictures" / "thumbnail.png") for n in done],
+                       *paths, vmax_mm=vmax_mm, failures=failures)
+    for p in paths:
+        os.utime(p, (0, 0))
+    return done

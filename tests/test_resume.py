@@ -186,5 +186,17 @@ def test_interrupt_crash_resume_and_a_bad_recording(work: Path) -> None:
     assert float(rows["good"]["carve_s"]) > 0 and not rows["good"]["error"]
     assert rows["bad"]["status"] == "failed" and rows["bad"]["failed_stage"] == "silhouettes"
     assert "not an MCAP file" in rows["bad"]["error"] and not rows["bad"]["hull_iou"]
+    # ---- and so does the report (snakemake --report after the failed run): the good
+    # recording's pictures, the bad one in the overview and batch.html with its failure
+    proc = _snakemake(work, "--report", str(work / "report.html"))
+    assert proc.returncode == 0, proc.stdout[-4000:]
+    page = (work / "report.html").read_text()
+    overview = (res / "overview.html").read_text()
+    for text in (overview, page):
+        assert "failed in the silhouettes stage" in text and "not an MCAP file" in text
+    assert "<h2>good</h2>" in overview and "<h2>bad</h2>" in overview
+    assert "1 failed, " in overview and "logs/silhouettes/bad.log" in overview
+    assert "failed in the silhouettes stage" in (res / "batch.html").read_text()
+    assert "good/pictures/mesh.png" in page or "mesh.png" in page
     # ---- and nothing is left to do for the good recording
     assert {rec for _, rec in _planned(work, *BATCH_FLAGS)} == {"bad"}

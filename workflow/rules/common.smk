@@ -1,4 +1,7 @@
 # Validation and the small helpers the rules use. Logic lives in robo3d/, not here.
+import os
+import sys
+
 from robo3d.config import validate_config
 from robo3d.pipeline import (
     code_version,
@@ -143,19 +146,51 @@ def get_foxglove_inputs(wildcards):
     return out
 
 
+def recording_outputs(name):
+    """The public outputs of one recording, as far as its data supports them."""
+    stages = recording_stages(RECORDINGS[name])
+    out = []
+    if "hull" in stages:
+        out.append(f"results/{name}/hull.ply")
+    if "laser" in stages:
+        out.append(f"results/{name}/aligned.ply")
+    out += [f"results/{name}/fused.ply", f"results/{name}/measured.ply",
+            f"results/{name}/mesh.ply", f"results/{name}/metrics.json"]
+    if config["foxglove"]["enabled"]:
+        out.append(f"results/{name}/results.mcap")
+    return out
+
+
+#: The report's pictures of a recording (rule pictures).
+PICTURES = ("masks", "stripes", "hull", "clouds", "mesh", "timings", "thumbnail")
+
+
+def report_only():
+    """Whether this is `snakemake --report FILE` (without --report-after-run): it runs no
+    job, it gathers what a run made."""
+    args = sys.argv[1:]
+    return (any(a == "--report" or a.startswith("--report=") for a in args)
+            and "--report-after-run" not in args)
+
+
+def batch_recordings():
+    """The recordings that the batch's outputs (rule all, the overview and tables) cover:
+    every one; in `snakemake --report` after a run in which some failed, the finished
+    ones (every output and picture written): the others are in the overview and
+    batch.html with what failed, written by the run's onerror
+    (robo3d.overview.write_unfinished_batch_report), since no job runs to make them."""
+    names = sorted(RECORDINGS)
+    if not report_only():
+        return names
+    return [n for n in names if all(os.path.exists(p) for p in recording_outputs(n))
+            and all(os.path.exists(f"results/{n}/pictures/{p}.png") for p in PICTURES)]
+
+
 def get_all_outputs():
     """The public outputs of every recording, as far as its data supports them."""
     out = []
-    for name, rec in sorted(RECORDINGS.items()):
-        stages = recording_stages(rec)
-        if "hull" in stages:
-            out.append(f"results/{name}/hull.ply")
-        if "laser" in stages:
-            out.append(f"results/{name}/aligned.ply")
-        out += [f"results/{name}/fused.ply", f"results/{name}/measured.ply",
-                f"results/{name}/mesh.ply", f"results/{name}/metrics.json"]
-        if config["foxglove"]["enabled"]:
-            out.append(f"results/{name}/results.mcap")
+    for name in batch_recordings():
+        out += recording_outputs(name)
     if RECORDINGS:
         out += ["results/batch.tsv", "results/overview.html"]
     for name in sorted(CALIBRATIONS):

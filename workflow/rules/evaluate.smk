@@ -96,8 +96,8 @@ rule pictures:
 
 rule batch_table:
     input:
-        metrics=expand("results/{rec}/metrics.json", rec=sorted(RECORDINGS)),
-        pictures=expand("results/{rec}/pictures/thumbnail.png", rec=sorted(RECORDINGS)),
+        metrics=expand("results/{rec}/metrics.json", rec=batch_recordings()),
+        pictures=expand("results/{rec}/pictures/thumbnail.png", rec=batch_recordings()),
     output:
         tsv="results/batch.tsv",
         html=report(

@@ -822,12 +822,17 @@ def _integrate_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, vw: np.ndar
     v0, v1, v2 = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
     samples = np.concatenate([p, (v0 + v1 + v2) / 3, (v0 + v1) / 2, (v1 + v2) / 2,
                               (v2 + v0) / 2])
-    occ = np.zeros(shape, dtype=bool)
     ii = np.round((samples - origin) / voxel_size).astype(np.int64)
-    occ[ii[:, 0], ii[:, 1], ii[:, 2]] = True
+    # in the scan's own box (its samples' bounds and the band's reach), not the whole
+    # grid: a sweep covers a part of the object (the same voxels, in the same order)
+    lo = np.maximum(ii.min(axis=0) - trunc_voxels, 0)
+    hi = np.minimum(ii.max(axis=0) + trunc_voxels + 1, shape)
+    occ = np.zeros(tuple(hi - lo), dtype=bool)
+    occ[ii[:, 0] - lo[0], ii[:, 1] - lo[1], ii[:, 2] - lo[2]] = True
     band = ndimage.maximum_filter(occ, size=2 * trunc_voxels + 1)
-    lin = np.flatnonzero(band)
-    x = origin + np.stack(np.unravel_index(lin, shape), axis=1) * voxel_size
+    ijk = np.stack(np.nonzero(band), axis=1) + lo
+    lin = np.ravel_multi_index(tuple(ijk.T), shape)
+    x = origin + ijk * voxel_size
     _, nb = cKDTree(p).query(x, k=1, workers=int(threads))
     d = p[nb] - o[nb]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -858,10 +863,11 @@ def _integrate_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, vw: np.ndar
         wv = wv * (interp_floor + (1 - interp_floor) * np.exp(-(dv / interp_sigma_m) ** 2))
     w = cos * wv * np.clip((sdf + trunc) / (0.5 * trunc), 0.0, 1.0)
     keep = w > 0
-    np.add.at(acc.sum_w, lin[keep], w[keep].astype(np.float32))
-    np.add.at(acc.sum_wd, lin[keep], (w * sdf)[keep].astype(np.float32))
-    np.add.at(acc.sum_wc, lin[keep], (w * cos)[keep].astype(np.float32))
-    acc.n_obs[lin[keep]] += 1  # the band's voxels are unique within one scan
+    lk = lin[keep]  # the band's voxels are unique within one scan: one addition each
+    acc.sum_w[lk] += w[keep].astype(np.float32)
+    acc.sum_wd[lk] += (w * sdf)[keep].astype(np.float32)
+    acc.sum_wc[lk] += (w * cos)[keep].astype(np.float32)
+    acc.n_obs[lk] += 1
     acc.seen_empty[lin[sdf > 0.5 * voxel_size]] = True
 
 

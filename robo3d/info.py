@@ -60,6 +60,8 @@ from .recording.model import FRAME_ROLES, Recording, TopicMap
 __all__ = [
     "STAGES",
     "STAGE_MARKERS",
+    "JOBS",
+    "JOB_MARKERS",
     "inspect_recording",
     "inspect_with_config",
     "format_info",
@@ -77,6 +79,11 @@ STAGES = ("silhouettes", "carve", "stripes", "triangulate", "align", "fuse", "si
           "evaluate")
 #: The file each stage writes last, relative to ``results/<rec>/``.
 STAGE_MARKERS = {s: f"reports/{s}.json" for s in STAGES[:-1]} | {"evaluate": "metrics.json"}
+#: Every per-recording job of the workflow: the stages, then the report's pictures and the
+#: Foxglove file (``foxglove.enabled``), with the file each writes last.
+JOBS = (*STAGES, "pictures", "foxglove")
+JOB_MARKERS = STAGE_MARKERS | {"pictures": "pictures/thumbnail.png",
+                               "foxglove": "results.mcap"}
 _HULL, _LASER = ("silhouettes", "carve"), ("stripes", "triangulate", "align")
 _OK, _UNFIT, _NA = "ok", "unfit", "not applicable"
 _DEFAULT_TOPICS = TopicMap()
@@ -649,8 +656,10 @@ def batch_status(results_dir: str | os.PathLike[str] = "results",
         ``{"recordings": {name: {"status": "done" | "failed" | "incomplete" |
         "not started", "stages": {stage: {"status": "done" | "failed" | "incomplete" |
         "not run", "error": str | None, "log": str | None}}, "outputs": [file names]}},
-        "failed": [names], "done": [names]}``. A stage is ``incomplete`` when its log
-        exists without an error and its report does not (killed, or still running).
+        "failed": [names], "done": [names]}``, ``stages`` keyed by every job of
+        :data:`JOBS` (the stages, ``pictures`` and ``foxglove``). A job is ``incomplete``
+        when its log exists without an error and its last file (:data:`JOB_MARKERS`) does
+        not (killed, or still running).
     """
     results, logs = Path(results_dir), Path(logs_dir)
     names = set(recordings) if recordings is not None else set()
@@ -658,14 +667,14 @@ def batch_status(results_dir: str | os.PathLike[str] = "results",
         if results.is_dir():  # results/calibration/ holds the calibrations, not a scan
             names |= {d.name for d in results.iterdir() if d.is_dir() and d.name != "calibration"}
         if logs.is_dir():
-            names |= {f.stem for s in STAGES if (logs / s).is_dir()
+            names |= {f.stem for s in JOBS if (logs / s).is_dir()
                       for f in (logs / s).glob("*.log")}
     out: dict[str, Any] = {"recordings": {}, "failed": [], "done": []}
     for name in sorted(names):
         stages: dict[str, dict[str, Any]] = {}
-        for stage in STAGES:
+        for stage in JOBS:
             log = logs / stage / f"{name}.log"
-            done = (results / name / STAGE_MARKERS[stage]).is_file()
+            done = (results / name / JOB_MARKERS[stage]).is_file()
             err = None
             if done:
                 status = "done"
@@ -750,7 +759,7 @@ def batch_summary(results_dir: str | os.PathLike[str] = "results",
         if metrics is not None:
             row.update({k: v for k, v in batch_rows([metrics])[0].items() if k != "recording"})
         else:
-            for stage in STAGES:
+            for stage in JOBS:
                 row[f"{stage}_s"], row[f"{stage}_mb"] = _stage_benchmark(benchmarks, stage, name)
         rows.append(row)
     return rows

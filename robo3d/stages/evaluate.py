@@ -20,8 +20,8 @@ from .common import cameras_from, code_version, load_silhouettes, log, open_reco
 def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
     """Gather what every stage measured, its time and peak memory, and, when the
-    recording carries ground truth, the errors against it, into ``metrics.json``; draw
-    the final mesh coloured by its error (``picture``, when given).
+    recording carries ground truth, the errors against it, into ``metrics.json`` (the
+    report's pictures are rule ``pictures``', :mod:`robo3d.stages.pictures`).
 
     Accuracy of the fused and final meshes is scored on the surface inside the
     workspace box above ``evaluation.floor_margin_m`` over its floor (below it the mesh
@@ -51,16 +51,6 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     _mask_evaluation(inputs, rec, has_true_masks, metrics, ev_out)
     if ev_out:
         metrics["evaluation"] = ev_out
-    if outputs.get("picture"):
-        from ..render import error_figure
-
-        title = (f"{rec_name}: final mesh ({len(F_final)} faces) coloured by its distance to "
-                 "the true surface" if vertex_error_mm is not None else
-                 f"{rec_name}: final mesh ({len(F_final)} faces), no ground truth")
-        error_figure(outputs["picture"], V_final, F_final,
-                     vertex_error_mm if vertex_error_mm is not None
-                     else np.full(len(V_final), np.nan),
-                     vmax_mm=ev["picture_vmax_mm"], title=title)
     metrics["evaluate_seconds"] = round(time.perf_counter() - t0, 3)
     if "evaluate" not in metrics["timings"]:  # its own benchmark file comes after it
         metrics["timings"]["evaluate"] = {"seconds": metrics["evaluate_seconds"],

@@ -38,11 +38,16 @@ Figures (all computed here from the run's files and the recording's ground truth
 ``measured_completeness_0_5mm``
     Of what the laser could observe: the true surface is sampled (400 000 samples); a
     sample is *observable* when it lies within 0.3 mm of a point that the laser sheet
-    lit AND the camera saw in at least one laser frame of the recording
-    (:func:`robo3d.simulate.stripe_truth` at the true exposure pose, object points
-    only, every laser frame) and above the workspace floor (the pipeline crops below
-    it by contract). Completeness = share of the observable samples within 0.5 mm of
-    ``measured.ply``.
+    lit AND the camera saw in at least one laser frame of the recording, with a stripe
+    there at least as bright as the detector's threshold (``stripes.min_peak``, 8 grey
+    levels above the local background: the renderer's expected peak, which falls with
+    the cosine of the laser's incidence, the albedo and the range;
+    :func:`robo3d.simulate.stripe_truth` at the true exposure pose, object points only,
+    every laser frame: the same "visible" as the front-end benchmark's stripe recall),
+    and above the workspace floor (the pipeline crops below it by contract).
+    Completeness = share of the observable samples within 0.5 mm of ``measured.ply``.
+    ``details`` keeps ``measured_completeness_0_5mm_any_signal``: the same against every
+    lit and seen point however faint (the definition before 2026-12-02).
 ``inferred_area_fraction``
     Share of ``mesh.ply``'s area on faces not all of whose vertices have
     ``source == 0`` (laser-measured; :func:`robo3d.meshio.read_vertex_attributes`).
@@ -152,9 +157,10 @@ def _area(v: np.ndarray, f: np.ndarray) -> np.ndarray:
                                 axis=1)
 
 
-def observable_samples(rec, truth, n: int, floor_z: float, seed: int = 0
-                       ) -> tuple[np.ndarray, dict[str, Any]]:
-    """True-surface samples that the laser could observe (see the module docstring)."""
+def observable_samples(rec, truth, n: int, floor_z: float, min_signal_dn: float,
+                       seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """True-surface samples that the laser could observe (see the module docstring):
+    (observable, lit at any signal, counts)."""
     from scipy.spatial import cKDTree
 
     from robo3d.simulate import image_poses, stripe_truth, truth_scene
@@ -162,19 +168,30 @@ def observable_samples(rec, truth, n: int, floor_z: float, seed: int = 0
     scene = truth_scene(rec, threads=0)
     poses = image_poses(rec)
     n_frames = len(poses["/camera/laser_image"])
-    lit = []
+    lit, bright = [], []
     for i in range(n_frames):
         st = stripe_truth(rec, i, scene=scene, poses=poses)
         lit.append(st.points_base[st.on_object])
-    lit_pts = np.concatenate(lit) if lit else np.zeros((0, 3))
+        bright.append(st.points_base[st.on_object & (st.signal_dn >= min_signal_dn)])
     samples = truth.sample(n, seed=seed)
     samples = samples[samples[:, 2] > floor_z]
-    d, _ = cKDTree(lit_pts).query(samples, distance_upper_bound=OBSERVABLE_M)
-    obs = samples[np.isfinite(d)]
-    return obs, {"laser_frames": n_frames, "lit_points": int(len(lit_pts)),
-                 "truth_samples_above_floor": int(len(samples)),
-                 "observable_samples": int(len(obs)),
-                 "observable_share_of_truth": float(len(obs) / max(len(samples), 1))}
+    out = []
+    for pts in (bright, lit):
+        pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+        if not len(pts):
+            out.append(np.zeros((0, 3)))
+            continue
+        d, _ = cKDTree(pts).query(samples, distance_upper_bound=OBSERVABLE_M)
+        out.append(samples[np.isfinite(d)])
+    obs, any_lit = out
+    return obs, any_lit, {"laser_frames": n_frames,
+                          "lit_points": int(sum(len(x) for x in lit)),
+                          "lit_points_bright_enough": int(sum(len(x) for x in bright)),
+                          "min_signal_dn": min_signal_dn,
+                          "truth_samples_above_floor": int(len(samples)),
+                          "observable_samples": int(len(obs)),
+                          "lit_samples_any_signal": int(len(any_lit)),
+                          "observable_share_of_truth": float(len(obs) / max(len(samples), 1))}
 
 
 def frame_pose_errors(rec, res: Path, aligned) -> dict[str, Any]:
@@ -263,11 +280,16 @@ def score(rec_path: Path, work: Path, e2e: float, cfg: dict) -> dict[str, Any]:
         out.update(measured_median_mm=None, measured_p95_mm=None,
                    measured_outlier_area_fraction=None)
     out["measured_area_cm2"] = area_m * 1e4
-    obs, obs_info = observable_samples(rec, truth, N_TRUTH, floor_z)
+    obs, any_lit, obs_info = observable_samples(rec, truth, N_TRUTH, floor_z,
+                                                float(cfg["stripes"]["min_peak"]))
     if area_m > 0 and len(obs):
-        dist = TruthSurface(Vm, Fm).distance(obs)  # exact distance to the measured mesh
+        measured = TruthSurface(Vm, Fm)
+        dist = measured.distance(obs)  # exact distance to the measured mesh
         out["measured_completeness_0_5mm"] = float(np.mean(dist <= 0.0005))
         out["measured_completeness_0_1mm"] = float(np.mean(dist <= 0.0001))
+        # the former definition (any lit point, however faint), beside it
+        out["measured_completeness_0_5mm_any_signal"] = float(np.mean(
+            measured.distance(any_lit) <= 0.0005)) if len(any_lit) else None
     else:
         out["measured_completeness_0_5mm"] = 0.0 if len(obs) else None
     out["observable"] = obs_info

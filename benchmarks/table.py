@@ -272,7 +272,7 @@ def build(results: Path = RESULTS) -> str:
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     lines += ["", "Measured at: " + "; ".join(_when(k, v) for k, v in data.items()) + "."]
-    missing = sorted({r.bench for r in ROWS} | set(DESCRIBED) - set(data))
+    missing = sorted(({r.bench for r in ROWS} | set(DESCRIBED)) - set(data))
     if missing:
         lines += ["", "Not measured yet: " + ", ".join(missing) + "."]
     others = sorted(set(data) - {r.bench for r in ROWS} - set(DESCRIBED))

@@ -37,8 +37,9 @@ def stage_threads(wanted):
     the recordings are fewer than the cores, else one each. A batch fills the cores with
     recordings instead: these stages use about one core on small scans while holding two,
     and holding two kept the other recordings' jobs waiting (20 small recordings on 2
-    cores ran at 1.23x one core's throughput, benchmarks/results/batch.json). The results
-    do not depend on the number of threads (benchmarks/results/determinism.json)."""
+    cores ran at 1.23x one core's throughput before, 2.06x after: benchmarks/results/
+    batch.json). The results do not depend on the number of threads
+    (benchmarks/results/determinism.json)."""
     cores = workflow.cores or wanted
     return max(1, min(int(wanted), int(cores) // max(1, len(RECORDINGS))))
 

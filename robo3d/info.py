@@ -876,7 +876,10 @@ def format_run_summary(results_dir: str | os.PathLike[str] = "results",
                  f"{results}/<recording>/ (mesh.ply, measured.ply, metrics.json), the batch "
                  f"table in {results}/batch.tsv")
     if done:
-        lines.append(f"inspect: .venv/bin/rerun {results}/{done[0]}/*.rrd")
+        # robo3d view: the designed layout, on localhost, with rerun's analytics off
+        where = "" if str(results) == "results" else f" --results {results}"
+        lines.append(f"inspect: .venv/bin/robo3d view {done[0]}{where}  (--web without a "
+                     "display)")
     if status["failed"]:
         lines.append(f"failed: {', '.join(status['failed'])} (robo3d status says why)")
     for name, c in (status.get("calibrations") or {}).items():

@@ -78,3 +78,28 @@ def test_without_views_or_when_off_nothing_is_dropped(tmp_path):
     off = {**default_config()["alignment"], "reject_outside_hull": False}
     report, dropped = _reject_outside_hull([cloud], views, {}, off)
     assert "skipped" in report and len(cloud) == 1
+
+
+def test_points_that_every_view_sees_outside_do_not_make_the_views_untrusted(tmp_path):
+    """The table lit by the laser within the workspace: a third of the points, outside
+    every silhouette. Each view would drop them all, but so would the others: every view
+    stays trusted and the table's points are dropped (before, a view that would drop
+    more than 10 % of the points was left out, so all were and the table was kept)."""
+    cam, Ts, masks = _views()
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = CENTRE + RADIUS * d
+    xy = rng.uniform(-0.09, 0.09, size=(600, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) > RADIUS + 0.01][:200]
+    table = np.column_stack([xy, np.full(len(xy), CENTRE[2] - 0.02)])
+    clouds = [_cloud(np.concatenate([surface, table]), 0)]
+    npz = tmp_path / "silhouettes.npz"
+    np.savez(npz, qa_flagged=np.zeros(len(Ts), bool))
+    views = SilhouetteViews([m.astype(float) for m in masks], masks, [cam] * len(Ts), Ts)
+    report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)},
+                                           default_config()["alignment"])
+    assert len(table) == 200 and report["points"] == 600
+    assert report["views_not_used_contradict_laser"] == [] and report["views_used"] == 10
+    assert report["dropped"] == 200 and len(clouds[0]) == 400
+    np.testing.assert_allclose(np.linalg.norm(clouds[0].points_base - CENTRE, axis=1), RADIUS)

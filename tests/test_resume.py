@@ -59,8 +59,12 @@ def _snakemake(work: Path, *args: str, hook: str = "", interrupt: bool = False,
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
            str(work), "--cores", "2", "--configfile", str(work / "config.yaml"),
            "--quiet", "host", *args]
+    # Ctrl-C must reach the jobs even when the tests themselves were started in the
+    # background (a non-interactive shell starts `cmd &` with SIGINT ignored, and the
+    # children inherit that): the workflow gets the default disposition
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     if interrupt:  # Ctrl-C in the terminal: SIGINT to the whole process group
         t0 = time.monotonic()
         while not (work / "mark").exists() and proc.poll() is None:

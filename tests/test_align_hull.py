@@ -103,3 +103,21 @@ def test_points_that_every_view_sees_outside_do_not_make_the_views_untrusted(tmp
     assert report["views_not_used_contradict_laser"] == [] and report["views_used"] == 10
     assert report["dropped"] == 200 and len(clouds[0]) == 400
     np.testing.assert_allclose(np.linalg.norm(clouds[0].points_base - CENTRE, axis=1), RADIUS)
+
+
+def test_aligned_points_that_fell_below_the_floor_are_dropped_and_counted():
+    """The triangulation cropped with the reported poses; after alignment the table's
+    points lie below the workspace floor again: dropped, counted per sweep."""
+    from robo3d.stages.align import _crop_to_workspace
+
+    box = [[-0.05, -0.05, 0.0005], [0.05, 0.05, 0.06]]
+    obj = np.column_stack([np.zeros(5), np.zeros(5), np.linspace(0.001, 0.05, 5)])
+    table = np.array([[0.03, 0.0, 0.0001], [0.0, 0.03, -0.0002]])
+    a, b = _cloud(np.concatenate([obj, table]), 0), _cloud(obj.copy(), 1)
+    a.report = b.report = {"workspace": box}
+    report = _crop_to_workspace([a, b])
+    assert report["dropped"] == 2 and [s["dropped"] for s in report["per_sweep"]] == [2, 0]
+    np.testing.assert_array_equal(a.points_base, obj)
+    assert len(a.frame_index) == len(a.confidence) == len(a.sensor_origin_base) == 5
+    c = _cloud(table, 2)  # no box: nothing is cropped
+    assert "skipped" in _crop_to_workspace([c]) and len(c) == 2

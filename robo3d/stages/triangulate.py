@@ -90,6 +90,10 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
             per_sweep.append({"sweep": int(k), "frames": len(idx), "points": 0,
                               "skipped": str(exc)})
             continue
+        if ws is not None:  # the box it was cropped to: alignment crops to it again
+            cloud.report = {**(getattr(cloud, "report", None) or {}),
+                            "workspace": [np.asarray(ws[0], float).tolist(),
+                                          np.asarray(ws[1], float).tolist()]}
         clouds.append(cloud)
         per_sweep.append({"sweep": int(k), "frames": len(idx), "points": len(cloud.points_base),
                           **getattr(cloud, "report", {})})

@@ -314,7 +314,8 @@ def test_tsdf_provenance_per_vertex_and_close_modes():
     meas = a["source"] == MEASURED
     err = _radial_error(v)
     # measured vertices are on the seen cap, exact; hull vertices below, 2 mm voxels
-    assert v[meas, 2].min() > C[2] - 0.1 * R and err[meas].max() < 0.1e-3  # 0.082 mm
+    # (0.082 mm at min_weight 0.15; 0.105 mm at 0.05: the cap now reaches 87 deg incidence)
+    assert v[meas, 2].min() > C[2] - 0.1 * R and err[meas].max() < 0.12e-3
     assert np.all(a["source"][v[:, 2] < C[2] - 0.3 * R] == HULL)
     assert np.all(a["n_obs"][meas] >= 1) and np.all(a["confidence"][~meas] == 0)
     assert np.all((a["incidence"][meas] > 0) & (a["incidence"][meas] <= 1))

@@ -369,6 +369,19 @@ class SweepCloud:
     def __len__(self) -> int:
         return len(self.points_base)
 
+    def drop(self, mask: np.ndarray, reason: str) -> int:
+        """Remove the points where ``mask`` is true from every per-point array (in place)
+        and count them in ``report["dropped_<reason>"]``; returns how many."""
+        mask = np.asarray(mask, dtype=bool).reshape(-1)
+        n = int(mask.sum())
+        if n:
+            keep = ~mask
+            self.points_base, self.normals_base = self.points_base[keep], self.normals_base[keep]
+            self.frame_index, self.confidence = self.frame_index[keep], self.confidence[keep]
+            self.sensor_origin_base = self.sensor_origin_base[keep]
+            self.report = {**(self.report or {}), f"dropped_{reason}": n}
+        return n
+
 
 def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], *,
                     corrections: np.ndarray | None = None) -> None:

@@ -121,13 +121,8 @@ def _crop_to_workspace(clouds: list) -> dict[str, Any]:
     for c in clouds:
         p = c.points_base
         out = ~np.all((p >= lo) & (p <= hi), axis=1) if len(p) else np.zeros(0, bool)
-        per_sweep.append({"sweep": c.sweep, "dropped": int(out.sum()), "points": len(p)})
-        if out.any():
-            keep = ~out
-            c.points_base, c.normals_base = c.points_base[keep], c.normals_base[keep]
-            c.frame_index, c.confidence = c.frame_index[keep], c.confidence[keep]
-            c.sensor_origin_base = c.sensor_origin_base[keep]
-            c.report = {**(c.report or {}), "dropped_outside_workspace": int(out.sum())}
+        per_sweep.append({"sweep": c.sweep, "points": len(p),
+                          "dropped": c.drop(out, "outside_workspace")})
     n = sum(p["dropped"] for p in per_sweep)
     if n:
         log.info("alignment: %d aligned laser points lie outside the workspace box "
@@ -185,14 +180,8 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     starts = np.cumsum([0] + [len(c) for c in clouds])
     per_sweep = []
     for k, c in enumerate(clouds):
-        d = drop[starts[k]:starts[k + 1]]
-        per_sweep.append({"sweep": c.sweep, "dropped": int(d.sum()), "points": len(c)})
-        if d.any():
-            keep = ~d
-            c.points_base, c.normals_base = c.points_base[keep], c.normals_base[keep]
-            c.frame_index, c.confidence = c.frame_index[keep], c.confidence[keep]
-            c.sensor_origin_base = c.sensor_origin_base[keep]
-            c.report = {**(c.report or {}), "dropped_outside_hull": int(d.sum())}
+        per_sweep.append({"sweep": c.sweep, "points": len(c),
+                          "dropped": c.drop(drop[starts[k]:starts[k + 1]], "outside_hull")})
     not_used = [{"view": int(idx[j]), "would_drop_alone_fraction": round(float(frac[j]), 4)}
                 for j in np.flatnonzero(distrust)]
     report = {"views_used": int(len(idx) - distrust.sum()),

@@ -44,13 +44,14 @@ onerror:
         write_batch_summary,
     )
 
-    write_batch_summary(batch_summary("results", "logs", RECORDINGS), "results/batch.csv")
+    rows = batch_summary("results", "logs", RECORDINGS)
+    write_batch_summary(rows, "results/batch.csv")
     print(format_batch_status(batch_status("results", "logs", RECORDINGS)), file=sys.stderr)
     if RECORDINGS:  # the overview and batch.html with the failures: snakemake --report
         from robo3d.overview import write_unfinished_batch_report
 
         try:
-            write_unfinished_batch_report(sorted(RECORDINGS),
+            write_unfinished_batch_report(sorted(RECORDINGS), rows=rows, jobs=REPORT_JOBS,
                                           vmax_mm=config["evaluation"]["picture_vmax_mm"])
         except Exception as e:  # never hide the run's own error behind this one
             print(f"robo3d: the overview of the unfinished batch was not written: {e}",

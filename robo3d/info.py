@@ -62,6 +62,7 @@ __all__ = [
     "STAGE_MARKERS",
     "JOBS",
     "JOB_MARKERS",
+    "finished_recordings",
     "inspect_recording",
     "inspect_with_config",
     "format_info",
@@ -85,6 +86,17 @@ JOBS = (*STAGES, "pictures", "foxglove")
 JOB_MARKERS = STAGE_MARKERS | {"pictures": "pictures/thumbnail.png",
                                "foxglove": "results.mcap"}
 _HULL, _LASER = ("silhouettes", "carve"), ("stripes", "triangulate", "align")
+
+
+def finished_recordings(recordings: Iterable[str],
+                        results_dir: str | os.PathLike[str] = "results",
+                        jobs: Iterable[str] = ("evaluate", "pictures")) -> list[str]:
+    """The recordings whose ``jobs`` all wrote their last file (:data:`JOB_MARKERS`;
+    ``evaluate`` runs after every stage), sorted: what a report can show of a batch."""
+    res = Path(results_dir)
+    jobs = tuple(jobs)
+    return [n for n in sorted(recordings)
+            if all((res / n / JOB_MARKERS[j]).is_file() for j in jobs)]
 _OK, _UNFIT, _NA = "ok", "unfit", "not applicable"
 _DEFAULT_TOPICS = TopicMap()
 

@@ -398,23 +398,27 @@ def write_batch_report(metrics_paths: Sequence[str], picture_paths: Sequence[str
 
 def write_unfinished_batch_report(recordings: Sequence[str], results_dir: str = "results",
                                   logs_dir: str = "logs", benchmarks_dir: str = "benchmarks",
-                                  vmax_mm: float | None = None) -> list[str]:
+                                  vmax_mm: float | None = None,
+                                  jobs: Sequence[str] = ("evaluate", "pictures"),
+                                  rows: Sequence[Mapping[str, Any]] | None = None
+                                  ) -> list[str]:
     """The batch's pages (``batch.tsv``, ``batch.html``, ``overview.html`` in
     ``results_dir``) after a run that did not finish every recording: the finished ones
-    (``metrics.json`` and the pictures' thumbnail written) with their figures, the others
-    with what failed (:func:`robo3d.info.batch_summary`). Rule ``batch_table`` needs every
-    recording, so the workflow's ``onerror`` writes these instead. The files get a
-    modification time of 1970: they stand in for the rule's outputs, and the next run
-    that can run the rule re-makes them. Returns the finished recordings' names."""
+    (:func:`robo3d.info.finished_recordings` with ``jobs``) with their figures, the others
+    with what failed (``rows``: :func:`robo3d.info.batch_summary`'s, computed when not
+    given). Rule ``batch_table`` needs every recording, so the workflow's ``onerror``
+    writes these instead. The files get a modification time of 1970: they stand in for the
+    rule's outputs, and the next run that can run the rule re-makes them. Returns the
+    finished recordings' names."""
     import os
 
-    from .info import batch_summary
+    from .info import batch_summary, finished_recordings
 
     res = Path(results_dir)
-    done = [n for n in sorted(recordings) if (res / n / "metrics.json").is_file()
-            and (res / n / "pictures" / "thumbnail.png").is_file()]
-    failures = [r for r in batch_summary(results_dir, logs_dir, recordings, benchmarks_dir)
-                if r["recording"] not in done]
+    done = finished_recordings(recordings, results_dir, jobs)
+    if rows is None:
+        rows = batch_summary(results_dir, logs_dir, recordings, benchmarks_dir)
+    failures = [r for r in rows if r["recording"] not in done]
     paths = [str(res / n) for n in ("batch.tsv", "batch.html", "overview.html")]
     write_batch_report([str(res / n / "metrics.json") for n in done],
                        [str(res / n / "pictures" / "thumbnail.png") for n in done],

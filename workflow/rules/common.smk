@@ -1,8 +1,8 @@
 # Validation and the small helpers the rules use. Logic lives in robo3d/, not here.
-import os
 import sys
 
 from robo3d.config import validate_config
+from robo3d.info import finished_recordings
 from robo3d.pipeline import (
     code_version,
     export_library_path,
@@ -162,8 +162,8 @@ def recording_outputs(name):
     return out
 
 
-#: The report's pictures of a recording (rule pictures).
-PICTURES = ("masks", "stripes", "hull", "clouds", "mesh", "timings", "thumbnail")
+#: The jobs of a recording whose files the report shows (evaluate comes after every stage).
+REPORT_JOBS = ("evaluate", "pictures", *(("foxglove",) if config["foxglove"]["enabled"] else ()))
 
 
 def report_only():
@@ -180,11 +180,9 @@ def batch_recordings():
     ones (every output and picture written): the others are in the overview and
     batch.html with what failed, written by the run's onerror
     (robo3d.overview.write_unfinished_batch_report), since no job runs to make them."""
-    names = sorted(RECORDINGS)
     if not report_only():
-        return names
-    return [n for n in names if all(os.path.exists(p) for p in recording_outputs(n))
-            and all(os.path.exists(f"results/{n}/pictures/{p}.png") for p in PICTURES)]
+        return sorted(RECORDINGS)
+    return finished_recordings(RECORDINGS, "results", REPORT_JOBS)
 
 
 def get_all_outputs():

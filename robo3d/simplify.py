@@ -177,12 +177,14 @@ def clean_mesh(
     return v_out, f_out, report
 
 
-def _distances_to(v: np.ndarray, f: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _distances_to(v: np.ndarray, f: np.ndarray, points: np.ndarray,
+                  shift: np.ndarray | None = None) -> np.ndarray:
     """Unsigned distance of each point to the nearest point of the mesh (Open3D's
-    RaycastingScene, Embree's closest-point query: exact per triangle), metres."""
+    RaycastingScene, Embree's closest-point query: exact per triangle), metres; computed
+    in float32 about ``shift`` (default: the mesh's mean vertex)."""
     import open3d as o3d
 
-    shift = v.mean(axis=0)
+    shift = v.mean(axis=0) if shift is None else shift
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor((v - shift).astype(np.float32)),
                         o3d.core.Tensor(np.asarray(f, dtype=np.int64).astype(np.uint32)))
@@ -285,11 +287,7 @@ class _Distance:
 
         from .evaluate import sample_surface
 
-        other = o3d.t.geometry.RaycastingScene()
-        other.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
-                            o3d.core.Tensor(f.astype(np.int64).astype(np.uint32)))
-        a = other.compute_distance(o3d.core.Tensor(
-            (self.samples - self.shift).astype(np.float32))).numpy()
+        a = _distances_to(v, f, self.samples, self.shift)
         q = np.concatenate([v, sample_surface(v, f, self.n_samples // 4, seed=self.seed)])
         b = self.scene.compute_distance(o3d.core.Tensor((q - self.shift).astype(np.float32)
                                                         )).numpy()

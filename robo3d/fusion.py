@@ -42,7 +42,8 @@ In steps (:func:`fuse_tsdf`):
 
 1. Each scan (one laser sweep) is triangulated into its range surface
    (:func:`range_surface`).
-2. For every voxel within ``±trunc`` (``tsdf_trunc_voxels * tsdf_voxel_m``) of a scan, the
+2. For every voxel (:func:`data_voxel`: ``tsdf_voxel_m``, or coarser where the laser
+   sampled coarser) within ``±trunc`` (``tsdf_trunc_voxels`` voxels) of a scan, the
    signed distance to that scan's range surface is measured *along the line of sight*
    (the sight line of the nearest measured point), by casting a ray through the voxel
    centre (Open3D / Embree): positive in front of the surface, negative behind.
@@ -111,9 +112,9 @@ import numpy as np
 from .errors import StageError
 from .options import Options
 
-__all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "range_surface", "crop_mesh_to_hull",
-           "remove_vertices", "SOURCES", "CLOSE_MODES", "face_source", "source_area_fractions",
-           "keep_vertices"]
+__all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "range_surface",
+           "crop_mesh_to_hull", "remove_vertices", "SOURCES", "CLOSE_MODES", "face_source",
+           "source_area_fractions", "keep_vertices"]
 
 #: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
 #: its index here. ``measured``: on the laser's observed surface; ``hull``: inferred, the
@@ -146,7 +147,13 @@ class FuseOptions(Options):
     Attributes
     ----------
     tsdf_voxel_m : float, metres
-        The TSDF grid's voxel.
+        The TSDF grid's finest voxel: the voxel is the larger of this and
+        ``tsdf_voxel_per_spacing`` times the laser points' spacing.
+    tsdf_voxel_per_spacing : float
+        The voxel is at least this many times the median distance between neighbouring
+        laser points of a scan (the sensor's sampling along its line); 0: always
+        ``tsdf_voxel_m``. A grid finer than the data adds faces, not detail: see
+        :func:`data_voxel`.
     tsdf_trunc_voxels : int
         Half-width of the band around each range surface, in voxels.
     min_weight : float
@@ -185,6 +192,7 @@ class FuseOptions(Options):
     section = "fusion"
     not_in_config = ("seed",)
     tsdf_voxel_m: float = 0.0004
+    tsdf_voxel_per_spacing: float = 1.4
     tsdf_trunc_voxels: int = 4
     min_weight: float = 0.05
     min_cos_view: float = 0.1
@@ -651,20 +659,23 @@ def fuse_tsdf(
     clock: dict[str, float] = {}
     t_start = time.perf_counter()
     o = options
-    voxel_size, trunc_voxels = o.tsdf_voxel_m, o.tsdf_trunc_voxels
     P, N, O, Cf, n_total = _tsdf_inputs(points, normals, sensor_origins, confidences, o)
     n_used = int(sum(len(p) for p in P))
-    report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used, n_scans=len(P),
-                                  voxel_size=float(voxel_size))
     if n_used == 0:
         raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
                          f"cos(view angle) >= {o.min_cos_view} with confidence > 0)")
+    voxel_size, spacing = data_voxel(P, o, threads=threads)
+    trunc_voxels = o.tsdf_trunc_voxels
+    report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used, n_scans=len(P),
+                                  voxel_size=float(voxel_size), point_spacing_m=spacing,
+                                  voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m))
     trunc = trunc_voxels * voxel_size
     allp = np.concatenate(P)
     origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc, max_voxels)
     report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
     clock["setup"] = time.perf_counter() - t_start
-    acc, scans = _integrate_scans(P, O, Cf, origin, shape, shift, o, threads, clock,
+    acc, scans = _integrate_scans(P, O, Cf, origin, shape, shift, voxel_size, o, threads,
+                                  clock,
                                   max_edge_factor=max_edge_factor, border_ramp_m=border_ramp_m,
                                   interp_sigma_m=interp_sigma_m, interp_floor=interp_floor)
     ta = time.perf_counter()
@@ -688,6 +699,37 @@ def fuse_tsdf(
     return v, f, report
 
 
+def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int = 1
+               ) -> tuple[float, float | None]:
+    """The TSDF voxel for these scans: the larger of ``tsdf_voxel_m`` and
+    ``tsdf_voxel_per_spacing`` times the points' spacing, the median over all points of
+    the distance to the nearest other point of the same scan (in a laser sweep: the
+    sensor's sampling along its line, finer than the profiles' spacing); (voxel, spacing
+    in metres, None when no scan has two points or the factor is 0).
+
+    Why: a grid finer than the data adds faces, not detail. On issue 14's small scans
+    (320 x 240 pixels, points 0.55 mm apart along the line, profiles about 2 mm apart) the
+    0.4 mm grid gave fused meshes of 0.5-1.5 million faces from about 10,000 points, and
+    the simplification of them took half of each recording's time; at 1.5 times the
+    spacing (0.8 mm) the fused meshes had a quarter of the faces, and more of their area
+    was measured rather than filled from the hull, because neighbouring profiles then
+    meet in the grid (``benchmarks/README.md``). The demos (640 x 480: 0.27 mm, so
+    1.4 x 0.27 = 0.38 mm) and the objects benchmark (1280 x 960) sample finer, so
+    ``tsdf_voxel_m`` (0.4 mm) holds there.
+    """
+    if not options.tsdf_voxel_per_spacing > 0:
+        return float(options.tsdf_voxel_m), None
+    from scipy.spatial import cKDTree
+
+    nn = [cKDTree(p).query(p, k=2, workers=max(1, threads))[0][:, 1] for p in points
+          if len(p) >= 2]
+    if not nn:
+        return float(options.tsdf_voxel_m), None
+    d = np.concatenate(nn)
+    spacing = float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
+    return float(max(options.tsdf_voxel_m, options.tsdf_voxel_per_spacing * spacing)), spacing
+
+
 def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):
     """The scans' points, normals, origins and confidences, checked, keeping the points
     seen from the front (normal toward the sensor at ``cos >= min_cos_view``) with
@@ -706,9 +748,10 @@ def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):
     if len(Cf) != len(P) or any(len(c) != len(p) or np.any(c < 0) for c, p in zip(Cf, P,
                                                                               strict=True)):
         raise ValueError("confidences must hold one value >= 0 per point, like points")
-    if not o.tsdf_voxel_m > 0 or o.tsdf_trunc_voxels < 1:
-        raise ValueError(f"tsdf_voxel_m must be > 0 and tsdf_trunc_voxels >= 1, got "
-                         f"{o.tsdf_voxel_m} and {o.tsdf_trunc_voxels}")
+    if not o.tsdf_voxel_m > 0 or o.tsdf_trunc_voxels < 1 or o.tsdf_voxel_per_spacing < 0:
+        raise ValueError(f"tsdf_voxel_m must be > 0, tsdf_trunc_voxels >= 1 and "
+                         f"tsdf_voxel_per_spacing >= 0, got {o.tsdf_voxel_m}, "
+                         f"{o.tsdf_trunc_voxels} and {o.tsdf_voxel_per_spacing}")
     if not o.min_weight > 0:
         raise ValueError(f"min_weight must be > 0, got {o.min_weight}")
     if o.close not in CLOSE_MODES:
@@ -774,7 +817,8 @@ class _Accumulator:
 
 
 def _integrate_scans(P, O, Cf, origin: np.ndarray, shape: tuple[int, ...], shift: np.ndarray,
-                     o: FuseOptions, threads: int, clock: dict[str, float], *,
+                     voxel_size: float, o: FuseOptions, threads: int,
+                     clock: dict[str, float], *,
                      max_edge_factor: float, border_ramp_m: float, interp_sigma_m: float,
                      interp_floor: float) -> tuple[_Accumulator, list[dict[str, Any]]]:
     """Steps 1-4 for every scan: its range surface, its signed distances and weights
@@ -782,7 +826,7 @@ def _integrate_scans(P, O, Cf, origin: np.ndarray, shape: tuple[int, ...], shift
     ``clock`` gets the time of each step."""
     import time
 
-    voxel_size, trunc_voxels = o.tsdf_voxel_m, o.tsdf_trunc_voxels
+    trunc_voxels = o.tsdf_trunc_voxels
     trunc = trunc_voxels * voxel_size
     acc = _Accumulator.empty(shape, bool(o.carve_free_space and o.carve_full_line))
     scans = []

@@ -109,9 +109,15 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log_report(rr_stream, "reports/fuse", report)
     write_json(outputs["report"], report)
     lf = report.get("laser_area_fraction")
-    summary.info("fused mesh from %s: %d faces%s (%.1f s)", source, len(F),
+    grid = ""
+    if report.get("voxel_size") is not None:
+        grid = f", voxel {report['voxel_size'] * 1e3:.2f} mm"
+        if report.get("voxel_from_spacing"):
+            grid += (f" ({opts.tsdf_voxel_per_spacing:g} x the points' spacing "
+                     f"{report['point_spacing_m'] * 1e3:.2f} mm)")
+    summary.info("fused mesh from %s: %d faces%s%s (%.1f s)", source, len(F),
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
-             report["seconds"])
+             grid, report["seconds"])
     return report
 
 

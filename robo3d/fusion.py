@@ -192,7 +192,7 @@ class FuseOptions(Options):
     section = "fusion"
     not_in_config = ("seed",)
     tsdf_voxel_m: float = 0.0004
-    tsdf_voxel_per_spacing: float = 1.4
+    tsdf_voxel_per_spacing: float = 1.25
     tsdf_trunc_voxels: int = 4
     min_weight: float = 0.05
     min_cos_view: float = 0.1

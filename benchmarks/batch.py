@@ -112,7 +112,8 @@ def job_times(work: Path) -> dict[str, dict[str, float]]:
 def measure(paths: list[Path], root: Path, cores: int) -> dict[str, Any]:
     """One workflow run of the batch on ``cores`` cores, in ``root/cores<N>``."""
     work = root / f"cores{cores}"
-    work.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(work, ignore_errors=True)  # a run kept by --keep would be resumed, not timed
+    work.mkdir(parents=True)
     print(f"run on {cores} core(s) in {work} (load {os.getloadavg()[0]:.2f}) ...", flush=True)
     load = LoadSampler()
     load.start()

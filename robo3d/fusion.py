@@ -710,12 +710,13 @@ def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int =
     Why: a grid finer than the data adds faces, not detail. On issue 14's small scans
     (320 x 240 pixels, points 0.55 mm apart along the line, profiles about 2 mm apart) the
     0.4 mm grid gave fused meshes of 0.5-1.5 million faces from about 10,000 points, and
-    the simplification of them took half of each recording's time; at 1.5 times the
-    spacing (0.8 mm) the fused meshes had a quarter of the faces, and more of their area
-    was measured rather than filled from the hull, because neighbouring profiles then
-    meet in the grid (``benchmarks/README.md``). The demos (640 x 480: 0.27 mm, so
-    1.4 x 0.27 = 0.38 mm) and the objects benchmark (1280 x 960) sample finer, so
-    ``tsdf_voxel_m`` (0.4 mm) holds there.
+    simplifying them took half of each recording's job time. At 1.25 times the spacing
+    (0.69-0.78 mm) the fused meshes have 84k-286k faces, and more of their area is
+    measured rather than filled from the hull, because neighbouring profiles meet in the
+    grid (``benchmarks/README.md``). The factor: at 1.4 the objects benchmark's bracket,
+    thin wall, blob and user mesh (640 x 480: 0.29-0.31 mm) would leave the 0.4 mm grid,
+    and the bracket lost a little (measured p95 0.092 -> 0.098 mm); at 1.25 the demos
+    (0.27 mm) and every object stay on ``tsdf_voxel_m`` (at most 0.39 mm).
     """
     if not options.tsdf_voxel_per_spacing > 0:
         return float(options.tsdf_voxel_m), None

@@ -76,6 +76,9 @@ ROWS: tuple[Row, ...] = (
         "x", ">= 1.8"),
     Row("batch", "parallel_efficiency", "batch of small scans: parallel efficiency on 2 cores",
         ""),
+    Row("batch", "speedup_2_cores_job_time_scaled", "batch of small scans: the same, scaled "
+        "by the jobs' time two at a time against alone (the cores' mutual slow-down apart)",
+        "x"),
     Row("calibration", "rms_px", "intrinsics reprojection RMS, worst seed and rig", "px",
         "<= 0.2"),
     Row("calibration", "focal_rel_err", "focal length relative error", "", "<= 0.001"),

@@ -112,9 +112,9 @@ import numpy as np
 from .errors import StageError
 from .options import Options
 
-__all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "range_surface",
-           "crop_mesh_to_hull", "remove_vertices", "SOURCES", "CLOSE_MODES", "face_source",
-           "source_area_fractions", "keep_vertices"]
+__all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "point_spacing",
+           "range_surface", "crop_mesh_to_hull", "remove_vertices", "SOURCES", "CLOSE_MODES",
+           "face_source", "source_area_fractions", "keep_vertices"]
 
 #: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
 #: its index here. ``measured``: on the laser's observed surface; ``hull``: inferred, the
@@ -720,15 +720,24 @@ def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int =
     """
     if not options.tsdf_voxel_per_spacing > 0:
         return float(options.tsdf_voxel_m), None
+    spacing = point_spacing(points, threads=threads)
+    if spacing is None:
+        return float(options.tsdf_voxel_m), None
+    return float(max(options.tsdf_voxel_m, options.tsdf_voxel_per_spacing * spacing)), spacing
+
+
+def point_spacing(scans: list[np.ndarray], *, threads: int = 1) -> float | None:
+    """The points' spacing: the median over all points of the distance to the nearest other
+    point of the same scan (coincident points left out), metres; None when no scan has
+    two points."""
     from scipy.spatial import cKDTree
 
-    nn = [cKDTree(p).query(p, k=2, workers=max(1, threads))[0][:, 1] for p in points
+    nn = [cKDTree(p).query(p, k=2, workers=max(1, threads))[0][:, 1] for p in scans
           if len(p) >= 2]
     if not nn:
-        return float(options.tsdf_voxel_m), None
+        return None
     d = np.concatenate(nn)
-    spacing = float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
-    return float(max(options.tsdf_voxel_m, options.tsdf_voxel_per_spacing * spacing)), spacing
+    return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
 
 
 def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):

@@ -413,5 +413,5 @@ def test_tsdf_voxel_no_finer_than_the_data():
     assert _area(v1, f1) == pytest.approx(4 * np.pi * R**2, rel=0.01)
     assert np.all(_edge_uses(f1) == 2)
     # dense scans keep the floor: the demos' and the objects benchmark's grids
-    dense = [p[:, :] for p in _views_of_sphere(n_per_view=60000)[0]]
+    dense = _views_of_sphere(n_per_view=60000)[0]
     assert data_voxel(dense, coarse)[0] == 0.4e-3

@@ -137,11 +137,10 @@ def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float, far_m: flo
     point (or twice the points' median spacing, if larger), else inferred (hull)."""
     from scipy.spatial import cKDTree
 
-    from ..fusion import HULL, MEASURED
+    from ..fusion import HULL, MEASURED, point_spacing
 
-    tree = cKDTree(pts)
-    d, _ = tree.query(V, k=1)
-    spacing = float(np.median(tree.query(pts[:: max(1, len(pts) // 5000)], k=2)[0][:, 1]))
+    d, _ = cKDTree(pts).query(V, k=1)
+    spacing = point_spacing([pts]) or 0.0
     near = d <= max(2.0 * voxel, 2.0 * spacing)
     return {"source": np.where(near, MEASURED, HULL).astype(np.uint8),
             "n_obs": np.zeros(len(V), np.uint16), "incidence": np.zeros(len(V), np.float32),

@@ -1261,8 +1261,12 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
         Derivative of ``r`` with respect to the point's position.
     scale : (K,) float64, metres per px
         Depth over focal length at each point.
+    cell : (K,) int
+        The mask-border cell of each kept point (for the test across sweeps of
+        :func:`_add_rim_terms`).
     """
-    empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0))
+    empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
+             np.zeros(0, np.int64))
     cam = f.camera
     centre = -f.T_camera_base[:3, :3].T @ f.T_camera_base[:3, 3]
     ray = x - centre
@@ -1312,24 +1316,56 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     uv_n, _ = _project(f, x[idx] + eps * n[idx])
     m = uv_n - uv[idx]
     m /= np.linalg.norm(m, axis=1, keepdims=True) + 1e-12
+    # ... which must point out of the mask: on an occluding contour the surface normal is
+    # the silhouette's outward normal. A grazing point whose normal points into the mask
+    # lies on a face seen from behind the strip's far edge (a thin fin seen end-on)
+    ui_, vi_ = uv[idx, 0], uv[idx, 1]
+    g_sdf = np.stack([_bilinear(f.sdf, ui_ + 1.0, vi_) - _bilinear(f.sdf, ui_ - 1.0, vi_),
+                      _bilinear(f.sdf, ui_, vi_ + 1.0) - _bilinear(f.sdf, ui_, vi_ - 1.0)], 1)
+    g_sdf /= np.linalg.norm(g_sdf, axis=1, keepdims=True) + 1e-12
+    facing = np.einsum("ij,ij->i", m, g_sdf) > 0.5
+    idx, m = idx[facing], m[facing]
+    if len(idx) == 0:
+        return empty
     step = 0.25
     s = np.arange(-search_px, search_px + 0.5 * step, step)
     q = uv[idx][:, None, :] + s[None, :, None] * m[:, None, :]
     prof = _bilinear(f.grey, q[..., 0].ravel(), q[..., 1].ravel()).reshape(len(idx), len(s))
+    # the search stays on this side of the silhouette: inward only to the strip's middle
+    # (where the mask's signed distance along the line is least; beyond it lies the far
+    # edge of a strip thinner than the search, 3-4 px for a 1.8 mm fin seen end-on) and
+    # outward only to the middle of a gap (the largest distance; beyond it another part)
+    sd = _bilinear(f.sdf, q[..., 0].ravel(), q[..., 1].ravel()).reshape(len(idx), len(s))
+    mid = len(s) // 2
+    lo_k = np.argmin(sd[:, : mid + 1], axis=1)
+    hi_k = mid + np.argmax(sd[:, mid:], axis=1)
+    kpos = np.arange(len(s))[None, :]
+    near = (kpos >= lo_k[:, None]) & (kpos <= hi_k[:, None])
     # the object may be brighter or darker than its background: the edge is the
     # largest change of either sign, and its sign must agree with the mask's side
     grad = (prof[:, 2:] - prof[:, :-2]) / (2 * step)
-    inside_brighter = np.median(prof[:, : len(s) // 2], axis=1) >= np.median(
-        prof[:, len(s) // 2 + 1:], axis=1)
+    ins = near & (sd < -0.75)
+    outs = near & (sd > 0.75)
+    both = ins.any(axis=1) & outs.any(axis=1)
+    # which side is brighter: from the samples on either side of the mask's border along
+    # the search (the first and second half of the search when one side has none)
+    inside_brighter = np.median(prof[:, :mid], axis=1) >= np.median(prof[:, mid + 1:], axis=1)
+    if both.any():
+        med_in = np.nanmedian(np.where(ins[both], prof[both], np.nan), axis=1)
+        med_out = np.nanmedian(np.where(outs[both], prof[both], np.nan), axis=1)
+        inside_brighter[both] = med_in >= med_out
     grad = np.where(inside_brighter[:, None], -grad, grad)
-    kk = np.clip(np.argmax(grad, axis=1), 1, grad.shape[1] - 2)
+    g_near = np.where(near[:, 1:-1], grad, -np.inf)
+    kk_raw = np.argmax(g_near, axis=1)
+    kk = np.clip(kk_raw, 1, grad.shape[1] - 2)
     rows = np.arange(len(idx))
     a, b, c = grad[rows, kk - 1], grad[rows, kk], grad[rows, kk + 1]
     den = a - 2 * b + c
     off = np.where(np.abs(den) > 1e-12, 0.5 * (a - c) / np.where(den == 0, 1, den), 0.0)
     edge = s[1:-1][kk] + np.clip(off, -1, 1) * step
-    valid = (b >= min_contrast) & (np.argmax(grad, axis=1) > 0) & (
-        np.argmax(grad, axis=1) < grad.shape[1] - 1)
+    # a peak on the search's limit is no edge found
+    valid = (b >= min_contrast) & (kk_raw > 0) & (kk_raw < grad.shape[1] - 1) & (
+        kk_raw + 1 > lo_k) & (kk_raw + 1 < hi_k)
     idx, r, m, edge = idx[valid], -edge[valid], m[valid], edge[valid]
     if len(idx) == 0:
         return empty
@@ -1344,7 +1380,7 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     sizes = np.diff(np.r_[starts, len(order)])
     ref = r[order][np.where(sizes > 1, starts + 1, starts)]
     outer = r >= ref[inv] - cell_tol_px
-    idx, r, m = idx[outer], r[outer], m[outer]
+    idx, r, m, cell = idx[outer], r[outer], m[outer], cell[outer]
     # d r / d x = m . d uv / d x (numerical, exact through the lens distortion)
     base_uv = uv[idx]
     jac = np.zeros((len(idx), 3))
@@ -1355,7 +1391,7 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
         uvk, _ = _project(f, x[idx] + dx)
         jac[:, k3] = np.einsum("ij,ij->i", m, (uvk - base_uv) / h_m)
     scale = depth[idx] / np.sqrt(cam.fx * cam.fy)
-    return idx, r, jac, scale
+    return idx, r, jac, scale, cell
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -1725,6 +1761,9 @@ def _huber(r: np.ndarray, k: float) -> np.ndarray:
 #: profile may be and still count (px), and grouping cell (px); the convergence tolerances (metres);
 #: the pair term's normals' largest disagreement (degrees) and neighbourhood (metres).
 _RIM = dict(cos_max=0.15, side_px=1.5, search_px=5.0, min_contrast=2.0, cell_tol_px=0.5)
+#: :func:`_outermost_across_sweeps`' tolerance: a sweep's own cell tolerance plus what the
+#: sweeps may still disagree by once the pose graph has run (a few hundredths of a mm)
+_RIM_CROSS_TOL_PX = 0.75
 _RIM_CELL_PX = 10
 _TOL, _SETTLE_TOL = 1e-6, 3e-5
 _NORMAL_MAX_DEG, _NORMAL_REACH = 10.0, 4e-3
@@ -1830,19 +1869,19 @@ def _add_pair_terms(H: np.ndarray, b: np.ndarray, pairs, cur, cur_n, org, red_id
 def _add_rim_terms(H: np.ndarray, b: np.ndarray, fields, act, cur, cur_n, org, G,
                    index: dict[int, int], gate: float, sigma_s: float, rim_weight: float
                    ) -> list[tuple[int, np.ndarray]]:
-    """Add each view's contour-generator residuals (:func:`_rim_residuals`) within
-    ``gate`` px, Huber-weighted and weighed by ``rim_weight``, to ``H``, ``b`` (in
-    place); returns (sweep, residuals) per view and sweep."""
+    """Add each view's contour-generator residuals (:func:`_rim_residuals`, the most
+    outward of all sweeps: :func:`_outermost_across_sweeps`) within ``gate`` px,
+    Huber-weighted and weighed by ``rim_weight``, to ``H``, ``b`` (in place); returns
+    (sweep, residuals) per view and sweep."""
     rims = []
     for f in fields:
+        per_view = []
         for s in act:
-            idx, r, jac, scl = _rim_residuals(f, cur[s], cur_n[s], G[s], **_RIM)
-            if len(idx) == 0:
-                continue
+            idx, r, jac, scl, cell = _rim_residuals(f, cur[s], cur_n[s], G[s], **_RIM)
             okr = np.abs(r) < gate
-            idx, r, jac, scl = idx[okr], r[okr], jac[okr], scl[okr]
-            if len(idx) == 0:
-                continue
+            if okr.any():
+                per_view.append((s, idx[okr], r[okr], jac[okr], scl[okr], cell[okr]))
+        for s, idx, r, jac, _ in _outermost_across_sweeps(per_view, _RIM_CROSS_TOL_PX):
             x = cur[s][idx]
             js = np.hstack([np.cross(x - org[s][idx], jac), jac])
             w = rim_weight * _huber(r / sigma_s, 1.5) / sigma_s**2
@@ -1851,6 +1890,37 @@ def _add_rim_terms(H: np.ndarray, b: np.ndarray, fields, act, cur, cur_n, org, G
             b[k:k + 6] += js.T @ (w * r)
             rims.append((s, r))
     return rims
+
+
+def _outermost_across_sweeps(found: list, tol_px: float) -> list:
+    """Of one view's contour-generator residuals of all sweeps ``(sweep, idx, r, jac,
+    scale, cell)``, keep those within ``tol_px`` of their mask-border cell's second most outward
+    residual over all sweeps (the most outward when the cell has one).
+
+    :func:`_rim_residuals` compares a sweep's profiles with each other only. Where none
+    of a sweep's profiles reaches the contour generator (it ends on a face seen at a
+    grazing angle, short of the rounded edge), its most outward one is still inside the
+    silhouette, and it pulled the sweep outward (the thin-wall object, 7 sweeps: the base's
+    top edge seen from the low views, one sweep's profiles 1.7 px inside while the
+    others' reached the edge). The sweeps agree to a few hundredths of a millimetre once
+    the pose graph has run, well within ``tol_px``.
+    """
+    if len(found) < 2:
+        return [(s, idx, r, jac, scl) for s, idx, r, jac, scl, _ in found]
+    r_all = np.concatenate([f[2] for f in found])
+    _, inv = np.unique(np.concatenate([f[5] for f in found]), return_inverse=True)
+    order = np.lexsort((-r_all, inv))
+    starts = np.nonzero(np.r_[True, inv[order][1:] != inv[order][:-1]])[0]
+    sizes = np.diff(np.r_[starts, len(order)])
+    ref = r_all[order][np.where(sizes > 1, starts + 1, starts)]
+    keep = r_all >= ref[inv] - tol_px
+    out, k0 = [], 0
+    for s, idx, r, jac, scl, _ in found:
+        kk = keep[k0:k0 + len(r)]
+        k0 += len(r)
+        if kk.any():
+            out.append((s, idx[kk], r[kk], jac[kk], scl[kk]))
+    return out
 
 
 def _largest_step(delta: np.ndarray, act, index, cur, org) -> float:

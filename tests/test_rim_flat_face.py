@@ -46,7 +46,7 @@ def test_profiles_across_a_grazing_flat_face_do_not_bias_the_silhouette_term():
     nrm = np.tile([0.0, 1.0, 0.0], (len(pts), 1))
     profile = np.repeat(np.arange(40), x.shape[1])
     field = _view_fields(views, _RIM_CELL_PX, 1.0)[0]
-    idx, r, _, _ = _rim_residuals(field, pts, nrm, profile, **_RIM)
+    idx, r, _, _, _ = _rim_residuals(field, pts, nrm, profile, **_RIM)
     assert len(idx) >= 5  # the contour along the top edge is found ...
     assert len(np.unique(profile[idx])) <= 6  # ... from the topmost profiles only
     assert np.mean(r) > -1.0 and r.min() > -2.0  # px; the true contour is at 0

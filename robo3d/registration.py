@@ -1374,12 +1374,7 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     # beyond the edge does not discard the cell's good ones
     cell = f.bucket[np.clip(np.round(uv[idx, 1]).astype(np.int64), 0, h - 1),
                     np.clip(np.round(uv[idx, 0]).astype(np.int64), 0, w - 1)]
-    _, inv = np.unique(cell, return_inverse=True)
-    order = np.lexsort((-r, inv))
-    starts = np.nonzero(np.r_[True, inv[order][1:] != inv[order][:-1]])[0]
-    sizes = np.diff(np.r_[starts, len(order)])
-    ref = r[order][np.where(sizes > 1, starts + 1, starts)]
-    outer = r >= ref[inv] - cell_tol_px
+    outer = _near_cell_outermost(r, cell, cell_tol_px)
     idx, r, m, cell = idx[outer], r[outer], m[outer], cell[outer]
     # d r / d x = m . d uv / d x (numerical, exact through the lens distortion)
     base_uv = uv[idx]
@@ -1892,6 +1887,18 @@ def _add_rim_terms(H: np.ndarray, b: np.ndarray, fields, act, cur, cur_n, org, G
     return rims
 
 
+def _near_cell_outermost(r: np.ndarray, cell: np.ndarray, tol_px: float) -> np.ndarray:
+    """Mask of the residuals ``r`` (px, outward positive) within ``tol_px`` of their
+    ``cell``'s second most outward one, or beyond it (the most outward when the cell has
+    one): one stray point beyond the edge does not discard the cell's good ones."""
+    _, inv = np.unique(cell, return_inverse=True)
+    order = np.lexsort((-r, inv))
+    starts = np.nonzero(np.r_[True, inv[order][1:] != inv[order][:-1]])[0]
+    sizes = np.diff(np.r_[starts, len(order)])
+    ref = r[order][np.where(sizes > 1, starts + 1, starts)]
+    return r >= ref[inv] - tol_px
+
+
 def _outermost_across_sweeps(found: list, tol_px: float) -> list:
     """Of one view's contour-generator residuals of all sweeps ``(sweep, idx, r, jac,
     scale, cell)``, keep those within ``tol_px`` of their mask-border cell's second most outward
@@ -1907,13 +1914,8 @@ def _outermost_across_sweeps(found: list, tol_px: float) -> list:
     """
     if len(found) < 2:
         return [(s, idx, r, jac, scl) for s, idx, r, jac, scl, _ in found]
-    r_all = np.concatenate([f[2] for f in found])
-    _, inv = np.unique(np.concatenate([f[5] for f in found]), return_inverse=True)
-    order = np.lexsort((-r_all, inv))
-    starts = np.nonzero(np.r_[True, inv[order][1:] != inv[order][:-1]])[0]
-    sizes = np.diff(np.r_[starts, len(order)])
-    ref = r_all[order][np.where(sizes > 1, starts + 1, starts)]
-    keep = r_all >= ref[inv] - tol_px
+    keep = _near_cell_outermost(np.concatenate([f[2] for f in found]),
+                                np.concatenate([f[5] for f in found]), tol_px)
     out, k0 = [], 0
     for s, idx, r, jac, scl, _ in found:
         kk = keep[k0:k0 + len(r)]

@@ -1316,14 +1316,12 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     uv_n, _ = _project(f, x[idx] + eps * n[idx])
     m = uv_n - uv[idx]
     m /= np.linalg.norm(m, axis=1, keepdims=True) + 1e-12
-    # ... which must point out of the mask: on an occluding contour the surface normal is
-    # the silhouette's outward normal. A grazing point whose normal points into the mask
-    # lies on a face seen from behind the strip's far edge (a thin fin seen end-on)
-    ui_, vi_ = uv[idx, 0], uv[idx, 1]
-    g_sdf = np.stack([_bilinear(f.sdf, ui_ + 1.0, vi_) - _bilinear(f.sdf, ui_ - 1.0, vi_),
-                      _bilinear(f.sdf, ui_, vi_ + 1.0) - _bilinear(f.sdf, ui_, vi_ - 1.0)], 1)
-    g_sdf /= np.linalg.norm(g_sdf, axis=1, keepdims=True) + 1e-12
-    facing = np.einsum("ij,ij->i", m, g_sdf) > 0.5
+    # ... which must point out of the mask (the mask's outward normal: the contour
+    # tangent above, turned): on an occluding contour the surface normal is the
+    # silhouette's outward normal. A grazing point whose normal points into the mask lies
+    # on a cup's inner wall or on a face seen from behind a thin strip's far edge
+    outward = np.stack([tang[keep, 1], -tang[keep, 0]], axis=1)
+    facing = np.einsum("ij,ij->i", m, outward) > 0.5
     idx, m = idx[facing], m[facing]
     if len(idx) == 0:
         return empty
@@ -1912,8 +1910,8 @@ def _outermost_across_sweeps(found: list, tol_px: float) -> list:
     others' reached the edge). The sweeps agree to a few hundredths of a millimetre once
     the pose graph has run, well within ``tol_px``.
     """
-    if len(found) < 2:
-        return [(s, idx, r, jac, scl) for s, idx, r, jac, scl, _ in found]
+    if not found:
+        return []
     keep = _near_cell_outermost(np.concatenate([f[2] for f in found]),
                                 np.concatenate([f[5] for f in found]), tol_px)
     out, k0 = [], 0

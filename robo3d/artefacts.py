@@ -342,6 +342,13 @@ class SweepCloud:
         Camera centre at the point's frame (its line of sight ends at the point).
     report : dict
         What the triangulation measured (JSON-serialisable).
+    line : (N,) int64, optional
+        The image line (row or column) each point's stripe centre was found on, and
+    line_axis : (N,) uint8, optional
+        the axis of that frame's search (0: one centre per column, 1: per row). With
+        ``frame_index`` they place the points on the sweep's range-image grid, on which
+        fusion triangulates the sweep (:func:`robo3d.fusion.range_surface`); None when
+        unknown (files written before they were kept).
     """
 
     points_base: np.ndarray
@@ -351,6 +358,8 @@ class SweepCloud:
     sweep: int
     sensor_origin_base: np.ndarray
     report: dict = field(default_factory=dict)
+    line: np.ndarray | None = None
+    line_axis: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points_base = np.asarray(self.points_base, dtype=np.float64).reshape(-1, 3)
@@ -360,7 +369,13 @@ class SweepCloud:
                                              dtype=np.float64).reshape(-1, 3)
         self.frame_index = np.asarray(self.frame_index, dtype=np.int64).reshape(-1)
         self.confidence = np.asarray(self.confidence, dtype=np.float64).reshape(-1)
-        for name in ("normals_base", "sensor_origin_base", "frame_index", "confidence"):
+        if (self.line is None) != (self.line_axis is None):
+            raise ValueError("SweepCloud.line and line_axis are given together or not at all")
+        if self.line is not None:
+            self.line = np.asarray(self.line, dtype=np.int64).reshape(-1)
+            self.line_axis = np.asarray(self.line_axis, dtype=np.uint8).reshape(-1)
+        for name in ("normals_base", "sensor_origin_base", "frame_index", "confidence",
+                     *(("line", "line_axis") if self.line is not None else ())):
             if len(getattr(self, name)) != n:
                 raise ValueError(f"SweepCloud.{name} must have {n} rows like points_base, "
                                  f"got {len(getattr(self, name))}")
@@ -368,6 +383,14 @@ class SweepCloud:
 
     def __len__(self) -> int:
         return len(self.points_base)
+
+    def grid(self) -> np.ndarray | None:
+        """The points' places on the sweep's range-image grid, (N, 3) int64 columns
+        ``frame_index``, ``line``, ``line_axis``; None when the lines are unknown."""
+        if self.line is None:
+            return None
+        return np.stack([self.frame_index, self.line, self.line_axis.astype(np.int64)],
+                        axis=1)
 
     def drop(self, mask: np.ndarray, reason: str) -> int:
         """Remove the points where ``mask`` is true from every per-point array (in place)
@@ -379,6 +402,8 @@ class SweepCloud:
             self.points_base, self.normals_base = self.points_base[keep], self.normals_base[keep]
             self.frame_index, self.confidence = self.frame_index[keep], self.confidence[keep]
             self.sensor_origin_base = self.sensor_origin_base[keep]
+            if self.line is not None:
+                self.line, self.line_axis = self.line[keep], self.line_axis[keep]
             self.report = {**(self.report or {}), f"dropped_{reason}": n}
         return n
 
@@ -420,6 +445,9 @@ def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], 
         "sweeps": np.array([c.sweep for c in clouds], dtype=np.int64),
         "reports_json": np.array(json.dumps([c.report for c in clouds])),
     }
+    if clouds and all(c.line is not None for c in clouds):
+        arrays["line"] = _cat("line", (0,), np.int64)
+        arrays["line_axis"] = _cat("line_axis", (0,), np.uint8)
     if corrections is not None:
         corr = np.asarray(corrections, dtype=np.float64)
         if corr.shape != (len(clouds), 4, 4):
@@ -448,5 +476,7 @@ def load_clouds_npz(path: str | os.PathLike[str]) -> list[SweepCloud]:
             points_base=d["points_base"][sel], normals_base=d["normals_base"][sel],
             frame_index=d["frame_index"][sel], confidence=d["confidence"][sel],
             sweep=int(sweep), sensor_origin_base=d["sensor_origin_base"][sel],
-            report=reports[i]))
+            report=reports[i],
+            line=d["line"][sel] if "line" in d else None,
+            line_axis=d["line_axis"][sel] if "line" in d else None))
     return out

@@ -44,19 +44,25 @@ In steps (:func:`fuse_tsdf`):
    (:func:`range_surface`).
 2. For every voxel (:func:`data_voxel`: ``tsdf_voxel_m``, or coarser where the laser
    sampled coarser) within ``±trunc`` (``tsdf_trunc_voxels`` voxels) of a scan, the
-   signed distance to that scan's range surface is measured *along the line of sight*
+   signed distance to that scan's range surface is found *along the line of sight*
    (the sight line of the nearest measured point), by casting a ray through the voxel
-   centre (Open3D / Embree): positive in front of the surface, negative behind.
+   centre (Open3D / Embree), and stored as the distance along the surface's normal
+   (point-to-plane: the ray's distance times ``cos`` of the view angle at the hit):
+   positive in front of the surface, negative behind. The ray starts ``trunc / cos`` in
+   front, so that a surface seen at a grazing angle still gives the voxels within
+   ``trunc`` of it a distance (along the line of sight alone it reaches ``trunc * cos``
+   of them, less than a voxel at 85 degrees: a cup's inner wall, seen only that way, was
+   left to the hull). Scans seen at different angles then agree on one distance.
 3. Its weight is ``cos(view angle)`` at the hit (grazing views count little) times the
-   points' confidence and a ramp that falls to 0 at the range surface's border,
-   tapered to 0 between ``trunc/2`` and ``trunc`` behind the surface. The TSDF is the
-   weighted mean over scans; a voxel is *observed* when its weight sum reaches
-   ``min_weight``: a single view at ``cos < min_weight`` makes no surface (the
-   minimum-weight guard). 0.05 by default (87 degrees): at 0.15 (81 degrees) the laser's
-   grazing sweeps, whose points lie as close to the truth as any, were left to the hull's
-   fill and labelled inferred; on the objects benchmark 0.15 -> 0.05 raised the measured
-   surface's completeness by 0.6-2.4 points (bumpy blob, 4 sweeps: 0.955 -> 0.979) with its
-   median and p95 within 0.005 mm (``benchmarks/README.md``).
+   points' confidence and a ramp that falls to 0 at the range surface's border (over
+   ``border_ramp_m`` or one sample step, whichever is longer), tapered to 0 behind the
+   surface between half and all of ``trunc * cos`` (as deep as the line of sight
+   says; at least two voxels). The TSDF is the weighted mean over scans; a voxel is
+   *observed* when its weight sum reaches ``min_weight`` (0.003: in effect, when any
+   scan saw it at ``cos >= min_cos_view``, 88 degrees; the weights decide between scans
+   that disagree, not whether a lone grazing measurement counts: on the objects
+   benchmark the cup's inner wall, seen only at 84-88 degrees by one sweep, measured
+   0.03 mm median and was labelled inferred at 0.05; ``benchmarks/README.md``).
 4. Space carving: voxels along each line of sight in front of the surface are seen
    empty (``carve_free_space``).
 5. Hole filling (``fill_holes``, with a hull): an unobserved voxel is empty when it
@@ -86,9 +92,14 @@ whose lines of sight change along the sweep, and a single stripe image is a one-
 wide depth image. ``benchmarks/pipeline.py`` measures Open3D's tensor ``VoxelBlockGrid``
 on the same sweeps rendered into depth images, for speed and accuracy.
 
-Choice: the range surface is triangulated after a parallel projection along the sweep's
-mean line of sight (the laser's profile order is not kept in the clouds); triangles with
-an edge longer than twice the median longest edge are depth jumps and dropped.
+Choice: the range surface is triangulated on the sweep's range-image grid (frame x image
+line, kept per point by the triangulation: the order in which the sensor sampled the
+surface), as Curless & Levoy triangulate a range image; where the clouds do not carry it,
+after a parallel projection along the sweep's mean line of sight. A triangle whose longest
+edge exceeds twice the local sampling (the median longest edge of the triangles at its
+sparsest-sampled vertex, or of the whole scan where that is larger) bridges a depth jump
+and is dropped: a surface seen at a grazing angle is sampled 3 mm apart where the rest of
+the scan is 1 mm apart, and is not a jump.
 
 References
 ----------
@@ -157,9 +168,9 @@ class FuseOptions(Options):
     tsdf_trunc_voxels : int
         Half-width of the band around each range surface, in voxels.
     min_weight : float
-        Least weight sum of an observed voxel.
+        Least weight sum of an observed voxel (module docstring, step 3).
     min_cos_view : float
-        Points and range triangles seen more obliquely are not used.
+        Points and range triangles seen more obliquely are not used (0.03: 88 degrees).
     fill_holes : bool
         With a hull: unobserved space inside it and not seen empty is solid (step 5).
     close : {"hull", "free_space", "none"}
@@ -194,8 +205,8 @@ class FuseOptions(Options):
     tsdf_voxel_m: float = 0.0004
     tsdf_voxel_per_spacing: float = 1.25
     tsdf_trunc_voxels: int = 4
-    min_weight: float = 0.05
-    min_cos_view: float = 0.1
+    min_weight: float = 0.003
+    min_cos_view: float = 0.03
     fill_holes: bool = True
     close: Literal["hull", "free_space", "none"] = "hull"
     max_fill_distance_mm: float = 3.0
@@ -208,6 +219,10 @@ class FuseOptions(Options):
     seed: int = 0
 
 log = logging.getLogger(__name__)
+
+#: Least depth of the band behind a range surface, in voxels (step 3): a line of sight at
+#: a grazing angle reaches only ``trunc * cos`` behind the surface, less than a voxel.
+_BEHIND_MIN_VOXELS = 2.0
 
 
 def _stack(name: str, a: object) -> np.ndarray:
@@ -461,22 +476,27 @@ def _as_list(name: str, a: object, dims: int) -> list[np.ndarray]:
 
 
 def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
+                  grid: np.ndarray | None = None,
                   max_edge_factor: float = 2.0, min_cos_view: float = 0.1
                   ) -> tuple[np.ndarray, dict[str, Any]]:
     """Triangulate one range scan (a sweep) into its range surface.
 
-    The points are triangulated in 2D (Delaunay) after a parallel projection along the
-    scan's mean line of sight, as a range image is triangulated on its pixel grid. A
-    triangle is dropped when an edge is longer than ``max_edge_factor`` times the median
-    longest edge (a depth jump: two surfaces that only look adjacent), or when it is seen
-    at a grazing angle (``|cos| < min_cos_view``, steep triangles bridge jumps too). The
-    kept triangles face the sensor.
+    The points are triangulated in 2D (Delaunay) on the scan's range-image grid
+    ``grid`` when given, else after a parallel projection along the scan's mean line of
+    sight. A triangle is dropped when an edge is longer than ``max_edge_factor`` times
+    the median longest edge (with ``grid``: of the triangles at its sparsest-sampled
+    vertex, when that is longer) (a depth jump: two surfaces that only look adjacent), or
+    when it is seen at a grazing angle (``|cos| < min_cos_view``, steep triangles bridge
+    jumps too). The kept triangles face the sensor.
 
     Parameters
     ----------
     points : (N, 3) float64, metres
     sensor_origins : (N, 3) float64, metres
         Sensor position at each point's frame.
+    grid : (N, 3) int, optional
+        Each point's laser frame, image line and that frame's search axis
+        (:meth:`robo3d.artefacts.SweepCloud.grid`); triangles join points of one axis.
     max_edge_factor : float
     min_cos_view : float
 
@@ -501,34 +521,76 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
     empty = np.zeros((0, 3), dtype=np.int64)
     if len(p) < 3:
         return empty, {"n_triangles_delaunay": 0, "n_triangles": 0, "max_edge_m": None}
-    los = p - o
-    los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
-    w = los.mean(axis=0)
-    w /= np.linalg.norm(w)
-    a = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(w, a)
-    uv = np.stack([p @ a, p @ b], axis=1)
+    if grid is not None:
+        g = np.asarray(grid, dtype=np.int64)
+        if g.shape != (len(p), 3):
+            raise ValueError(f"grid must be (N, 3) (frame, line, axis) like points, got "
+                             f"{g.shape}")
+        uv = g[:, :2].astype(np.float64)
+    else:
+        los = p - o
+        los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
+        w = los.mean(axis=0)
+        w /= np.linalg.norm(w)
+        a = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(w, a)
+        uv = np.stack([p @ a, p @ b], axis=1)
     try:
         tri = Delaunay(uv - uv.mean(axis=0)).simplices.astype(np.int64)
     except Exception:  # degenerate input (collinear): no surface
         return empty, {"n_triangles_delaunay": 0, "n_triangles": 0, "max_edge_m": None}
+    if grid is not None:  # frames searched along other image axes are not neighbours
+        ax = g[tri, 2]
+        tri = tri[(ax[:, 0] == ax[:, 1]) & (ax[:, 1] == ax[:, 2])]
+        if not len(tri):
+            return empty, {"n_triangles_delaunay": 0, "n_triangles": 0, "max_edge_m": None}
     v0, v1, v2 = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
-    longest = np.max(np.stack([np.linalg.norm(v1 - v0, axis=1), np.linalg.norm(v2 - v1, axis=1),
-                               np.linalg.norm(v0 - v2, axis=1)]), axis=0)
+    longest = _longest_edge(p, tri)
     max_edge = float(max_edge_factor * np.median(longest))
+    tri_max = (max_edge_factor * np.maximum(np.median(longest),
+                                            _local_edge_scale(tri, longest, len(p)))
+               if grid is not None else max_edge)
     nrm = np.cross(v1 - v0, v2 - v0)
     area2 = np.linalg.norm(nrm, axis=1)
     nrm = nrm / np.maximum(area2, 1e-30)[:, None]
     sight = (o[tri[:, 0]] + o[tri[:, 1]] + o[tri[:, 2]]) / 3 - (v0 + v1 + v2) / 3
     sight /= np.maximum(np.linalg.norm(sight, axis=1, keepdims=True), 1e-12)
     cos = np.einsum("ij,ij->i", nrm, sight)
-    keep = (longest <= max_edge) & (np.abs(cos) >= min_cos_view) & (area2 > 0)
+    keep = (longest <= tri_max) & (np.abs(cos) >= min_cos_view) & (area2 > 0)
     faces = tri[keep]
     flip = cos[keep] < 0  # wind counter-clockwise as seen from the sensor
     faces[flip] = faces[flip][:, [0, 2, 1]]
     return faces, {"n_triangles_delaunay": int(len(tri)), "n_triangles": int(len(faces)),
                    "max_edge_m": max_edge}
+
+
+def _longest_edge(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Length of each triangle's longest edge."""
+    v0, v1, v2 = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+    return np.max(np.stack([np.linalg.norm(v1 - v0, axis=1), np.linalg.norm(v2 - v1, axis=1),
+                            np.linalg.norm(v0 - v2, axis=1)]), axis=0)
+
+
+def _local_edge_scale(tri: np.ndarray, longest: np.ndarray, n: int) -> np.ndarray:
+    """Per triangle, the smallest over its vertices of the median longest edge of the
+    triangles at a vertex: the sampling the scan has there (at a depth jump one side's
+    vertices keep their neighbours' short edges, so the jump's triangles stay long)."""
+    return _vertex_median(tri, longest, n)[tri].min(axis=1)
+
+
+def _vertex_median(tri: np.ndarray, value: np.ndarray, n: int) -> np.ndarray:
+    """Per vertex, the (lower) median of a per-triangle ``value`` over the triangles at
+    it (inf where no triangle uses it)."""
+    vv = tri.ravel()
+    ll = np.repeat(value, 3)
+    order = np.lexsort((ll, vv))
+    count = np.bincount(vv, minlength=n)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    vmed = np.full(n, np.inf)
+    has = count > 0
+    vmed[has] = ll[order][start[has] + (count[has] - 1) // 2]
+    return vmed
 
 
 def _boundary_ramp(points: np.ndarray, faces: np.ndarray, ramp: float) -> np.ndarray:
@@ -548,6 +610,10 @@ def _boundary_ramp(points: np.ndarray, faces: np.ndarray, ramp: float) -> np.nda
         w[used] = 1.0
         return w
     d, _ = cKDTree(points[border]).query(points[used], k=1)
+    # at least one sample step where the scan is sparse (a surface seen at a grazing
+    # angle): else every vertex of a sparse strip would lie on the ramp, weighing ~0
+    ramp = np.maximum(ramp, _vertex_median(faces, _longest_edge(points, faces),
+                                           len(points))[used])
     w[used] = np.clip(d / ramp, 0.0, 1.0)
     return w
 
@@ -578,6 +644,7 @@ def fuse_tsdf(
     *,
     options: FuseOptions = FuseOptions(),
     confidences: np.ndarray | list[np.ndarray] | None = None,
+    grids: list[np.ndarray | None] | None = None,
     hull: Any = None,
     threads: int = 1,
     return_attributes: bool = False,
@@ -609,6 +676,9 @@ def fuse_tsdf(
         ``close`` and ``max_fill_distance_mm`` (steps 2-7).
     confidences : (N,) float in [0, 1] or list, optional
         Per-point confidence (default 1); 0 removes a point.
+    grids : list of (N, 3) int or None, optional
+        Per scan, its points' range-image grid (:meth:`~robo3d.artefacts.SweepCloud.grid`)
+        for the range surface (:func:`range_surface`); None where unknown.
     hull : VoxelGrid-like, optional
         ``origin``, ``voxel_size``, ``occupancy``: bounds and closes the surface.
     hull_smooth_vox : float
@@ -659,7 +729,8 @@ def fuse_tsdf(
     clock: dict[str, float] = {}
     t_start = time.perf_counter()
     o = options
-    P, N, O, Cf, n_total = _tsdf_inputs(points, normals, sensor_origins, confidences, o)
+    P, N, O, Cf, G, n_total = _tsdf_inputs(points, normals, sensor_origins, confidences,
+                                           grids, o)
     n_used = int(sum(len(p) for p in P))
     if n_used == 0:
         raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
@@ -674,7 +745,7 @@ def fuse_tsdf(
     origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc, max_voxels)
     report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
     clock["setup"] = time.perf_counter() - t_start
-    acc, scans = _integrate_scans(P, O, Cf, origin, shape, shift, voxel_size, o, threads,
+    acc, scans = _integrate_scans(P, N, O, Cf, G, origin, shape, shift, voxel_size, o, threads,
                                   clock,
                                   max_edge_factor=max_edge_factor, border_ramp_m=border_ramp_m,
                                   interp_sigma_m=interp_sigma_m, interp_floor=interp_floor)
@@ -740,10 +811,11 @@ def point_spacing(scans: list[np.ndarray], *, threads: int = 1) -> float | None:
     return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
 
 
-def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):
-    """The scans' points, normals, origins and confidences, checked, keeping the points
-    seen from the front (normal toward the sensor at ``cos >= min_cos_view``) with
-    confidence > 0; and the number of points given."""
+def _tsdf_inputs(points, normals, sensor_origins, confidences, grids, o: FuseOptions):
+    """The scans' points, normals, origins, confidences and range-image grids (None
+    where unknown), checked, keeping the points seen from the front (normal toward the
+    sensor at ``cos >= min_cos_view``) with confidence > 0; and the number of points
+    given."""
     P = _as_list("points", points, 2)
     N = _as_list("normals", normals, 2)
     O = _as_list("sensor_origins", sensor_origins, 2)
@@ -758,6 +830,11 @@ def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):
     if len(Cf) != len(P) or any(len(c) != len(p) or np.any(c < 0) for c, p in zip(Cf, P,
                                                                               strict=True)):
         raise ValueError("confidences must hold one value >= 0 per point, like points")
+    G = [None] * len(P) if grids is None else list(grids)
+    if len(G) != len(P) or any(g is not None and np.shape(g) != (len(p), 3)
+                               for g, p in zip(G, P, strict=True)):
+        raise ValueError("grids must hold one (N, 3) array (frame, line, axis) or None per "
+                         "scan, like points")
     if not o.tsdf_voxel_m > 0 or o.tsdf_trunc_voxels < 1 or o.tsdf_voxel_per_spacing < 0:
         raise ValueError(f"tsdf_voxel_m must be > 0, tsdf_trunc_voxels >= 1 and "
                          f"tsdf_voxel_per_spacing >= 0, got {o.tsdf_voxel_m}, "
@@ -774,7 +851,9 @@ def _tsdf_inputs(points, normals, sensor_origins, confidences, o: FuseOptions):
         cos = np.einsum("ij,ij->i", N[k], los) / np.maximum(nl, 1e-12)
         ok = (cos >= o.min_cos_view) & (Cf[k] > 0)
         P[k], N[k], O[k], Cf[k] = P[k][ok], N[k][ok], O[k][ok], Cf[k][ok]
-    return P, N, O, Cf, n_total
+        if G[k] is not None:
+            G[k] = np.asarray(G[k], dtype=np.int64)[ok]
+    return P, N, O, Cf, G, n_total
 
 
 def _tsdf_grid(allp: np.ndarray, hull: Any, voxel_size: float, trunc: float,
@@ -826,7 +905,7 @@ class _Accumulator:
                    far_shape, carve_far)
 
 
-def _integrate_scans(P, O, Cf, origin: np.ndarray, shape: tuple[int, ...], shift: np.ndarray,
+def _integrate_scans(P, N, O, Cf, G, origin: np.ndarray, shape: tuple[int, ...], shift: np.ndarray,
                      voxel_size: float, o: FuseOptions, threads: int,
                      clock: dict[str, float], *,
                      max_edge_factor: float, border_ramp_m: float, interp_sigma_m: float,
@@ -843,16 +922,17 @@ def _integrate_scans(P, O, Cf, origin: np.ndarray, shape: tuple[int, ...], shift
     t_rs = t_rays = t_carve = 0.0
     for k in range(len(P)):
         ta = time.perf_counter()
-        faces, rs = range_surface(P[k], O[k], max_edge_factor=max_edge_factor,
+        faces, rs = range_surface(P[k], O[k], grid=G[k], max_edge_factor=max_edge_factor,
                                   min_cos_view=o.min_cos_view)
         scans.append(rs)
         t_rs += time.perf_counter() - ta
         if len(faces) == 0:
             continue
         ta = time.perf_counter()
-        _integrate_scan(acc, P[k], O[k], Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m),
+        _integrate_scan(acc, P[k], N[k], O[k],
+                        Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m),
                         faces, origin, shape, shift, voxel_size, trunc_voxels,
-                        interp_sigma_m, interp_floor, threads)
+                        interp_sigma_m, interp_floor, threads, o.min_cos_view)
         t_rays += time.perf_counter() - ta
         if o.carve_free_space:
             ta = time.perf_counter()
@@ -863,14 +943,16 @@ def _integrate_scans(P, O, Cf, origin: np.ndarray, shape: tuple[int, ...], shift
     return acc, scans
 
 
-def _integrate_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, vw: np.ndarray,
-                    faces: np.ndarray, origin: np.ndarray, shape: tuple[int, ...],
-                    shift: np.ndarray, voxel_size: float, trunc_voxels: int,
-                    interp_sigma_m: float, interp_floor: float, threads: int) -> None:
-    """Steps 2-3 for one scan: the signed distance along the line of sight of every
-    voxel within the band around its range surface ``faces`` (rays cast through the
-    voxel centres, Open3D / Embree), weighted by cos, the vertex weights ``vw`` and
-    the taper behind the surface, added to ``acc`` (in place)."""
+def _integrate_scan(acc: _Accumulator, p: np.ndarray, n: np.ndarray, o: np.ndarray,
+                    vw: np.ndarray, faces: np.ndarray, origin: np.ndarray,
+                    shape: tuple[int, ...], shift: np.ndarray, voxel_size: float,
+                    trunc_voxels: int, interp_sigma_m: float, interp_floor: float,
+                    threads: int, min_cos: float) -> None:
+    """Steps 2-3 for one scan: the signed distance (found along the line of sight, along
+    the surface's normal) of every voxel within the band around its range surface
+    ``faces`` (rays cast through the voxel centres, Open3D / Embree; ``n``: the points'
+    normals, for how far in front a ray starts), weighted by cos, the vertex weights
+    ``vw`` and the taper behind the surface, added to ``acc`` (in place)."""
     import open3d as o3d
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -897,30 +979,39 @@ def _integrate_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, vw: np.ndar
     scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))
     scene.add_triangles(o3d.core.Tensor((p - shift).astype(np.float32)),
                         o3d.core.Tensor(faces.astype(np.uint32)))
-    rays = np.hstack([x - shift - trunc * d, d]).astype(np.float32)
+    # the ray starts far enough in front that a voxel within trunc of the surface (along
+    # its normal) is reached at the point's incidence: trunc / cos along the line of sight
+    c_pt = np.abs(np.einsum("ij,ij->i", n[nb], d)) / np.maximum(
+        np.linalg.norm(n[nb], axis=1), 1e-12)
+    L = trunc / np.maximum(c_pt, min_cos)
+    rays = np.hstack([x - shift - L[:, None] * d, d]).astype(np.float32)
     hit = scene.cast_rays(o3d.core.Tensor(rays))
     t_hit = hit["t_hit"].numpy().astype(np.float64)
-    good = t_hit <= 2 * trunc
+    good = t_hit <= 2 * L
     prim = hit["primitive_ids"].numpy()
     uvh = hit["primitive_uvs"].numpy().astype(np.float64)
     nh = hit["primitive_normals"].numpy().astype(np.float64)
     cos = -np.einsum("ij,ij->i", nh, d)  # range triangles face their sensor
     good &= cos > 0
-    lin, t_hit, d, cos, x = lin[good], t_hit[good], d[good], cos[good], x[good]
+    lin, t_hit, d, cos, x, L = lin[good], t_hit[good], d[good], cos[good], x[good], L[good]
     prim, uvh = prim[good], uvh[good]
     tri = faces[prim.astype(np.int64)]
     wv = (vw[tri[:, 0]] * (1 - uvh[:, 0] - uvh[:, 1]) + vw[tri[:, 1]] * uvh[:, 0]
           + vw[tri[:, 2]] * uvh[:, 1])
-    sdf = t_hit - trunc
+    sdf = (t_hit - L) * cos  # along the surface's normal (point-to-plane)
     if interp_sigma_m > 0:
         # interpolated range is less certain than measured range: the weight falls
         # with the hit's distance to the nearest measured point of its triangle
-        hp = x - trunc * d + t_hit[:, None] * d
+        hp = x - L[:, None] * d + t_hit[:, None] * d
         dv = np.min(np.stack([np.linalg.norm(hp - p[tri[:, m]], axis=1)
                               for m in range(3)]), axis=0)
         wv = wv * (interp_floor + (1 - interp_floor) * np.exp(-(dv / interp_sigma_m) ** 2))
-    w = cos * wv * np.clip((sdf + trunc) / (0.5 * trunc), 0.0, 1.0)
-    keep = w > 0
+    # behind the surface the band reaches trunc along the line of sight (as far as the
+    # sight line's depth says something), at least two voxels: a thin wall's other face
+    # keeps its own distances
+    behind = np.maximum(trunc * cos, _BEHIND_MIN_VOXELS * voxel_size)
+    w = cos * wv * np.clip((sdf + behind) / (0.5 * behind), 0.0, 1.0)
+    keep = (w > 0) & (sdf <= trunc)
     lk = lin[keep]  # the band's voxels are unique within one scan: one addition each
     acc.sum_w[lk] += w[keep].astype(np.float32)
     acc.sum_wd[lk] += (w * sdf)[keep].astype(np.float32)

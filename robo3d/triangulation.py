@@ -1128,4 +1128,6 @@ def triangulate_sweep(
         sweep=int(sweep),
         sensor_origin_base=O,
         report=report,
+        line=line[keep],
+        line_axis=frame_axis[fpos],
     )

@@ -389,9 +389,25 @@ def test_save_load_round_trip(tmp_path):
     for a, b in zip([c0, c1], back, strict=True):
         assert isinstance(b, SweepCloud) and len(a) == len(b)
         for name in ("points_base", "normals_base", "frame_index", "confidence",
-                     "sensor_origin_base"):
+                     "sensor_origin_base", "line", "line_axis"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
         assert a.report == b.report
+        # each point keeps its place on the sweep's range-image grid: its frame and the
+        # image line its stripe centre was found on
+        g = b.grid()
+        assert g.shape == (len(b), 3) and np.array_equal(g[:, 0], b.frame_index)
+        lines = np.concatenate([s.line for s in (stripes[:3] if b.sweep == 0 else stripes[3:])])
+        assert np.isin(g[:, 1], lines).all()
+    # dropping points drops their grid places too
+    c = back[0]
+    n0 = len(c)
+    c.drop(np.arange(n0) % 2 == 0, "test")
+    assert len(c.line) == len(c.line_axis) == len(c) == n0 // 2
+    # files without the lines (written before they were kept) still load, without a grid
+    with np.load(path) as z:
+        old = {k: z[k] for k in z.files if k not in ("line", "line_axis")}
+    np.savez(tmp_path / "old.npz", **old)
+    assert all(c.grid() is None for c in load_clouds_npz(tmp_path / "old.npz"))
     save_clouds_npz(path, [])
     assert load_clouds_npz(path) == []
 

@@ -51,7 +51,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
             V, F, fuse_report, attrs = fuse_tsdf(
                 [c.points_base for c in clouds], [c.normals_base for c in clouds],
                 [c.sensor_origin_base for c in clouds], options=opts,
-                confidences=[c.confidence for c in clouds], hull=crop,
+                confidences=[c.confidence for c in clouds], grids=[c.grid() for c in clouds],
+                hull=crop,
                 threads=stage_threads(threads), return_attributes=True)
             source = "laser (TSDF)" + {
                 "hull": ", holes closed from the hull",

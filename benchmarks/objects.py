@@ -44,10 +44,19 @@ Figures (all computed here from the run's files and the recording's ground truth
     the cosine of the laser's incidence, the albedo and the range;
     :func:`robo3d.simulate.stripe_truth` at the true exposure pose, object points only,
     every laser frame: the same "visible" as the front-end benchmark's stripe recall),
-    and above the workspace floor (the pipeline crops below it by contract).
+    AND the frame as recorded holds a stripe that bright there (:func:`recorded_peak`:
+    the brightest pixel within 1 px less the darkest within 6 px, at least
+    ``stripes.min_peak``), and above the workspace floor (the pipeline crops below it by
+    contract). The recorded test is needed because the expected peak does not fall
+    with the camera's foreshortening: where the camera sees the lit surface almost
+    edge-on (the cup's inner wall at 86-88 degrees) the line's image is a fraction of a
+    pixel wide, each pixel averages it with the dark around it, and the frame records
+    1-2 grey levels where the expected peak is 50 (cup/4, frames 389-401).
     Completeness = share of the observable samples within 0.5 mm of ``measured.ply``.
-    ``details`` keeps ``measured_completeness_0_5mm_any_signal``: the same against every
-    lit and seen point however faint (the definition before 2026-12-02).
+    ``details`` keeps ``measured_completeness_0_5mm_expected_signal`` (the expected-peak
+    test alone: the definition of 2026-12-02, stops 21-23) and
+    ``measured_completeness_0_5mm_any_signal`` (every lit and seen point however faint:
+    the definition before).
 ``inferred_area_fraction``
     Share of ``mesh.ply``'s area on faces not all of whose vertices have
     ``source == 0`` (laser-measured; :func:`robo3d.meshio.read_vertex_attributes`).
@@ -157,10 +166,27 @@ def _area(v: np.ndarray, f: np.ndarray) -> np.ndarray:
                                 axis=1)
 
 
+def recorded_peak(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The stripe's height in the recorded frame at pixels ``uv``: the brightest pixel
+    within 1 px less the darkest within 6 px (the local baseline; the laser's channel
+    is the brightest one)."""
+    import cv2
+
+    img = image.max(axis=2) if image.ndim == 3 else image
+    img = img.astype(np.float32)
+    hi = cv2.dilate(img, np.ones((3, 3), np.uint8))
+    lo = cv2.erode(img, np.ones((13, 13), np.uint8))
+    h, w = img.shape
+    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
+    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+    return (hi[v, u] - lo[v, u]).astype(np.float64)
+
+
 def observable_samples(rec, truth, n: int, floor_z: float, min_signal_dn: float,
                        seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """True-surface samples that the laser could observe (see the module docstring):
-    (observable, lit at any signal, counts)."""
+    (observable, lit at any signal, counts; ``expected_signal_only``: the samples that
+    pass the expected-signal test alone, before the recorded-peak test)."""
     from scipy.spatial import cKDTree
 
     from robo3d.simulate import image_poses, stripe_truth, truth_scene
@@ -168,23 +194,30 @@ def observable_samples(rec, truth, n: int, floor_z: float, min_signal_dn: float,
     scene = truth_scene(rec, threads=0)
     poses = image_poses(rec)
     n_frames = len(poses["/camera/laser_image"])
-    lit, bright = [], []
+    frames = sorted(rec.laser_frames, key=lambda m: m.timestamp_ns)
+    lit, bright, expected = [], [], []
     for i in range(n_frames):
         st = stripe_truth(rec, i, scene=scene, poses=poses)
+        strong = st.on_object & (st.signal_dn >= min_signal_dn)
         lit.append(st.points_base[st.on_object])
-        bright.append(st.points_base[st.on_object & (st.signal_dn >= min_signal_dn)])
+        expected.append(st.points_base[strong])
+        if strong.any() and len(frames) == n_frames:
+            strong[strong] = recorded_peak(frames[i].decode(),
+                                           st.pixels_uv[strong]) >= min_signal_dn
+        bright.append(st.points_base[strong])
     samples = truth.sample(n, seed=seed)
     samples = samples[samples[:, 2] > floor_z]
     out = []
-    for pts in (bright, lit):
+    for pts in (bright, lit, expected):
         pts = np.concatenate(pts) if pts else np.zeros((0, 3))
         if not len(pts):
             out.append(np.zeros((0, 3)))
             continue
         d, _ = cKDTree(pts).query(samples, distance_upper_bound=OBSERVABLE_M)
         out.append(samples[np.isfinite(d)])
-    obs, any_lit = out
+    obs, any_lit, exp_only = out
     return obs, any_lit, {"laser_frames": n_frames,
+                          "expected_signal_only": exp_only,
                           "lit_points": int(sum(len(x) for x in lit)),
                           "lit_points_bright_enough": int(sum(len(x) for x in bright)),
                           "min_signal_dn": min_signal_dn,
@@ -290,8 +323,13 @@ def score(rec_path: Path, work: Path, e2e: float, cfg: dict) -> dict[str, Any]:
         # the former definition (any lit point, however faint), beside it
         out["measured_completeness_0_5mm_any_signal"] = float(np.mean(
             measured.distance(any_lit) <= 0.0005)) if len(any_lit) else None
+        # the definition before 2026-12-02 (stop 24): the expected signal alone
+        exp_only = obs_info["expected_signal_only"]
+        out["measured_completeness_0_5mm_expected_signal"] = float(np.mean(
+            measured.distance(exp_only) <= 0.0005)) if len(exp_only) else None
     else:
         out["measured_completeness_0_5mm"] = 0.0 if len(obs) else None
+    obs_info["expected_signal_only"] = int(len(obs_info["expected_signal_only"]))
     out["observable"] = obs_info
     # the whole mesh
     Vf, Ff = read_mesh(res / "mesh.ply")

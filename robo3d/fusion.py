@@ -669,6 +669,7 @@ def fuse_tsdf(
     confidences: np.ndarray | list[np.ndarray] | None = None,
     grids: list[np.ndarray | None] | None = None,
     hull: Any = None,
+    floor_z: float | None = None,
     threads: int = 1,
     return_attributes: bool = False,
     hull_smooth_vox: float = 0.8,
@@ -704,6 +705,11 @@ def fuse_tsdf(
         for the range surface (:func:`range_surface`); None where unknown.
     hull : VoxelGrid-like, optional
         ``origin``, ``voxel_size``, ``occupancy``: bounds and closes the surface.
+    floor_z : float, metres, optional
+        The workspace's floor (``base`` z; the object stands on it): space below it is
+        empty and makes no measured surface (the laser's points are cropped above it,
+        but a sweep's band behind the surface reaches below it; on the objects
+        benchmark it left a flap of inferred surface under the cup's bottom edge).
     hull_smooth_vox : float
         Gaussian smoothing of the hull's occupancy (hull voxels) before its 0.5 level.
     max_edge_factor : float
@@ -774,7 +780,7 @@ def fuse_tsdf(
                                   interp_sigma_m=interp_sigma_m, interp_floor=interp_floor)
     ta = time.perf_counter()
     tsdf, observed, inside, filled = _tsdf_field(acc, shape, trunc, hull, origin, voxel_size,
-                                                 hull_smooth_vox, o, scans, report)
+                                                 hull_smooth_vox, o, scans, report, floor_z)
     clock["field"] = time.perf_counter() - ta
     ta = time.perf_counter()
     v, f, attrs = _extract_surface(tsdf, observed, inside, filled, acc, shape, origin, allp,
@@ -1066,10 +1072,12 @@ def _carve_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, faces: np.ndarr
 
 def _tsdf_field(acc: _Accumulator, shape: tuple[int, ...], trunc: float, hull: Any,
                 origin: np.ndarray, voxel_size: float, hull_smooth_vox: float,
-                o: FuseOptions, scans: list[dict[str, Any]], report: dict[str, Any]):
+                o: FuseOptions, scans: list[dict[str, Any]], report: dict[str, Any],
+                floor_z: float | None = None):
     """Steps 4-5: the TSDF of the observed voxels and, with a hull and ``fill_holes``,
     the solid/empty indicator elsewhere: (tsdf, observed, inside the hull or None,
-    whether holes were filled); ``report`` updated."""
+    whether holes were filled); ``report`` updated. Voxels below ``floor_z`` are empty
+    and not observed."""
     from scipy import ndimage
 
     seen_empty = acc.seen_empty
@@ -1086,6 +1094,13 @@ def _tsdf_field(acc: _Accumulator, shape: tuple[int, ...], trunc: float, hull: A
     tsdf[observed] = acc.sum_wd[observed] / acc.sum_w[observed]
     observed = observed.reshape(shape)
     tsdf = tsdf.reshape(shape)
+    below = None
+    if floor_z is not None:  # the workspace's floor: the table, never the object
+        below = np.broadcast_to((origin[2] + np.arange(shape[2]) * voxel_size
+                                 < floor_z)[None, None, :], shape)
+        report["n_observed_voxels_below_floor"] = int(np.count_nonzero(observed & below))
+        observed = observed & ~below
+        tsdf[below] = trunc
     seen_empty = seen_empty.reshape(shape) & ~observed
     report.update(n_voxels_observed=int(observed.sum()), n_voxels_seen_empty=int(
         seen_empty.sum()), range_surfaces=scans)
@@ -1095,6 +1110,8 @@ def _tsdf_field(acc: _Accumulator, shape: tuple[int, ...], trunc: float, hull: A
     if hull is not None:
         inside = _hull_field(hull, origin, voxel_size, shape, o.hull_margin_voxels,
                              hull_smooth_vox)
+        if below is not None:
+            inside = inside & ~below
         report["n_observed_voxels_outside_hull"] = int(np.count_nonzero(
             observed & (tsdf < 0) & ~inside))
         if fill_holes:

@@ -71,7 +71,9 @@ In steps (:func:`fuse_tsdf`):
    was seen empty or lies outside the hull, and solid otherwise, so that where the
    laser saw nothing the surface is the boundary between the space seen empty and the
    hull; the solid/empty indicator is smoothed over one voxel for a smooth surface.
-   Without a hull no surface is made where nothing was observed.
+   Without a hull no surface is made where nothing was observed. Space below the
+   workspace's floor (``floor_z``: the table the object stands on) is empty and never
+   observed, so the face on the table is closed at the floor, inferred.
 6. Marching cubes (Lewiner) at level 0. Each vertex gets its provenance
    (:data:`SOURCES`): *measured* when it lies on a grid edge between two observed
    voxels, else *inferred*: from the hull when one of the edge's voxels lies within

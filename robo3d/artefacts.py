@@ -457,6 +457,16 @@ def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], 
     save_npz(path, **arrays)
 
 
+def clouds_workspace(clouds: Sequence[SweepCloud]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The workspace box ``(min, max)`` in ``base`` that the triangulation cropped the
+    clouds to (each cloud's report, ``workspace``), or None."""
+    box = next(((c.report or {}).get("workspace") for c in clouds
+                if (c.report or {}).get("workspace")), None)
+    if box is None:
+        return None
+    return np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64)
+
+
 def load_clouds_npz(path: str | os.PathLike[str]) -> list[SweepCloud]:
     """Read the sweep clouds written by :func:`save_clouds_npz`, in the order they were
     saved (a ValueError naming the file when it is not such a file)."""

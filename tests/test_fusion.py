@@ -369,15 +369,16 @@ def test_tsdf_nothing_below_the_workspace_floor():
 
     pts, nrm, org = _views_of_sphere(8000)
     floor = C[2] - 0.5 * R
+    box = (C - [0.05, 0.05, 0.5 * R], C + 0.05)  # the workspace box: its floor cuts the sphere
     v, f, rep, a = fuse_tsdf(pts, nrm, org, options=FuseOptions(tsdf_voxel_m=1e-3),
-                             hull=_exact_hull(), floor_z=floor, return_attributes=True)
+                             hull=_exact_hull(), workspace=box, return_attributes=True)
     assert v[:, 2].min() > floor - 1e-3  # within a voxel of the floor
     assert v[a["source"] == MEASURED, 2].min() > floor
     assert np.all(_edge_uses(f) == 2)  # closed across the floor
     disk_r = np.sqrt(R**2 - (0.5 * R) ** 2)
     cut = (v[:, 2] < floor + 0.5e-3) & (np.hypot(v[:, 0] - C[0], v[:, 1] - C[1]) < 0.8 * disk_r)
     assert cut.sum() > 100 and np.all(a["source"][cut] == HULL)
-    assert rep["n_observed_voxels_below_floor"] > 0  # the sweeps' bands reached below it
+    assert rep["n_observed_voxels_outside_workspace"] > 0  # the bands reached below it
     v0, _, _ = fuse_tsdf(pts, nrm, org, options=FuseOptions(tsdf_voxel_m=1e-3),
                          hull=_exact_hull())
     assert v0[:, 2].min() < C[2] - 0.99 * R

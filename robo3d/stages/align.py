@@ -112,11 +112,12 @@ def _crop_to_workspace(clouds: list) -> dict[str, Any]:
     puts them back below its floor. Left in, they became measured surface on the table
     (the objects benchmark's user_mesh/7: 0.7 % of measured.ply's area, 0.5-1.5 mm from
     the object). Returns the report (per sweep: points dropped)."""
-    box = next(((c.report or {}).get("workspace") for c in clouds
-                if (c.report or {}).get("workspace")), None)
+    from ..artefacts import clouds_workspace
+
+    box = clouds_workspace(clouds)
     if box is None:
         return {"skipped": "the clouds were not cropped to a workspace box"}
-    lo, hi = (np.asarray(b, dtype=np.float64) for b in box)
+    lo, hi = box
     per_sweep = []
     for c in clouds:
         p = c.points_base

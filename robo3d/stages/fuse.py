@@ -25,7 +25,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     The report says what fraction of the surface came from the laser and from the hull.
     """
-    from ..artefacts import load_clouds_npz
+    from ..artefacts import clouds_workspace, load_clouds_npz
     from ..carving import VoxelGrid, hull_to_mesh
     from ..fusion import (
         HULL,
@@ -52,7 +52,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 [c.points_base for c in clouds], [c.normals_base for c in clouds],
                 [c.sensor_origin_base for c in clouds], options=opts,
                 confidences=[c.confidence for c in clouds], grids=[c.grid() for c in clouds],
-                hull=crop, floor_z=_workspace_floor(clouds),
+                hull=crop, workspace=clouds_workspace(clouds),
                 threads=stage_threads(threads), return_attributes=True)
             source = "laser (TSDF)" + {
                 "hull": ", holes closed from the hull",
@@ -120,14 +120,6 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
              grid, report["seconds"])
     return report
-
-
-def _workspace_floor(clouds: list) -> float | None:
-    """The floor (min z) of the workspace box the triangulation cropped the clouds to
-    (each cloud's report, ``workspace``); None without one."""
-    box = next(((c.report or {}).get("workspace") for c in clouds
-                if (c.report or {}).get("workspace")), None)
-    return None if box is None else float(box[0][2])
 
 
 def _area_fraction(V: np.ndarray, F: np.ndarray, flag: np.ndarray) -> float:

@@ -107,6 +107,15 @@ EXACT = dict(sweep_error_mm=(0.0, 0.0), sweep_error_deg=(0.0, 0.0),
 DRIFT = dict(seed=1, sweep_spacing=0.0011, robot_error="drift", clock_lag_ms=4.0)
 
 
+
+def _in_box(clouds) -> np.ndarray:
+    """The triangulated points in the workspace box (not the triangulation's margin
+    around it, which the align stage crops once the sweeps are corrected)."""
+    from robo3d.artefacts import in_clouds_workspace
+
+    return np.concatenate([c.points_base[m] for c, m in
+                           zip(clouds, in_clouds_workspace(clouds), strict=True)])
+
 def _simulated(base: Path, name: str, make) -> Path:
     """``base/recordings/{name}.mcap``, simulated by ``make(path)`` unless already there
     (the simulator is deterministic: the same file on every run)."""
@@ -262,7 +271,7 @@ def score_cell(rec_path: Path, res: Path) -> dict[str, Any]:
     # triangulation's raw points are reported beside them
     pts = np.concatenate([c.points_base for c in load_clouds_npz(res / "aligned.npz")])
     d_mm = truth.distance(pts) * 1e3
-    raw = np.concatenate([c.points_base for c in load_clouds_npz(res / "clouds.npz")])
+    raw = _in_box(load_clouds_npz(res / "clouds.npz"))
     d_raw = truth.distance(raw) * 1e3
     # recall against the true visible stripe
     scene = truth_scene(rec, threads=2)
@@ -362,8 +371,7 @@ def view_pose_limits(rec_path: Path, res: Path) -> dict[str, Any]:
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
     if not views:
         return {}
-    centre = np.concatenate([c.points_base for c in load_clouds_npz(res / "clouds.npz")]
-                            ).mean(axis=0)
+    centre = _in_box(load_clouds_npz(res / "clouds.npz")).mean(axis=0)
     truth = [e["T_base_camera"] for e in image_poses(rec)["/camera/image"]]
     disp, deg = [], []
     for A, B in zip(rec.camera_poses(views), truth, strict=True):

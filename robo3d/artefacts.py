@@ -459,12 +459,23 @@ def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], 
 
 def clouds_workspace(clouds: Sequence[SweepCloud]) -> tuple[np.ndarray, np.ndarray] | None:
     """The workspace box ``(min, max)`` in ``base`` that the triangulation cropped the
-    clouds to (each cloud's report, ``workspace``), or None."""
+    clouds to (each cloud's report, ``workspace``; grown by the cloud's
+    ``workspace_margin_m``), or None."""
     box = next(((c.report or {}).get("workspace") for c in clouds
                 if (c.report or {}).get("workspace")), None)
     if box is None:
         return None
     return np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64)
+
+
+def in_clouds_workspace(clouds: Sequence[SweepCloud]) -> list[np.ndarray]:
+    """Per cloud, whether each point lies in the workspace box (:func:`clouds_workspace`),
+    not in the triangulation's margin around it; all True without a box."""
+    box = clouds_workspace(clouds)
+    if box is None:
+        return [np.ones(len(c.points_base), bool) for c in clouds]
+    lo, hi = box
+    return [np.all((c.points_base >= lo) & (c.points_base <= hi), axis=1) for c in clouds]
 
 
 def load_clouds_npz(path: str | os.PathLike[str]) -> list[SweepCloud]:

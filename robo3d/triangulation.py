@@ -57,7 +57,9 @@ Sweep clouds
 ------------
 A sweep is a run of laser frames without a time gap longer than ``sweep_gap``
 (:func:`split_sweeps`). :func:`triangulate_sweep` maps each frame's profile into
-``base`` with that frame's camera pose, crops to the workspace box, and gives each point
+``base`` with that frame's camera pose, crops to the workspace box grown by
+``workspace_margin_m`` (the reported poses' error moves points across its faces; the
+align stage crops to the exact box once the sweep is corrected), and gives each point
 a normal from the sweep's own structure: the profiles form an organised grid (frame ×
 image line), and the normal is the cross product of the along-profile tangent
 (neighbouring lines ``±normal_span`` of the same frame) and the across-profile tangent
@@ -150,6 +152,12 @@ class TriangulateOptions(Options):
         depth jump, not a neighbour.
     normal_knn : int
         Neighbours of the PCA fallback normal.
+    workspace_margin_m : float, metres
+        The crop box is the workspace box grown by this on every side: the sweep is
+        placed with the robot's reported poses, whose error moves the object's points
+        across the box's faces (its foot, next to the floor, below it). The points in the
+        margin are kept and counted (``report["n_in_margin"]``); alignment leaves them
+        out of the registration and crops to the exact box once the sweep is corrected.
     """
 
     section = "triangulation"
@@ -160,6 +168,7 @@ class TriangulateOptions(Options):
     normal_smooth: int = 2
     normal_jump: float = 5.0
     normal_knn: int = 12
+    workspace_margin_m: float = 0.002
 
 
 # ---------------------------------------------------------------------------- eq. 11
@@ -978,6 +987,8 @@ def _check_sweep_inputs(F: int, T_base_camera: np.ndarray, T_camera_laser: np.nd
         if fidx.size != F:
             raise ValueError(f"frame_indices must have F={F} entries, got {fidx.size}")
     _check_ranges(options.min_angle_deg, options.min_range_m, options.max_range_m)
+    if not float(options.workspace_margin_m) >= 0:
+        raise ValueError(f"workspace_margin_m must be >= 0, got {options.workspace_margin_m}")
     box = None
     if workspace is not None:
         box_min = np.asarray(workspace[0], dtype=np.float64).reshape(-1)
@@ -1052,7 +1063,9 @@ def triangulate_sweep(
     T_camera_laser : (4, 4) or (F, 4, 4) float64
         Pose of the laser in the camera (fixed, or per frame).
     workspace : ((3,), (3,)) float64, metres, optional
-        ``(box_min, box_max)`` in ``base``; points outside are dropped and counted.
+        ``(box_min, box_max)`` in ``base``; points outside it grown by
+        ``options.workspace_margin_m`` are dropped and counted, those in the margin kept
+        and counted.
     frame_indices : (F,) int, optional
         Index of each frame in the recording (default ``0 .. F-1``), kept per point.
     sweep : int
@@ -1087,10 +1100,14 @@ def triangulate_sweep(
     origin = tb[frame_pos, :3, 3]
     pts_base = np.einsum("nij,nj->ni", R, np.nan_to_num(pts_cam)) + origin
     outside = np.zeros_like(keep)
+    in_margin = 0
     if box is not None:
-        inside = np.all((pts_base >= box[0]) & (pts_base <= box[1]), axis=1)
+        m = float(options.workspace_margin_m)
+        inside = np.all((pts_base >= box[0] - m) & (pts_base <= box[1] + m), axis=1)
         outside = keep & ~inside
         keep = keep & inside
+        in_margin = int(np.count_nonzero(keep & ~np.all(
+            (pts_base >= box[0]) & (pts_base <= box[1]), axis=1)))
     dropped["outside_workspace"] = int(outside.sum())
 
     report: dict = {
@@ -1100,6 +1117,8 @@ def triangulate_sweep(
         "n_pixels": int(counts.sum()),
         "dropped": dropped,
         "n_points": int(keep.sum()),
+        **({"workspace_margin_m": float(options.workspace_margin_m), "n_in_margin": in_margin}
+           if box is not None else {}),
         "stripe_rejected": {k: int(sum(s.rejected.get(k, 0) for s in stripes))
                             for k in stripes[0].rejected},
     }

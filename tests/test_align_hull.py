@@ -121,3 +121,50 @@ def test_aligned_points_that_fell_below_the_floor_are_dropped_and_counted():
     assert len(a.frame_index) == len(a.confidence) == len(a.sensor_origin_base) == 5
     c = _cloud(table, 2)  # no box: nothing is cropped
     assert "skipped" in _crop_to_workspace([c]) and len(c) == 2
+
+
+def test_margin_points_are_placed_by_alignment_not_used_by_it(tmp_path, monkeypatch):
+    """The triangulation keeps the points in a margin around the workspace box (a robot
+    pose error put the object's foot below the floor). The registration sees only the
+    points in the box; the corrections move every point; the exact box applies after
+    them: the foot the correction lifts into the box is kept, the table is not."""
+    import robo3d.registration as registration
+    from robo3d.artefacts import load_clouds_npz, save_clouds_npz
+    from robo3d.registration import AlignmentResult
+    from robo3d.stages.align import stage_align
+
+    box = [[-0.05, -0.05, 0.0005], [0.05, 0.05, 0.06]]
+    wall = np.column_stack([np.full(40, 0.01), np.zeros(40), np.linspace(0.002, 0.03, 40)])
+    lift = 0.0012  # sweep 0 was placed 1.2 mm too low
+    foot = np.column_stack([np.full(6, 0.01), np.zeros(6), np.linspace(0.0006, 0.0019, 6)])
+    table = np.column_stack([np.linspace(0.015, 0.03, 8), np.zeros(8), np.zeros(8)])
+    a = _cloud(np.concatenate([wall - [0, 0, lift], foot - [0, 0, lift], table - [0, 0, lift]]), 0)
+    b = _cloud(wall.copy(), 1)
+    for c in (a, b):
+        c.report = {"workspace": box, "workspace_margin_m": 0.002}
+    save_clouds_npz(tmp_path / "clouds.npz", [a, b])
+    seen = {}
+
+    def fake_align(points, normals, *, options, origins, profiles, silhouettes):
+        seen["n"] = [len(p) for p in points]
+        seen["min_z"] = [float(p[:, 2].min()) for p in points]
+        C = np.tile(np.eye(4), (2, 1, 1))
+        C[0, 2, 3] = lift
+        return AlignmentResult(corrections=C, per_sweep=[{"sweep": 0}, {"sweep": 1}],
+                               reference=1)
+
+    monkeypatch.setattr(registration, "align_sweeps", fake_align)
+    out = {"npz": str(tmp_path / "aligned.npz"), "ply": str(tmp_path / "aligned.ply"),
+           "rrd": str(tmp_path / "align.rrd"), "report": str(tmp_path / "align.json")}
+    cfg = default_config()
+    cfg["alignment"]["reject_outside_hull"] = False
+    report = stage_align({"clouds": str(tmp_path / "clouds.npz")}, out, cfg, "t")
+    # registration: only the points inside the box at the reported poses
+    n_in_a = int(np.sum(wall[:, 2] - lift >= 0.0005) + np.sum(foot[:, 2] - lift >= 0.0005))
+    assert seen["n"] == [n_in_a, 40] and min(seen["min_z"]) >= 0.0005
+    assert report["points_in_margin_not_registered"] == len(a) - n_in_a
+    aligned = load_clouds_npz(out["npz"])
+    # after the correction: the whole wall and foot, none of the table
+    np.testing.assert_allclose(aligned[0].points_base, np.concatenate([wall, foot]), atol=1e-12)
+    assert report["outside_workspace"]["dropped"] == len(table)
+    assert len(aligned[1]) == 40

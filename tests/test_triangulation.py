@@ -343,10 +343,25 @@ def test_sweep_workspace_cropping():
     box = (np.array([-1.0, -1.0, -1.0]), np.array([0.0, 1.0, 1.0]))  # keep x <= 0
     expect_out = int((full.points_base[:, 0] > 0).sum())
     assert 0 < expect_out < len(full)
-    crop = triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box)
+    exact = TriangulateOptions(workspace_margin_m=0.0)
+    crop = triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box, options=exact)
     assert crop.report["dropped"]["outside_workspace"] == expect_out
     assert len(crop) == len(full) - expect_out
     assert np.all(crop.points_base[:, 0] <= 0)
+    assert crop.report["n_in_margin"] == 0
+    # with a margin (the default's 2 mm, and more) the points just outside are kept for
+    # alignment to place, and counted
+    for m in (TriangulateOptions().workspace_margin_m, 0.05):
+        grown = triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box,
+                                  options=TriangulateOptions(workspace_margin_m=m))
+        x = full.points_base[:, 0]
+        assert 0 < int(((x > 0) & (x <= m)).sum()) == grown.report["n_in_margin"]
+        assert len(grown) == int((x <= m).sum())
+        assert grown.report["dropped"]["outside_workspace"] == int((x > m).sum())
+        assert grown.report["workspace_margin_m"] == m
+    with pytest.raises(ValueError, match="workspace_margin_m"):
+        triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box,
+                          options=TriangulateOptions(workspace_margin_m=-1e-3))
 
 
 def test_empty_sweep_is_a_stage_error():

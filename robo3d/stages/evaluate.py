@@ -161,7 +161,7 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
         ev_out["hull_volume_iou"] = volume_iou(g.occupancy, g.origin, g.voxel_size, truth,
                                                region=region)
     if inputs.get("clouds"):
-        raw = load_clouds_npz(inputs["clouds"])
+        raw = _raw_clouds(inputs["clouds"])
         ali = load_clouds_npz(inputs["aligned"])
         ev_out["clouds"] = cloud_accuracy(np.concatenate([c.points_base for c in raw]), truth)
         ev_out["aligned"] = cloud_accuracy(np.concatenate([c.points_base for c in ali]),
@@ -305,16 +305,17 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
     the displacement of the sweep's centroid by the pose error, what the error does to
     the scan).
     """
-    from ..artefacts import load_clouds_npz
+    from ..artefacts import in_clouds_workspace, load_clouds_npz
     from ..evaluate import pose_error
     from ..recording.reader import read_ground_truth_tf
 
     truth_tf = read_ground_truth_tf(rec)
-    clouds = load_clouds_npz(inputs["clouds"])
+    clouds = load_clouds_npz(inputs["clouds"])  # the margin's points too: every frame
     aligned = load_clouds_npz(inputs["aligned"])
     stripes_path = Path(inputs["clouds"]).with_name("stripes.npz")
     with np.load(stripes_path) as z:
         stamps = z["stamps_ns"]
+    inside = in_clouds_workspace(clouds)
     out = []
     for k, c in enumerate(clouds):
         rep = aligned[k].report or {}
@@ -323,7 +324,8 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
         t = int(stamps[mid])
         T_rep = rec.tf.lookup(rec.base_frame, "flange", t)
         T_true = truth_tf.lookup(rec.base_frame, "flange", t)
-        centroid = c.points_base.mean(axis=0)
+        centroid = c.points_base[inside[k]].mean(axis=0) if inside[k].any() else (
+            c.points_base.mean(axis=0))
 
         before = pose_error(T_rep, T_true)
         after = pose_error(C @ T_rep, T_true)
@@ -342,6 +344,18 @@ def _pose_errors(rec, inputs: Mapping[str, str]) -> dict[str, Any]:
             "worst_before_obj_mm": worst("before_obj_mm"),
             "worst_after_mm": worst("after_mm"), "worst_after_deg": worst("after_deg"),
             "worst_after_obj_mm": worst("after_obj_mm")}
+
+
+def _raw_clouds(path: str) -> list:
+    """The triangulated clouds as scored: the points in the workspace box, not those in
+    the triangulation's margin around it (``triangulation.workspace_margin_m``: kept
+    for alignment to place, cropped by it)."""
+    from ..artefacts import in_clouds_workspace, load_clouds_npz
+
+    clouds = load_clouds_npz(path)
+    for c, inside in zip(clouds, in_clouds_workspace(clouds), strict=True):
+        c.drop(~inside, "outside_workspace")
+    return clouds
 
 
 def _frame_pose_errors(rec, clouds, aligned, stamps: np.ndarray, stripes_path: Path

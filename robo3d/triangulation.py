@@ -1100,14 +1100,14 @@ def triangulate_sweep(
     origin = tb[frame_pos, :3, 3]
     pts_base = np.einsum("nij,nj->ni", R, np.nan_to_num(pts_cam)) + origin
     outside = np.zeros_like(keep)
-    in_margin = 0
+    in_box = keep
     if box is not None:
         m = float(options.workspace_margin_m)
         inside = np.all((pts_base >= box[0] - m) & (pts_base <= box[1] + m), axis=1)
         outside = keep & ~inside
         keep = keep & inside
-        in_margin = int(np.count_nonzero(keep & ~np.all(
-            (pts_base >= box[0]) & (pts_base <= box[1]), axis=1)))
+        in_box = keep & np.all((pts_base >= box[0]) & (pts_base <= box[1]), axis=1)
+    in_margin = int(np.count_nonzero(keep & ~in_box))
     dropped["outside_workspace"] = int(outside.sum())
 
     report: dict = {
@@ -1134,6 +1134,13 @@ def triangulate_sweep(
     O = origin[keep]
     fpos = frame_pos[keep]
     normals, report["normals"] = _sweep_normals(P, O, fpos, line[keep], frame_axis, options)
+    if in_margin and in_box.any():
+        # the box's points keep the normals of their neighbours in the box: the margin
+        # holds the table, whose crease with the object would tilt the foot's normals
+        # (10 degrees on bracket/4's walls); the margin's points see all their neighbours
+        b = in_box[keep]
+        normals[b], report["normals_in_box"] = _sweep_normals(
+            P[b], O[b], fpos[b], line[keep][b], frame_axis, options)
     geo = np.clip(sin_a[keep] / np.sin(np.radians(_CONF_REF_ANGLE_DEG)), 0.0, 1.0)
     from .viz import format_counts
 

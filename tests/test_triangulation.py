@@ -501,14 +501,20 @@ def test_stages_on_a_simulated_sphere(sphere_recording, tmp_path):
         assert json.load(f)["stripe_rejected"] == rep["rejected"]  # the counts flow on
     assert trep["n_sweeps"] == 2 and trep["n_pixels"] == rep["n_points"]
     clouds = load_clouds_npz(tout["npz"])
-    P = np.concatenate([c.points_base for c in clouds])
-    assert len(P) == trep["n_points"] > 1000
+    assert sum(len(c) for c in clouds) == trep["n_points"] > 1000
+    # the margin around the box holds the table (the align stage crops it); the box's
+    # points are the sphere's
+    from robo3d.artefacts import in_clouds_workspace
+
+    inb = in_clouds_workspace(clouds)
+    assert sum(c.report["n_in_margin"] for c in clouds) == sum(int((~m).sum()) for m in inb)
+    P = np.concatenate([c.points_base[m] for c, m in zip(clouds, inb, strict=True)])
     # the truth: a sphere of 40 mm radius at (0, 0, 40 mm) (its facets sag < 0.01 mm)
     err_mm = np.abs(np.linalg.norm(P - [0.0, 0.0, 0.04], axis=1) - 0.04) * 1e3
     assert np.median(err_mm) < 0.025 and np.percentile(err_mm, 95) < 0.1, (
         np.median(err_mm), np.percentile(err_mm, 95))
     # normals point outward, toward the camera
-    N = np.concatenate([c.normals_base for c in clouds])
+    N = np.concatenate([c.normals_base[m] for c, m in zip(clouds, inb, strict=True)])
     radial = (P - [0.0, 0.0, 0.04]) / np.linalg.norm(P - [0.0, 0.0, 0.04], axis=1)[:, None]
     assert np.median(np.einsum("ij,ij->i", N, radial)) > 0.99
     attrs = read_point_cloud_attributes(tout["ply"])
@@ -525,4 +531,23 @@ def test_stages_on_a_simulated_sphere(sphere_recording, tmp_path):
     rep6 = stage_triangulate({"stripes": out["npz"]}, tout6, cfg6, "sphere")
     assert "eq. 11" in rep6["laser_pose"]
     P6 = np.concatenate([c.points_base for c in load_clouds_npz(tout6["npz"])])
-    np.testing.assert_allclose(P6, P, atol=1e-9)
+    np.testing.assert_allclose(P6, np.concatenate([c.points_base for c in clouds]), atol=1e-9)
+
+
+def test_points_in_the_box_are_those_of_an_exact_crop():
+    """The margin adds points; the box's own points, normals and confidences are those
+    an exact crop gives (the alignment registers them as before)."""
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=8)
+    full = triangulate_sweep(stripes, CAM, poses, T_cl)
+    x = full.points_base[:, 0]
+    cut = float(np.median(x))
+    box = (np.array([-1.0, -1.0, -1.0]), np.array([cut, 1.0, 1.0]))
+    exact = triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box,
+                              options=TriangulateOptions(workspace_margin_m=0.0))
+    grown = triangulate_sweep(stripes, CAM, poses, T_cl, workspace=box,
+                              options=TriangulateOptions(workspace_margin_m=0.01))
+    assert grown.report["n_in_margin"] > 0 and len(grown) > len(exact)
+    inb = np.all((grown.points_base >= box[0]) & (grown.points_base <= box[1]), axis=1)
+    np.testing.assert_array_equal(grown.points_base[inb], exact.points_base)
+    np.testing.assert_array_equal(grown.normals_base[inb], exact.normals_base)
+    np.testing.assert_array_equal(grown.confidence[inb], exact.confidence)

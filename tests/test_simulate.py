@@ -550,6 +550,34 @@ def test_laser_colour_dominates_the_stripe(sphere_scene, laser, channel):
                                                                        axis=1))
 
 
+@pytest.mark.parametrize("size,where", [((320, 240), 0.3), ((320, 240), 0.45),
+                                        ((1280, 960), 0.3)])
+def test_stripe_truth_signal_is_what_the_frame_records(sphere_scene, size, where):
+    """The truth's expected peak is what the rendered frame holds at the stripe, also
+    where the line's image is narrower than a pixel (a small image, the sphere's limb
+    seen nearly edge-on): without the pixel's average the truth expected up to 4 times
+    the recorded peak there (median 0.39 of it at 320 x 240)."""
+    import cv2
+
+    from robo3d.sim.render import visible_stripe_points
+
+    camera = default_camera(*size)
+    t_cl = default_laser_mount()
+    lo, hi = sphere_scene.mesh.bounds
+    t0, direction, length = sweep_poses(30.0, 45.0, CENTRE, 0.27, t_cl, lo, hi, 0.002)
+    t_bc = t0.copy()
+    t_bc[:3, 3] += direction * where * length
+    st = visible_stripe_points(sphere_scene, camera, t_bc, t_bc @ t_cl)
+    img = render_laser_frame(sphere_scene, camera, t_bc, t_bc @ t_cl)
+    near = cv2.dilate(img.astype(np.float32), np.ones((3, 3), np.uint8))
+    sel = st.on_object & (st.signal_dn > 2)
+    assert sel.sum() > 300
+    uv = np.rint(st.pixels_uv[sel]).astype(int)
+    ratio = near[uv[:, 1], uv[:, 0]] / st.signal_dn[sel]
+    p10, p50, p90 = np.percentile(ratio, [10, 50, 90])
+    assert 0.9 < p50 < 1.1 and p10 > 0.75 and p90 < 1.35, (p10, p50, p90)
+
+
 def test_stripe_truth_lies_on_sheet_surface_and_image(sphere_scene):
     from robo3d.sim.render import visible_stripe_points
 

@@ -47,11 +47,13 @@ Figures (all computed here from the run's files and the recording's ground truth
     AND the frame as recorded holds a stripe that bright there (:func:`recorded_peak`:
     the brightest pixel within 1 px less the darkest within 6 px, at least
     ``stripes.min_peak``), and above the workspace floor (the pipeline crops below it by
-    contract). The recorded test is needed because the expected peak does not fall
-    with the camera's foreshortening: where the camera sees the lit surface almost
-    edge-on (the cup's inner wall at 86-88 degrees) the line's image is a fraction of a
-    pixel wide, each pixel averages it with the dark around it, and the frame records
-    1-2 grey levels where the expected peak is 50 (cup/4, frames 389-401).
+    contract). The recorded test was added when the expected peak did not fall with
+    the camera's foreshortening (where the camera sees the lit surface almost edge-on,
+    the cup's inner wall at 86-88 degrees, the line's image is a fraction of a pixel
+    wide, and the frame records 1-2 grey levels where 50 were expected: cup/4, frames
+    389-401); since f7dee88 the truth's expected peak averages the line over the
+    pixel, and the recorded test only catches what the truth does not model (sensor
+    noise, the JPEG).
     Completeness = share of the observable samples within 0.5 mm of ``measured.ply``.
     ``details`` keeps ``measured_completeness_0_5mm_expected_signal`` (the expected-peak
     test alone: the definition of 2026-12-02, stops 21-23) and

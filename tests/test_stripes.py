@@ -737,31 +737,6 @@ def test_sheet_inside_the_workspace_and_its_image_region():
     assert sheet_roi_mask(cam, sheet_in_workspace(T_bc, T_far, box), margin) is None
 
 
-def test_the_stage_roi_covers_the_triangulations_margin():
-    """The stripes stage searches where the sheet inside the box the triangulation crops
-    to projects: the workspace box grown by ``triangulation.workspace_margin_m``. A
-    stripe the robot's error put just outside the box is searched for; none farther out."""
-    from types import SimpleNamespace
-
-    from robo3d.config import default_config
-    from robo3d.stages.stripes import _sheet_rois
-    from robo3d.triangulation import sheet_in_workspace, sheet_roi_mask
-
-    cam, T_bc, T_cl, box = _look_down_rig()
-    rec = SimpleNamespace(workspace=box)
-    cfg = default_config()
-    cfg["triangulation"]["workspace_margin_m"] = 0.01
-    cfg["stripes"]["roi_margin_px"] = 0.0
-    roi, used, area = _sheet_rois(rec, cfg, [cam], T_bc[None], T_cl[None], ridge=True)
-    assert used
-    m = roi(0)
-    grown = (np.asarray(box[0]) - 0.01, np.asarray(box[1]) + 0.01)
-    np.testing.assert_array_equal(m, sheet_roi_mask(cam, sheet_in_workspace(T_bc, T_cl, grown),
-                                                    0.0))
-    exact = sheet_roi_mask(cam, sheet_in_workspace(T_bc, T_cl, box), 0.0)
-    assert m.sum() > exact.sum() and not np.any(exact & ~m) and area[0] == m.mean()
-
-
 def test_a_ridge_where_the_other_channels_fall_is_no_laser_light():
     """A thin line brighter in red only while green and blue fall (a JPEG edge's
     ringing, an orange object's dark rim) is no red laser; the same red rise with green

@@ -107,14 +107,14 @@ EXACT = dict(sweep_error_mm=(0.0, 0.0), sweep_error_deg=(0.0, 0.0),
 DRIFT = dict(seed=1, sweep_spacing=0.0011, robot_error="drift", clock_lag_ms=4.0)
 
 
-
 def _in_box(clouds) -> np.ndarray:
     """The triangulated points in the workspace box (not the triangulation's margin
     around it, which the align stage crops once the sweeps are corrected)."""
-    from robo3d.artefacts import in_clouds_workspace
+    from robo3d.artefacts import crop_clouds_to_workspace
 
-    return np.concatenate([c.points_base[m] for c, m in
-                           zip(clouds, in_clouds_workspace(clouds), strict=True)])
+    crop_clouds_to_workspace(clouds)
+    return np.concatenate([c.points_base for c in clouds])
+
 
 def _simulated(base: Path, name: str, make) -> Path:
     """``base/recordings/{name}.mcap``, simulated by ``make(path)`` unless already there

@@ -133,7 +133,7 @@ def _stats(d_mm: np.ndarray, fp_mm: np.ndarray) -> dict:
 
 
 def accuracy_objects(objects: list[str], work: Path, log) -> dict:
-    from robo3d.artefacts import in_clouds_workspace, load_clouds_npz
+    from robo3d.artefacts import crop_clouds_to_workspace, load_clouds_npz
     from robo3d.config import default_config
     from robo3d.meshio import read_mesh
     from robo3d.pipeline import stage_stripes, stage_triangulate
@@ -168,8 +168,7 @@ def accuracy_objects(objects: list[str], work: Path, log) -> dict:
                   "report": str(d / "triangulate.json"), "rrd": str(d / "triangulate.rrd")}
             trep = stage_triangulate({"stripes": so["npz"]}, to, cfg, obj)
             clouds = load_clouds_npz(to["npz"])
-            for c, m in zip(clouds, in_clouds_workspace(clouds), strict=True):
-                c.drop(~m, "outside_workspace")  # the margin's points: align crops them
+            crop_clouds_to_workspace(clouds)  # the margin's points: align crops them
             P = np.concatenate([c.points_base for c in clouds])
             fidx = np.concatenate([c.frame_index for c in clouds])
             with np.load(so["npz"]) as z:

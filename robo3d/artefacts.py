@@ -458,9 +458,9 @@ def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], 
 
 
 def clouds_workspace(clouds: Sequence[SweepCloud]) -> tuple[np.ndarray, np.ndarray] | None:
-    """The workspace box ``(min, max)`` in ``base`` that the triangulation cropped the
-    clouds to (each cloud's report, ``workspace``; grown by the cloud's
-    ``workspace_margin_m``), or None."""
+    """The recording's workspace box ``(min, max)`` in ``base`` (each cloud's report,
+    ``workspace``; the triangulation cropped to it grown by ``workspace_margin_m``), or
+    None."""
     box = next(((c.report or {}).get("workspace") for c in clouds
                 if (c.report or {}).get("workspace")), None)
     if box is None:
@@ -476,6 +476,13 @@ def in_clouds_workspace(clouds: Sequence[SweepCloud]) -> list[np.ndarray]:
         return [np.ones(len(c.points_base), bool) for c in clouds]
     lo, hi = box
     return [np.all((c.points_base >= lo) & (c.points_base <= hi), axis=1) for c in clouds]
+
+
+def crop_clouds_to_workspace(clouds: Sequence[SweepCloud]) -> list[int]:
+    """Drop the points outside the workspace box (:func:`in_clouds_workspace`) from each
+    cloud, in place, counted as ``outside_workspace``; how many per cloud."""
+    return [c.drop(~inside, "outside_workspace")
+            for c, inside in zip(clouds, in_clouds_workspace(clouds), strict=True)]
 
 
 def load_clouds_npz(path: str | os.PathLike[str]) -> list[SweepCloud]:

@@ -42,12 +42,11 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         # the points in the triangulation's margin around the box (the table, mostly) are
         # placed by the corrections but do not drive them
         reg = in_clouds_workspace(clouds)
-        result = align_sweeps([c.points_base[m] for c, m in zip(clouds, reg, strict=True)],
-                              [c.normals_base[m] for c, m in zip(clouds, reg, strict=True)],
+        sub = [(c.points_base[m], c.normals_base[m], c.sensor_origin_base[m],
+                c.frame_index[m]) for c, m in zip(clouds, reg, strict=True)]
+        result = align_sweeps([s[0] for s in sub], [s[1] for s in sub],
                               options=AlignOptions.from_config(ac, seed=cfg["seed"]),
-                              origins=[c.sensor_origin_base[m]
-                                       for c, m in zip(clouds, reg, strict=True)],
-                              profiles=[c.frame_index[m] for c, m in zip(clouds, reg, strict=True)],
+                              origins=[s[2] for s in sub], profiles=[s[3] for s in sub],
                               silhouettes=views)
         align_report = {"method": result.method, "gauge": result.gauge,
                         "points_in_margin_not_registered": int(sum(
@@ -122,16 +121,15 @@ def _crop_to_workspace(clouds: list) -> dict[str, Any]:
     exact box applies. Table points left in became measured surface on the table (the
     objects benchmark's user_mesh/7: 0.7 % of measured.ply's area, 0.5-1.5 mm from the
     object). Returns the report (per sweep: points dropped)."""
-    from ..artefacts import clouds_workspace, in_clouds_workspace
+    from ..artefacts import clouds_workspace, crop_clouds_to_workspace
 
     box = clouds_workspace(clouds)
     if box is None:
         return {"skipped": "the clouds were not cropped to a workspace box"}
     lo, hi = box
-    per_sweep = []
-    for c, inside in zip(clouds, in_clouds_workspace(clouds), strict=True):
-        per_sweep.append({"sweep": c.sweep, "points": len(inside),
-                          "dropped": c.drop(~inside, "outside_workspace")})
+    points = [len(c.points_base) for c in clouds]
+    per_sweep = [{"sweep": c.sweep, "points": n, "dropped": d} for c, n, d in
+                 zip(clouds, points, crop_clouds_to_workspace(clouds), strict=True)]
     n = sum(p["dropped"] for p in per_sweep)
     if n:
         log.info("alignment: %d aligned laser points lie outside the workspace box "

@@ -350,11 +350,10 @@ def _raw_clouds(path: str) -> list:
     """The triangulated clouds as scored: the points in the workspace box, not those in
     the triangulation's margin around it (``triangulation.workspace_margin_m``: kept
     for alignment to place, cropped by it)."""
-    from ..artefacts import in_clouds_workspace, load_clouds_npz
+    from ..artefacts import crop_clouds_to_workspace, load_clouds_npz
 
     clouds = load_clouds_npz(path)
-    for c, inside in zip(clouds, in_clouds_workspace(clouds), strict=True):
-        c.drop(~inside, "outside_workspace")
+    crop_clouds_to_workspace(clouds)
     return clouds
 
 

@@ -188,10 +188,14 @@ class AlignOptions(Options):
         from the data (the others are held at the robot's pose).
     seed : int
         The recording's seed (config ``seed``): the subsamples.
+    threads : int
+        Worker threads (the job's, not a config key): the pairs are registered and the
+        views' contour residuals found in parallel; the result does not depend on it
+        (each task runs Open3D on one thread, and the terms are summed in a fixed order).
     """
 
     section = "alignment"
-    not_in_config = ("seed",)
+    not_in_config = ("seed", "threads")
     method: Literal["pose_graph", "sequential"] = "pose_graph"
     voxel_size_m: float = 0.0005
     max_corr_dist_m: float = 0.002
@@ -209,6 +213,7 @@ class AlignOptions(Options):
     degenerate_ratio: float = 200.0
     pair_degenerate_ratio: float = 10.0
     seed: int = 0
+    threads: int = 1
 
 
 @dataclass
@@ -929,6 +934,7 @@ def _register_pairs(red, clouds, cents, usable, o: AlignOptions, prior_sd: np.nd
     trees = [cKDTree(p) for p, _ in red]
     pairs: list[dict[str, Any]] = []
     edges: dict[tuple[int, int], dict[str, Any]] = {}
+    todo: list[tuple[int, int, float, dict[str, Any]]] = []
     eye = np.eye(4)
     for i in range(n_sweeps):
         for j in range(i + 1, n_sweeps):
@@ -950,11 +956,26 @@ def _register_pairs(red, clouds, cents, usable, o: AlignOptions, prior_sd: np.nd
             if overlap < o.min_overlap:
                 pair["reason"] = f"overlap {overlap:.3f} < min_overlap {o.min_overlap}"
                 continue
-            edge = _register_pair(i, j, red, clouds, trees, cents, o, prior_sd, fine_dist,
-                                  overlap, pair)
-            if edge is not None:
-                edges[(i, j)] = edge
+            todo.append((i, j, overlap, pair))
+    # the pairs are independent: registered in parallel, gathered in their order
+    got = _map_threads(o.threads, lambda a: _register_pair(
+        a[0], a[1], red, clouds, trees, cents, o, prior_sd, fine_dist, a[2], a[3]), todo)
+    for (i, j, _, _), edge in zip(todo, got, strict=True):
+        if edge is not None:
+            edges[(i, j)] = edge
     return pairs, edges
+
+
+def _map_threads(threads: int, fn, items: list) -> list:
+    """``[fn(x) for x in items]``, on ``threads`` worker threads when more than one (the
+    results in the items' order). For tasks that spend their time in Open3D, SciPy and
+    NumPy calls, which release the GIL."""
+    if int(threads) <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=min(int(threads), len(items))) as pool:
+        return list(pool.map(fn, items))
 
 
 def _choose_reference(n_sweeps: int, usable, edges, pairs, per_sweep
@@ -1860,21 +1881,26 @@ def _add_pair_terms(H: np.ndarray, b: np.ndarray, pairs, cur, cur_n, org, red_id
 
 
 def _add_rim_terms(H: np.ndarray, b: np.ndarray, fields, act, cur, cur_n, org, G,
-                   index: dict[int, int], gate: float, sigma_s: float, rim_weight: float
-                   ) -> list[tuple[int, np.ndarray]]:
+                   index: dict[int, int], gate: float, sigma_s: float, rim_weight: float,
+                   threads: int = 1) -> list[tuple[int, np.ndarray]]:
     """Add each view's contour-generator residuals (:func:`_rim_residuals`, the most
     outward of all sweeps: :func:`_outermost_across_sweeps`) within ``gate`` px,
     Huber-weighted and weighed by ``rim_weight``, to ``H``, ``b`` (in place); returns
-    (sweep, residuals) per view and sweep."""
-    rims = []
-    for f in fields:
+    (sweep, residuals) per view and sweep. The views are searched on ``threads`` threads
+    and their terms added in the views' order (the same sums at any thread count)."""
+
+    def contour(f) -> list:
         per_view = []
         for s in act:
             idx, r, jac, scl, cell = _rim_residuals(f, cur[s], cur_n[s], G[s], **_RIM)
             okr = np.abs(r) < gate
             if okr.any():
                 per_view.append((s, idx[okr], r[okr], jac[okr], scl[okr], cell[okr]))
-        for s, idx, r, jac, _ in _outermost_across_sweeps(per_view, _RIM_CROSS_TOL_PX):
+        return _outermost_across_sweeps(per_view, _RIM_CROSS_TOL_PX)
+
+    rims = []
+    for found in _map_threads(threads, contour, list(fields)):
+        for s, idx, r, jac, _ in found:
             x = cur[s][idx]
             js = np.hstack([np.cross(x - org[s][idx], jac), jac])
             w = rim_weight * _huber(r / sigma_s, 1.5) / sigma_s**2
@@ -1986,7 +2012,7 @@ def _gauss_newton_step(rot, trans, P, Nn, O, G, pairs, red_idx, fields, act, ind
     pair_r = _add_pair_terms(H, b, pairs, cur, cur_n, org, red_idx, index, sigma_p, d_max)
     gate = (max(_RIM["search_px"] - 1.0, 1.5) if it <= 2 else max(1.5, 4 * sigma_s))
     rims = _add_rim_terms(H, b, fields, act, cur, cur_n, org, G, index, gate, sigma_s,
-                          o.rim_weight)
+                          o.rim_weight, o.threads)
     # prior on each correction (rotation vector, sensor shift): its information and
     # gradient, kept apart from the data's so that the directions the data do not
     # constrain can be left to it alone

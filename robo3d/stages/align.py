@@ -12,17 +12,19 @@ from typing import Any
 import numpy as np
 
 from ..atomic import write_json
-from .common import log, silhouette_views, summary, sweep_color
+from .common import log, silhouette_views, stage_threads, summary, sweep_color
 
 
 def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
-                cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+                cfg: Mapping[str, Any], rec_name: str, threads: int | None = None
+                ) -> dict[str, Any]:
     """Refine each sweep's pose (seed §2.3): pairwise ICP and a pose graph, then a joint
     refinement against the neighbours and, when the recording has views, the
     silhouettes as absolute reference (:func:`robo3d.registration.align_sweeps`).
 
     Inputs: ``clouds``; optional ``silhouettes`` (silhouettes.npz) with ``recording``
-    (the views' grey images). Each aligned cloud's report keeps ``correction``: the rigid
+    (the views' grey images). ``threads``: the job's (pairs and views in parallel; the
+    result does not depend on it). Each aligned cloud's report keeps ``correction``: the rigid
     ``base`` transform applied at the sweep's middle frame (what corrects the robot's
     pose there), and ``correction_model`` (rotation, translation of
     :func:`robo3d.registration.apply_correction`).
@@ -44,8 +46,8 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         reg = in_clouds_workspace(clouds)
         sub = [(c.points_base[m], c.normals_base[m], c.sensor_origin_base[m],
                 c.frame_index[m]) for c, m in zip(clouds, reg, strict=True)]
-        result = align_sweeps([s[0] for s in sub], [s[1] for s in sub],
-                              options=AlignOptions.from_config(ac, seed=cfg["seed"]),
+        opts = AlignOptions.from_config(ac, seed=cfg["seed"], threads=stage_threads(threads))
+        result = align_sweeps([s[0] for s in sub], [s[1] for s in sub], options=opts,
                               origins=[s[2] for s in sub], profiles=[s[3] for s in sub],
                               silhouettes=views)
         align_report = {"method": result.method, "gauge": result.gauge,

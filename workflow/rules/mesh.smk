@@ -18,7 +18,7 @@ rule align:
         "benchmarks/align/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    threads: stage_threads(2)  # pairs and views in parallel; alignment waits for the front end
     resources:
         mem_mb=lambda wc, attempt: 1500 * attempt,
         runtime=lambda wc, attempt: 20 * attempt,

@@ -957,49 +957,86 @@ def _integrate_scans(P, N, O, Cf, G, origin: np.ndarray, shape: tuple[int, ...],
                      interp_floor: float) -> tuple[_Accumulator, list[dict[str, Any]]]:
     """Steps 1-4 for every scan: its range surface, its signed distances and weights
     added up, its lines of sight carved; (the sums, each range surface's report);
-    ``clock`` gets the time of each step."""
+    ``clock`` gets the time of each step (summed over the scans).
+
+    With ``threads`` > 1 the scans are worked on in parallel, one per thread, and their
+    sums added in the scans' order (the same float32 sums as one after another); the
+    carving only sets flags, in any order."""
     import time
 
     trunc_voxels = o.tsdf_trunc_voxels
     trunc = trunc_voxels * voxel_size
     acc = _Accumulator.empty(shape, bool(o.carve_free_space and o.carve_full_line))
-    scans = []
-    t_rs = t_rays = t_carve = 0.0
-    for k in range(len(P)):
+    outer = max(1, min(int(threads), len(P)))
+    inner = max(1, int(threads) // outer)
+
+    def one(k: int):
         ta = time.perf_counter()
         faces, rs = range_surface(P[k], O[k], grid=G[k], normals=N[k],
                                   max_edge_factor=max_edge_factor,
                                   min_cos_view=o.min_cos_view)
-        scans.append(rs)
-        t_rs += time.perf_counter() - ta
+        t = [time.perf_counter() - ta, 0.0, 0.0]
         if len(faces) == 0:
-            continue
+            return rs, None, t
         ta = time.perf_counter()
-        _integrate_scan(acc, P[k], N[k], O[k],
-                        Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m,
-                                               o.border_weight_floor),
-                        faces, origin, shape, shift, voxel_size, trunc_voxels,
-                        interp_sigma_m, interp_floor, threads, o.min_cos_view)
-        t_rays += time.perf_counter() - ta
+        terms = _scan_terms(P[k], N[k], O[k],
+                            Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m,
+                                                   o.border_weight_floor),
+                            faces, origin, shape, shift, voxel_size, trunc_voxels,
+                            interp_sigma_m, interp_floor, inner, o.min_cos_view)
+        t[1] = time.perf_counter() - ta
         if o.carve_free_space:
             ta = time.perf_counter()
             _carve_scan(acc, P[k], O[k], faces, origin, shape, voxel_size, trunc,
                         o.carve_depth_m)
-            t_carve += time.perf_counter() - ta
-    clock.update(range_surfaces=t_rs, rays=t_rays, carve=t_carve)
+            t[2] = time.perf_counter() - ta
+        return rs, terms, t
+
+    if outer == 1:
+        done = (one(k) for k in range(len(P)))
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(max_workers=outer)
+        done = pool.map(one, range(len(P)))
+    scans = []
+    t_sum = np.zeros(3)
+    try:
+        for rs, terms, t in done:  # in the scans' order
+            scans.append(rs)
+            t_sum += t
+            if terms is not None:
+                _add_scan_terms(acc, *terms)
+    finally:
+        if outer > 1:
+            pool.shutdown()
+    clock.update(range_surfaces=float(t_sum[0]), rays=float(t_sum[1]),
+                 carve=float(t_sum[2]))
     return acc, scans
 
 
-def _integrate_scan(acc: _Accumulator, p: np.ndarray, n: np.ndarray, o: np.ndarray,
-                    vw: np.ndarray, faces: np.ndarray, origin: np.ndarray,
-                    shape: tuple[int, ...], shift: np.ndarray, voxel_size: float,
-                    trunc_voxels: int, interp_sigma_m: float, interp_floor: float,
-                    threads: int, min_cos: float) -> None:
+def _add_scan_terms(acc: _Accumulator, lk: np.ndarray, w: np.ndarray, wd: np.ndarray,
+                    wc: np.ndarray, empty: np.ndarray) -> None:
+    """Step 3's sums of one scan (:func:`_scan_terms`) added to ``acc`` (in place); the
+    band's voxels are unique within one scan: one addition each."""
+    acc.sum_w[lk] += w
+    acc.sum_wd[lk] += wd
+    acc.sum_wc[lk] += wc
+    acc.n_obs[lk] += 1
+    acc.seen_empty[empty] = True
+
+
+def _scan_terms(p: np.ndarray, n: np.ndarray, o: np.ndarray, vw: np.ndarray,
+                faces: np.ndarray, origin: np.ndarray, shape: tuple[int, ...],
+                shift: np.ndarray, voxel_size: float, trunc_voxels: int,
+                interp_sigma_m: float, interp_floor: float, threads: int, min_cos: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Steps 2-3 for one scan: the signed distance (found along the line of sight, along
     the surface's normal) of every voxel within the band around its range surface
     ``faces`` (rays cast through the voxel centres, Open3D / Embree; ``n``: the points'
     normals, for how far in front a ray starts), weighted by cos, the vertex weights
-    ``vw`` and the taper behind the surface, added to ``acc`` (in place)."""
+    ``vw`` and the taper behind the surface: (voxels, w, w x sdf, w x cos as float32,
+    voxels seen empty), for :func:`_add_scan_terms`."""
     import open3d as o3d
     from scipy import ndimage
     from scipy.spatial import cKDTree
@@ -1059,12 +1096,8 @@ def _integrate_scan(acc: _Accumulator, p: np.ndarray, n: np.ndarray, o: np.ndarr
     behind = np.maximum(trunc * cos, _BEHIND_MIN_VOXELS * voxel_size)
     w = cos * wv * np.clip((sdf + behind) / (0.5 * behind), 0.0, 1.0)
     keep = (w > 0) & (sdf <= trunc)
-    lk = lin[keep]  # the band's voxels are unique within one scan: one addition each
-    acc.sum_w[lk] += w[keep].astype(np.float32)
-    acc.sum_wd[lk] += (w * sdf)[keep].astype(np.float32)
-    acc.sum_wc[lk] += (w * cos)[keep].astype(np.float32)
-    acc.n_obs[lk] += 1
-    acc.seen_empty[lin[sdf > 0.5 * voxel_size]] = True
+    return (lin[keep], w[keep].astype(np.float32), (w * sdf)[keep].astype(np.float32),
+            (w * cos)[keep].astype(np.float32), lin[sdf > 0.5 * voxel_size])
 
 
 def _carve_scan(acc: _Accumulator, p: np.ndarray, o: np.ndarray, faces: np.ndarray,

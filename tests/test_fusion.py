@@ -550,3 +550,18 @@ def test_tsdf_voxel_no_finer_than_the_data():
     # dense scans keep the floor: the demos' and the objects benchmark's grids
     dense = _views_of_sphere(n_per_view=60000)[0]
     assert data_voxel(dense, coarse)[0] == 0.4e-3
+
+
+def test_tsdf_threads_do_not_change_the_mesh():
+    """With threads the scans are integrated in parallel and their sums added in the
+    scans' order: the same float32 sums, so the same mesh to the bit."""
+    from robo3d.fusion import FuseOptions, fuse_tsdf
+
+    pts6, nrm6, org6 = _views_of_sphere(8000)
+    opts = FuseOptions(tsdf_voxel_m=1e-3, min_cos_view=0.3)
+    v1, f1, r1 = fuse_tsdf(pts6, nrm6, org6, options=opts, threads=1)
+    v2, f2, r2 = fuse_tsdf(pts6, nrm6, org6, options=opts, threads=2)
+    assert len(f1) > 1000 and r1["n_scans"] == 6
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(f1, f2)
+    assert r1["range_surfaces"] == r2["range_surfaces"]

@@ -38,6 +38,7 @@ for multiple-view stereopsis. IJCV 120.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from typing import Any
 
@@ -63,6 +64,23 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def open3d_threads(n: int):
+    """Open3D's thread count raised to ``n`` inside the block, for queries whose results do
+    not depend on it: closest-point distances (each point's query is independent, no
+    reduction; the stages pin Open3D to one thread for ICP's and TSDF's sums, see
+    :func:`robo3d.stages.common.pin_open3d_threads`). ``n`` <= 1 changes nothing."""
+    import open3d as o3d
+
+    before = o3d.utility.get_max_threads()
+    if int(n) > 1:
+        o3d.utility.set_max_threads(int(n))
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def _in_box(p: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:

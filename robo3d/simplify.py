@@ -73,15 +73,19 @@ class SimplifyOptions(Options):
         all faces are removed (0 keeps every component).
     seed : int
         The recording's seed (config ``seed``): the search's area samples.
+    threads : int
+        Threads of the distance queries (the job's, not a config key; the distances do
+        not depend on it). The quadric collapse runs on one.
     """
 
     section = "simplify"
-    not_in_config = ("seed",)
+    not_in_config = ("seed", "threads")
     target_faces: int | None = 20000
     max_error_m: float | None = None
     hausdorff_tolerance_m: float | None = 0.0002
     min_component_fraction: float = 0.01
     seed: int = 0
+    threads: int = 1
 
     @property
     def error_bound_m(self) -> float | None:
@@ -178,34 +182,38 @@ def clean_mesh(
 
 
 def _distances_to(v: np.ndarray, f: np.ndarray, points: np.ndarray,
-                  shift: np.ndarray | None = None) -> np.ndarray:
+                  shift: np.ndarray | None = None, threads: int = 1) -> np.ndarray:
     """Unsigned distance of each point to the nearest point of the mesh (Open3D's
     RaycastingScene, Embree's closest-point query: exact per triangle), metres; computed
-    in float32 about ``shift`` (default: the mesh's mean vertex)."""
+    in float32 about ``shift`` (default: the mesh's mean vertex), on ``threads``."""
     import open3d as o3d
+
+    from .evaluate import open3d_threads
 
     shift = v.mean(axis=0) if shift is None else shift
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor((v - shift).astype(np.float32)),
                         o3d.core.Tensor(np.asarray(f, dtype=np.int64).astype(np.uint32)))
-    return scene.compute_distance(o3d.core.Tensor(
-        (points - shift).astype(np.float32))).numpy().astype(np.float64)
+    with open3d_threads(threads):
+        return scene.compute_distance(o3d.core.Tensor(
+            (points - shift).astype(np.float32))).numpy().astype(np.float64)
 
 
 def _one_way(v_from: np.ndarray, f_from: np.ndarray, v_to: np.ndarray, f_to: np.ndarray,
-             n: int, seed: int) -> dict[str, float]:
+             n: int, seed: int, threads: int = 1) -> dict[str, float]:
     from .evaluate import sample_surface
 
     pts = np.concatenate([v_from, sample_surface(v_from, f_from, max(0, n - len(v_from)),
                                                  seed=seed)])
-    d = _distances_to(v_to, f_to, pts)
+    d = _distances_to(v_to, f_to, pts, threads=threads)
     return {"max": float(d.max()), "mean": float(d.mean()),
             "rms": float(np.sqrt(np.mean(d * d)))}
 
 
 def hausdorff_distance(vertices_a: np.ndarray, faces_a: np.ndarray,
                        vertices_b: np.ndarray, faces_b: np.ndarray, *,
-                       n_samples: int | None = None, seed: int = 0) -> dict[str, Any]:
+                       n_samples: int | None = None, seed: int = 0, threads: int = 1
+                       ) -> dict[str, Any]:
     """Two-sided sampled Hausdorff distance between two meshes, in metres: from every
     vertex and area samples of each mesh to the nearest point of the other (Open3D's
     exact point-to-triangle distance; the sampling of Metro, Cignoni et al. 1998).
@@ -220,6 +228,8 @@ def hausdorff_distance(vertices_a: np.ndarray, faces_a: np.ndarray,
         at most 2,000,000.
     seed : int
         Seed of the area samples.
+    threads : int
+        Threads of the distance queries (the result does not depend on it).
 
     Returns
     -------
@@ -237,8 +247,8 @@ def hausdorff_distance(vertices_a: np.ndarray, faces_a: np.ndarray,
             return int(n_samples)
         return int(min(max(len(v) + 2 * len(f), 10_000), 2_000_000))
 
-    ab = _one_way(va, fa, vb, fb, n_for(va, fa), seed)
-    ba = _one_way(vb, fb, va, fa, n_for(vb, fb), seed + 1)
+    ab = _one_way(va, fa, vb, fb, n_for(va, fa), seed, threads)
+    ba = _one_way(vb, fb, va, fa, n_for(vb, fb), seed + 1, threads)
     return {"a_to_b": ab, "b_to_a": ba, "max": max(ab["max"], ba["max"])}
 
 
@@ -270,7 +280,8 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
 class _Distance:
     """Fast two-sided distance between a fixed mesh and candidates (Open3D/Embree)."""
 
-    def __init__(self, v: np.ndarray, f: np.ndarray, n_samples: int, seed: int) -> None:
+    def __init__(self, v: np.ndarray, f: np.ndarray, n_samples: int, seed: int,
+                 threads: int = 1) -> None:
         import open3d as o3d
 
         from .evaluate import sample_surface
@@ -280,23 +291,24 @@ class _Distance:
         self.scene.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
                                  o3d.core.Tensor(f.astype(np.uint32)))
         self.samples = np.concatenate([v, sample_surface(v, f, n_samples, seed=seed)])
-        self.n_samples, self.seed = n_samples, seed
+        self.n_samples, self.seed, self.threads = n_samples, seed, threads
 
     def __call__(self, v: np.ndarray, f: np.ndarray) -> float:
         import open3d as o3d
 
-        from .evaluate import sample_surface
+        from .evaluate import open3d_threads, sample_surface
 
-        a = _distances_to(v, f, self.samples, self.shift)
+        a = _distances_to(v, f, self.samples, self.shift, self.threads)
         q = np.concatenate([v, sample_surface(v, f, self.n_samples // 4, seed=self.seed)])
-        b = self.scene.compute_distance(o3d.core.Tensor((q - self.shift).astype(np.float32)
-                                                        )).numpy()
+        with open3d_threads(self.threads):
+            b = self.scene.compute_distance(o3d.core.Tensor(
+                (q - self.shift).astype(np.float32))).numpy()
         return float(max(a.max(), b.max()))
 
 
 def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float,
                      preserve_boundary: bool, preserve_normal: bool, tolerance: float,
-                     n_samples: int, seed: int):
+                     n_samples: int, seed: int, threads: int = 1):
     """The error-bounded mode of :func:`simplify_mesh`: progressive halving towards
     ``target``, each step checked as it is made and the halving stopped at the first step
     beyond ``max_error`` (the error grows with every halving), then a log-scale search
@@ -310,7 +322,7 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     step cost about twice as many quadric collapses (a small simulated scan: 556,450 faces
     in, 151,702 out, 29 s before, ``benchmarks/README.md``)."""
     n_trials = 0
-    dist = _Distance(v, f, n_samples, seed)
+    dist = _Distance(v, f, n_samples, seed, threads)
     good = (v, f.astype(np.int64), 0.0)
     bad_n = None
     n = len(f)
@@ -415,9 +427,10 @@ def simplify_mesh(
     else:
         ov, of, search_d, n_trials = _decimate_within(v, f, target, max_error,
                                                       preserve_boundary, preserve_normal,
-                                                      tolerance, n_samples, seed)
+                                                      tolerance, n_samples, seed,
+                                                      options.threads)
     hd = (hausdorff_distance(v, f, ov, of, n_samples=min(len(v) + n_samples, 2_000_000),
-                             seed=seed)
+                             seed=seed, threads=options.threads)
           if len(of) < len(f) else {"a_to_b": _zero(), "b_to_a": _zero(), "max": 0.0})
     report.update(n_faces=int(len(of)), n_vertices=int(len(ov)), n_trials=n_trials,
                   search_distance_m=search_d, hausdorff_max_m=hd["max"],

@@ -81,6 +81,28 @@ def test_simplify_within_max_error():
     assert rep4["n_trials"] == 1 and len(f4) <= len(f) // 2
 
 
+def test_threads_do_not_change_the_simplified_mesh():
+    """The distance checks run on the job's threads (point-wise queries, no sums): the
+    same search, the same mesh and the same reported distances, with Open3D pinned to one
+    thread as the stages pin it, and the pin restored afterwards."""
+    import open3d as o3d
+
+    v, f = _uv_sphere()
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        runs = [simplify_mesh(v, f, options=BOUND.replace(max_error_m=0.2e-3, threads=n))
+                for n in (1, 2)]
+        assert o3d.utility.get_max_threads() == 1
+    finally:
+        o3d.utility.set_max_threads(before)
+    (v1, f1, r1), (v2, f2, r2) = runs
+    assert r1["n_trials"] >= 2 and len(f1) < len(f)
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(f1, f2)
+    assert r1["hausdorff_m"] == r2["hausdorff_m"]
+
+
 def test_hausdorff_of_identical_and_offset_meshes():
     v, f = _uv_sphere(20)
     same = hausdorff_distance(v, f, v, f)

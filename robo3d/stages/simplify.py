@@ -9,17 +9,19 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..atomic import write_json
-from .common import log, summary
+from .common import log, stage_threads, summary
 from .fuse import source_colors
 
 
 def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
-                   cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+                   cfg: Mapping[str, Any], rec_name: str, threads: int | None = None
+                   ) -> dict[str, Any]:
     """Clean the fused mesh (duplicates, zero-area faces, small floating components) and
     simplify it by quadric edge collapse to ``simplify.target_faces`` and/or within
     ``simplify.max_error_m``; the Hausdorff distance to the fused mesh must stay within
     ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does). Writes
-    ``ply`` and, when given, ``stl`` / ``obj`` outputs."""
+    ``ply`` and, when given, ``stl`` / ``obj`` outputs. ``threads``: the job's, for the
+    distance checks (the result does not depend on it)."""
     from ..fusion import source_area_fractions
     from ..meshio import read_mesh, read_vertex_attributes, write_mesh
     from ..simplify import SimplifyOptions, clean_mesh, simplify_mesh, transfer_vertex_attributes
@@ -27,7 +29,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     t0 = time.perf_counter()
     sc = cfg["simplify"]
-    opts = SimplifyOptions.from_config(sc, seed=cfg["seed"])
+    opts = SimplifyOptions.from_config(sc, seed=cfg["seed"], threads=stage_threads(threads))
     V, F = read_mesh(inputs["fused"])
     attrs_in = read_vertex_attributes(inputs["fused"])
     V0 = V

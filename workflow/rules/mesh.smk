@@ -67,7 +67,7 @@ rule simplify:
         "benchmarks/simplify/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    threads: stage_threads(2)  # the distance checks; the quadric collapse runs on one
     resources:
         mem_mb=lambda wc, attempt: 1500 * attempt,
         runtime=lambda wc, attempt: 20 * attempt,

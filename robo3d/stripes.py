@@ -66,8 +66,12 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
 4. The axis, per frame, from the stripe's geometry: the probe of step 1 on sampled rows
    (profiles along u: a stripe crossing the rows) and columns; the axis whose strongest
    curve is stronger (a stripe within 45 degrees of vertical gets one centre per row).
-   The stripe's direction ``angle_deg`` is the median slope between centres of
-   neighbouring lines.
+   A stripe bent into a U (the laser's arc inside a cup) runs both ways, and the
+   probe's strongest curve can be one of its steep arms: where the chosen axis crosses
+   the stripe twice in more lines than it kept (``two_blobs`` and ``second_line``
+   outnumber the centres), the other axis is searched too and the one with more
+   centres kept. The stripe's direction ``angle_deg`` is the median slope between
+   centres of neighbouring lines.
 5. The sub-pixel centre is the band detector's (step 5 below) on the profile of the
    laser's own channel (flat-topped, still centred, where it saturates; a chroma
    difference would dip there) or the lightness, around the winning candidate's
@@ -261,7 +265,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
@@ -2416,13 +2420,33 @@ def _check_roi(roi: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray | N
     return np.ascontiguousarray(roi if roi.dtype == np.bool_ else roi != 0)
 
 
-def _extract_ridge(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
-                   max_width_px: float, method: str, tail_fraction: float, noise_k: float,
-                   min_run: int, link_px: float,
-                   roi: np.ndarray | None = None,
-                   centre_on: str = "laser", follow: bool = False) -> StripePoints:
+def _extract_ridge(img: np.ndarray, *, axis: str, **kw: Any) -> StripePoints:
     """The ridge detector on an (H, W, 1|3) kernel image (see the module docstring),
-    candidates only inside ``roi`` when given."""
+    candidates only inside ``roi`` when given.
+
+    With ``axis="auto"``, when the probe's axis crosses the stripe twice in more of its
+    lines than it kept (``two_blobs`` and ``second_line`` outnumber the centres: a stripe
+    bent into a U, the laser's arc inside a cup, runs both ways, and the probe's
+    strongest curve is one of its steep arms), the frame is searched along the other
+    axis too and the result with more centres is kept (step 4 of the module docstring:
+    the consistent axis)."""
+    first = _extract_ridge_axis(img, axis=axis, **kw)
+    if axis != "auto":
+        return first
+    crossed = first.rejected["two_blobs"] + first.rejected["second_line"]
+    if crossed <= len(first.u):
+        return first
+    other = _extract_ridge_axis(img, axis="rows" if first.axis == "columns" else "columns",
+                                **kw)
+    return other if len(other.u) > len(first.u) else first
+
+
+def _extract_ridge_axis(img: np.ndarray, *, axis: str, colour: str, min_peak: float,
+                        max_width_px: float, method: str, tail_fraction: float,
+                        noise_k: float, min_run: int, link_px: float,
+                        roi: np.ndarray | None = None,
+                        centre_on: str = "laser", follow: bool = False) -> StripePoints:
+    """:func:`_extract_ridge` along ``axis`` (``"auto"``: the probe's choice)."""
     h_img, w_img, nch = img.shape
     spans = _spans(roi, h_img, w_img)
     if nch == 1:

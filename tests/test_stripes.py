@@ -789,3 +789,30 @@ def test_stripes_artefact_round_trip_and_damage(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(ArtefactError, match=r"junk\.npz: not a readable stripes\.npz"):
         Stripes.load(tmp_path / "junk.npz")
+
+
+def test_auto_axis_takes_the_consistent_axis_for_a_u_shaped_stripe():
+    """The laser's arc inside a cup is a U: its steep arms make the probe's strongest
+    curve along the rows, where every row crosses the stripe twice (simulated cup/4,
+    frames 389-390: 6-7 centres, 130 lines rejected as two blobs or a second line). The
+    other axis crosses it once per column: auto searches it too and keeps it."""
+    from scipy.spatial import cKDTree
+
+    h, w, a, half = 480, 640, 0.012, 150.0
+    us = np.linspace(320 - half, 320 + half, 20000)
+    vs = 400 - a * (us - 320) ** 2
+    gain = 1 + np.clip(np.abs(2 * a * (us - 320)) / 3, 0, 1)  # the steep arms brighter
+    pix = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
+    d, j = cKDTree(np.c_[us, vs]).query(pix, distance_upper_bound=6)
+    val = np.zeros(len(pix))
+    m = np.isfinite(d)
+    val[m] = 60 * gain[j[m]] * np.exp(-0.5 * (d[m] / 1.2) ** 2)
+    img = (np.random.default_rng(0).normal(20, 2, (h, w)) + val.reshape(h, w))
+    img = img.clip(0, 255).astype(np.uint8)
+    opts = StripeOptions(colour="lightness")
+    rows = extract_stripe_centres(img, options=opts.replace(axis="rows"))
+    assert len(rows.u) < 20 and rows.rejected["two_blobs"] > 200  # the probe's choice
+    sp = extract_stripe_centres(img, options=opts)
+    assert sp.axis == "columns" and len(sp.u) > 0.85 * 2 * half
+    truth_v = 400 - a * (sp.u - 320) ** 2
+    assert np.median(np.abs(sp.v - truth_v)) < 0.2

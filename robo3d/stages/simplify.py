@@ -64,9 +64,10 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
             log_mesh(rr_stream, "base/simplify/mesh", V2, F2, albedo=[230, 200, 160, 255])
         log_report(rr_stream, "reports/simplify", report)
     write_json(outputs["report"], report)
-    kept = (f"; {report['kept_faces']} faces around {report['kept_places']} places kept "
-            "as fused (decimating them went beyond the tolerance)"
-            if report.get("kept_places") else "")
+    n_places = int(report.get("kept_places") or 0)
+    kept = (f"; {report['kept_faces']} faces around {n_places} "
+            f"place{'s' if n_places > 1 else ''} kept as fused (decimating them went beyond "
+            "the tolerance)" if n_places else "")
     summary.info("simplified %d -> %d faces, Hausdorff %.3f mm%s (%.1f s)", len(F), len(F2),
                  (haus or 0.0) * 1e3, kept, report["seconds"])
     return report

@@ -2436,8 +2436,10 @@ def _extract_ridge(img: np.ndarray, *, axis: str, **kw: Any) -> StripePoints:
         return first
     if _crossed(first) <= _AXIS_RETRY_CROSSED * len(first.u):
         return first
+    # the same contrast as the first search (with colour "auto" the other axis could vote
+    # for another one)
     other = _extract_ridge_axis(img, axis="rows" if first.axis == "columns" else "columns",
-                                **kw)
+                                **{**kw, "colour": first.colour})
     better = len(other.u) > len(first.u) and _crossed(other) < len(other.u)
     return other if better else first
 

@@ -12,9 +12,12 @@ error-driven stop in pymeshlab, so the error-bounded mode decimates *progressive
 (halving the face count from the previous result, which costs about one decimation of
 the input in all) and measures the two-sided distance of the last step to the input
 (Open3D/Embree point-to-triangle distances of the vertices and of area samples: fast);
-when that step is beyond the bound it bisects over the steps for the last one within
-it, then searches between that step and the next (bisection on a log scale, each trial
-decimating the kept step). The reported Hausdorff distance of the result is measured the
+where a step goes beyond the bound, the places where it does are kept at the resolution
+they have (the faces around them are left out of the collapse) and the step is made
+again, so that one or two spots do not hold the whole mesh at hundreds of thousands of
+faces; a step still beyond the bound ends the halving, and a search between the last
+step within it and that one follows (bisection on a log scale, each trial decimating the
+kept step). The reported Hausdorff distance of the result is measured the
 same way with more samples (:func:`hausdorff_distance`, the sampling of Metro, Cignoni et
 al. 1998; pymeshlab's own measure took 5 of a small scan's 20 s).
 

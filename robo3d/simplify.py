@@ -293,7 +293,10 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
 
 
 class _Distance:
-    """Fast two-sided distance between a fixed mesh and candidates (Open3D/Embree)."""
+    """Fast two-sided distance between a fixed mesh and candidates (Open3D/Embree), on
+    the samples of :func:`hausdorff_distance` with ``n_samples`` (each mesh's vertices,
+    then area samples up to that many; the same seeds), so that a candidate within the
+    bound here is within it in the reported measure too."""
 
     def __init__(self, v: np.ndarray, f: np.ndarray, n_samples: int, seed: int,
                  threads: int = 1) -> None:
@@ -305,7 +308,8 @@ class _Distance:
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
                                  o3d.core.Tensor(f.astype(np.uint32)))
-        self.samples = np.concatenate([v, sample_surface(v, f, n_samples, seed=seed)])
+        self.samples = np.concatenate([v, sample_surface(v, f, max(0, n_samples - len(v)),
+                                                         seed=seed)])
         self.n_samples, self.seed, self.threads = n_samples, seed, threads
 
     def __call__(self, v: np.ndarray, f: np.ndarray, bound: float = np.inf
@@ -317,7 +321,8 @@ class _Distance:
         from .evaluate import open3d_threads, sample_surface
 
         a = _distances_to(v, f, self.samples, self.shift, self.threads)
-        q = np.concatenate([v, sample_surface(v, f, self.n_samples // 4, seed=self.seed)])
+        q = np.concatenate([v, sample_surface(v, f, max(0, self.n_samples - len(v)),
+                                              seed=self.seed + 1)])
         with open3d_threads(self.threads):
             b = self.scene.compute_distance(o3d.core.Tensor(
                 (q - self.shift).astype(np.float32))).numpy()
@@ -382,7 +387,7 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     step cost about twice as many quadric collapses (a small simulated scan: 556,450 faces
     in, 151,702 out, 29 s before, ``benchmarks/README.md``)."""
     n_trials = 0
-    dist = _Distance(v, f, n_samples, seed, threads)
+    dist = _Distance(v, f, min(len(v) + n_samples, 2_000_000), seed, threads)
     radius = _LOCK_RADIUS_BOUNDS * max_error
     places = np.zeros((0, 3))
     good = (v, f.astype(np.int64), 0.0)

@@ -234,7 +234,10 @@ def test_search_check_is_the_reported_measure():
                    [-0.01, 0.01, 0.0]])
     of = np.array([[0, 1, 2], [0, 2, 3]])
     n = len(v) + 20_000
-    d_search, _ = _Distance(v, f, n, seed=3)(ov, of)
+    d_search, _, stats = _Distance(v, f, n, seed=3)(ov, of)
     hd = hausdorff_distance(v, f, ov, of, n_samples=n, seed=3)
     assert hd["a_to_b"]["max"] < 1e-7 < hd["b_to_a"]["max"] <= 0.001  # the gap decides
     assert d_search == pytest.approx(hd["max"], rel=1e-6)
+    for side in ("a_to_b", "b_to_a"):  # what simplify_mesh reports from the search's check
+        for k in ("max", "mean", "rms"):
+            assert stats[side][k] == pytest.approx(hd[side][k], rel=1e-5, abs=1e-9)

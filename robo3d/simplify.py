@@ -384,8 +384,8 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
 
     Why locks: the bound is global, and one or two spots decide it. On the simulated
     cup/4 a flap of a few fused vertices went 0.28 mm off when the 656,000-face mesh was
-    halved once, and the search ended at 601,674 faces; with the two places kept the
-    halving reaches the 20,000 target (22,304 faces, 2,305 kept as they were), within
+    halved once, and the search ended at 601,674 faces; with such places kept (31 by the
+    end) the halving reaches the 20,000 target (22,282 faces, 2,282 kept as they were), within
     0.2 mm everywhere (``benchmarks/README.md``).
 
     Why this order: on a fused TSDF mesh (hundreds of thousands of faces at

@@ -202,15 +202,22 @@ def _distances_to(v: np.ndarray, f: np.ndarray, points: np.ndarray,
             (points - shift).astype(np.float32))).numpy().astype(np.float64)
 
 
-def _one_way(v_from: np.ndarray, f_from: np.ndarray, v_to: np.ndarray, f_to: np.ndarray,
-             n: int, seed: int, threads: int = 1) -> dict[str, float]:
+def _measure_samples(v: np.ndarray, f: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """The points a mesh is measured at: its vertices, then area samples up to ``n`` in
+    all (the search's checks and the report use the same, :class:`_Distance`)."""
     from .evaluate import sample_surface
 
-    pts = np.concatenate([v_from, sample_surface(v_from, f_from, max(0, n - len(v_from)),
-                                                 seed=seed)])
-    d = _distances_to(v_to, f_to, pts, threads=threads)
-    return {"max": float(d.max()), "mean": float(d.mean()),
-            "rms": float(np.sqrt(np.mean(d * d)))}
+    return np.concatenate([v, sample_surface(v, f, max(0, n - len(v)), seed=seed)])
+
+
+def _stats(d: np.ndarray) -> dict[str, float]:
+    return {"max": float(d.max()), "mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d * d)))}
+
+
+def _one_way(v_from: np.ndarray, f_from: np.ndarray, v_to: np.ndarray, f_to: np.ndarray,
+             n: int, seed: int, threads: int = 1) -> dict[str, float]:
+    return _stats(_distances_to(v_to, f_to, _measure_samples(v_from, f_from, n, seed),
+                                threads=threads))
 
 
 def hausdorff_distance(vertices_a: np.ndarray, faces_a: np.ndarray,
@@ -302,14 +309,11 @@ class _Distance:
                  threads: int = 1) -> None:
         import open3d as o3d
 
-        from .evaluate import sample_surface
-
         self.shift = v.mean(axis=0)
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
                                  o3d.core.Tensor(f.astype(np.uint32)))
-        self.samples = np.concatenate([v, sample_surface(v, f, max(0, n_samples - len(v)),
-                                                         seed=seed)])
+        self.samples = _measure_samples(v, f, n_samples, seed)
         self.n_samples, self.seed, self.threads = n_samples, seed, threads
 
     def __call__(self, v: np.ndarray, f: np.ndarray, bound: float = np.inf
@@ -318,11 +322,10 @@ class _Distance:
         from the other, :func:`hausdorff_distance`'s dict of the fixed mesh as ``a``)."""
         import open3d as o3d
 
-        from .evaluate import open3d_threads, sample_surface
+        from .evaluate import open3d_threads
 
         a = _distances_to(v, f, self.samples, self.shift, self.threads)
-        q = np.concatenate([v, sample_surface(v, f, max(0, self.n_samples - len(v)),
-                                              seed=self.seed + 1)])
+        q = _measure_samples(v, f, self.n_samples, self.seed + 1)  # b_to_a's seed
         with open3d_threads(self.threads):
             b = self.scene.compute_distance(o3d.core.Tensor(
                 (q - self.shift).astype(np.float32))).numpy()
@@ -330,10 +333,6 @@ class _Distance:
         b = b.astype(np.float64)
         stats = {"a_to_b": _stats(a), "b_to_a": _stats(b), "max": float(max(a.max(), b.max()))}
         return stats["max"], far, stats
-
-
-def _stats(d: np.ndarray) -> dict[str, float]:
-    return {"max": float(d.max()), "mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d * d)))}
 
 
 #: rounds of :func:`_decimate_within`'s local locks per step before it gives the step up
@@ -370,7 +369,7 @@ def _locked_faces(v: np.ndarray, f: np.ndarray, places: np.ndarray, radius: floa
 
 def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float,
                      preserve_boundary: bool, preserve_normal: bool, tolerance: float,
-                     n_samples: int, seed: int, threads: int = 1):
+                     n_check: int, seed: int, threads: int = 1):
     """The error-bounded mode of :func:`simplify_mesh`: progressive halving towards
     ``target``, each step checked as it is made. Where a step goes beyond ``max_error``
     the places where it does (the samples of either mesh farther than that from the
@@ -394,7 +393,7 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     step cost about twice as many quadric collapses (a small simulated scan: 556,450 faces
     in, 151,702 out, 29 s before, ``benchmarks/README.md``)."""
     n_trials = 0
-    dist = _Distance(v, f, min(len(v) + n_samples, 2_000_000), seed, threads)
+    dist = _Distance(v, f, n_check, seed, threads)
     radius = _LOCK_RADIUS_BOUNDS * max_error
     places = np.zeros((0, 3))
     good = (v, f.astype(np.int64), 0.0, None)
@@ -505,6 +504,7 @@ def simplify_mesh(
     target = int(target_faces) if target_faces is not None else max(4, len(f) // 1000)
     n_trials = 0
     search_d = searched = None
+    n_check = min(len(v) + n_samples, 2_000_000)  # samples on each side, both measures
     if max_error is None or target >= len(f):
         ov, of = (_decimate(v, f, target, preserve_boundary, preserve_normal)
                   if target < len(f) else (v, f.astype(np.int64)))
@@ -512,14 +512,14 @@ def simplify_mesh(
     else:
         ov, of, search_d, n_trials, places, searched = _decimate_within(
             v, f, target, max_error, preserve_boundary, preserve_normal, tolerance,
-            n_samples, seed, options.threads)
+            n_check, seed, options.threads)
         kept = _locked_faces(ov, of, places, _LOCK_RADIUS_BOUNDS * max_error)
         report.update(kept_places=int(len(places)),
                       kept_faces=int(kept.sum()) if kept is not None else 0)
     # the search's last check is the measure itself (the same samples, both ways)
     hd = (searched if searched is not None else
-          hausdorff_distance(v, f, ov, of, n_samples=min(len(v) + n_samples, 2_000_000),
-                             seed=seed, threads=options.threads)
+          hausdorff_distance(v, f, ov, of, n_samples=n_check, seed=seed,
+                             threads=options.threads)
           if len(of) < len(f) else {"a_to_b": _zero(), "b_to_a": _zero(), "max": 0.0})
     report.update(n_faces=int(len(of)), n_vertices=int(len(ov)), n_trials=n_trials,
                   search_distance_m=search_d, hausdorff_max_m=hd["max"],

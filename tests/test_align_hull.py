@@ -168,3 +168,34 @@ def test_margin_points_are_placed_by_alignment_not_used_by_it(tmp_path, monkeypa
     np.testing.assert_allclose(aligned[0].points_base, np.concatenate([wall, foot]), atol=1e-12)
     assert report["outside_workspace"]["dropped"] == len(table)
     assert len(aligned[1]) == 40
+
+
+def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path):
+    """Masks that failed alike in many views (a white cup on a checker table: each mask
+    missed the cup's white patches) together drop most of the measured points, each
+    point by a few views, and no single view is the odd one out: the laser is kept whole
+    and the report says why."""
+    cam, Ts, masks = _views()
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = CENTRE + RADIUS * d
+    clouds = [_cloud(surface.copy(), 0)]
+    npz = tmp_path / "silhouettes.npz"
+    np.savez(npz, qa_flagged=np.zeros(len(Ts), bool))
+    half = []  # each mask misses a third of its 12-px blocks (its white patches)
+    for _ in masks:
+        keep = rng.random((180 // 12 + 1, 240 // 12 + 1)) > 1 / 3
+        half.append(np.kron(keep, np.ones((12, 12), bool))[:180, :240])
+    half = [m & k for m, k in zip(masks, half, strict=True)]
+    views = SilhouetteViews([m.astype(float) for m in half], half, [cam] * len(Ts), Ts)
+    report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)},
+                                           default_config()["alignment"])
+    assert report["contradicted"] is True and report["dropped"] == 0 and len(dropped) == 0
+    assert report["disputed_fraction"] > 0.25 and "contradict the laser" in report["skipped"]
+    assert len(clouds[0]) == 500
+    # the same masks with a lenient cap drop what they see outside: the test is the cap
+    lenient = {**default_config()["alignment"], "outside_hull_max_fraction": 0.9}
+    clouds = [_cloud(surface.copy(), 0)]
+    report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)}, lenient)
+    assert report["dropped"] == len(dropped) > 200 and len(clouds[0]) < 300

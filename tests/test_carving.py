@@ -739,6 +739,32 @@ def test_stage_carve_leaves_a_flagged_view_out_and_says_so(tmp_path, ring):
     assert report["volume_m3"] < 0.5 * SPHERE_VOLUME
 
 
+def test_stage_carve_always_leaves_an_empty_mask_out(tmp_path, ring):
+    """A view the segmentation could not do has an empty mask, which would carve every
+    voxel: it is left out even with the agreement check off, and named."""
+    from robo3d.config import load_config
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks, _grid, _exact = ring
+    ms = list(masks)
+    ms[5] = np.zeros_like(masks[5])
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms)
+    out = {k: str(tmp_path / f"hull.{k}") for k in ("npz", "ply", "rrd")}
+    out["report"] = str(tmp_path / "carve.json")
+    for carving in ({"qa_leave_out": False}, {"qa_resolution": 0}, {}):
+        cfg = load_config(overrides={"carving": {"resolution": 40, **carving}})
+        report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg,
+                             "s")
+        assert [r["view"] for r in report["views_left_out"]] == [5], carving
+        assert any("empty mask" in r for r in report["views_left_out"][0]["reasons"])
+        assert 5 not in report["views_used"]
+        assert report["volume_m3"] == pytest.approx(SPHERE_VOLUME, rel=0.1)
+    ms = [np.zeros_like(m) for m in masks]
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms)
+    with pytest.raises(StageError, match="no view is left to carve"):
+        stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+
+
 def test_stage_carve_reads_the_segmentation_flags(tmp_path, ring):
     """Views the segmentation flagged leave the reference; one that still agrees with
     the others carves, one that disagrees is left out with both reasons."""

@@ -260,6 +260,37 @@ def test_tsdf_holes_closed_from_the_hull():
     assert "closed from the hull" in rep["hull_fill"]
 
 
+def test_tsdf_a_hull_the_laser_contradicts_closes_nothing():
+    """Silhouettes that failed in many views carve a hull far smaller than the object:
+    most of what the laser measured lies outside it. Such a hull bounds nothing; it
+    closes nothing (the mesh is the measured cap, labelled so), where a hull that holds
+    the measurements closes the sphere."""
+    from robo3d.fusion import FuseOptions, fuse_tsdf
+
+    pts, nrm, org = _views_of_sphere(20000, axes=[[0.0, 0.0, 1.0]])
+    small = _exact_hull()
+    origin, vs = small["origin"], small["voxel_size"]
+    centres = origin + np.indices(small["occupancy"].shape).reshape(3, -1).T * vs
+    small["occupancy"] = (np.linalg.norm(centres - C, axis=1) < 0.4 * R).reshape(
+        small["occupancy"].shape)  # a hull 40 % of the object's size, inside it
+    opts = FuseOptions(tsdf_voxel_m=1e-3)
+    v, f, rep = fuse_tsdf(pts, nrm, org, options=opts, hull=small, max_edge_factor=3.0)
+    assert rep["hull_contradicted"] is True and rep["close"] == "none"
+    assert rep["observed_solid_outside_hull_fraction"] > 0.9
+    assert "contradicts the laser" in rep["hull_fill"]
+    assert rep["laser_area_fraction"] == 1.0 and rep["hull_area_fraction"] == 0.0
+    assert v[:, 2].min() > C[2]  # the seen cap only: nothing closed below
+    assert _radial_error(v).mean() < 0.03e-3
+    v2, f2, rep2 = fuse_tsdf(pts, nrm, org, options=opts, hull=_exact_hull(),
+                             max_edge_factor=3.0)
+    assert not rep2.get("hull_contradicted") and rep2["observed_solid_outside_hull_fraction"] < 0.2
+    assert np.all(_edge_uses(f2) == 2) and v2[:, 2].min() < C[2] - 0.9 * R
+    # a lenient bound lets the small hull close the mesh
+    v3, _, rep3 = fuse_tsdf(pts, nrm, org, options=FuseOptions(
+        tsdf_voxel_m=1e-3, max_outside_hull_fraction=1.0), hull=small, max_edge_factor=3.0)
+    assert not rep3.get("hull_contradicted") and rep3["hull_area_fraction"] > 0
+
+
 def test_range_surface_cuts_depth_jumps():
     from robo3d.fusion import range_surface
 

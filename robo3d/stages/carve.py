@@ -35,7 +35,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     in the report (``views_left_out``), in ``hull.npz`` (``views_used``,
     ``views_left_out``) and in the rerun log. Views the segmentation's own checks
     flagged (``qa_flagged`` in ``silhouettes.npz``) do not define the other views'
-    reference; they are left out only when they disagree too. The carving method
+    reference; they are left out only when they disagree too. An empty mask (a view whose
+    segmentation failed) is always left out. The carving method
     (``carving.method``: Szeliski's octree or dense), its policies and ``k`` of n
     (``carving.min_views_background``) come from the config
     (:class:`~robo3d.carving.CarveOptions`); ``hull.npz`` holds the occupancy with its
@@ -59,12 +60,26 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         raise ConfigError(f"config key carving.leaf_rule: {opts.leaf_rule!r} needs "
                           "carving.method octree (the dense method tests voxel centres)")
     ws = workspace_from(sil)
-    box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc)
+    # an empty mask (a view the segmentation could not do) would carve every voxel
+    empty = [i for i in range(len(cameras)) if not masks[i].any()]
+    if cameras and len(empty) == len(cameras):
+        raise StageError(f"{inputs['silhouettes']}: no view is left to carve: all "
+                         f"{len(cameras)} masks are empty")
+    box_min, box_max, box_report = _carving_box(
+        ws, masks, cameras, poses, cc,
+        [i for i in range(len(cameras)) if i not in empty] if empty else None)
     agreement = _view_agreement_check(inputs["silhouettes"], sil, masks, cameras, poses,
                                       box_min, box_max, cc)
     n_views = len(cameras)
     left_out = agreement["views_left_out"] if cc["qa_leave_out"] else []
+    for i in empty:
+        agreement["reasons"].setdefault(i, []).append("empty mask: the segmentation "
+                                                      "failed in this view")
+    left_out = sorted(set(left_out) | set(empty))
     used = [i for i in range(n_views) if i not in set(left_out)]
+    if not used:
+        raise StageError(f"{inputs['silhouettes']}: no view is left to carve: "
+                         f"{n_views} views, all with empty or disagreeing masks")
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
         box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
@@ -231,10 +246,12 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
                           f"{n} views: too few for the others to outvote one")
         return out
     exclude = sorted(seg_flags)
+    empty = [i for i in range(n) if not masks[i].any()]
     if len(exclude) > n // 2:
         log.warning("the segmentation flagged %d of %d views: too many to leave the "
-                    "reference; all views score each other", len(exclude), n)
-        exclude = []
+                    "reference; all views with a mask score each other", len(exclude), n)
+        exclude = empty
+    exclude = sorted(set(exclude) | set(empty))
     grid = make_grid(box_min, box_max, resolution=min(qa_opts.qa_resolution,
                                                       cc["resolution"]))
     # the masks are scored against the others' exact hull whatever k the carve uses: a

@@ -100,7 +100,8 @@ def _stage_metrics(inputs: Mapping[str, str], results_dir: Path, cfg: Mapping[st
         "mesh": simp.get("source_area_fraction"),
         "inferred_area_fraction": simp.get("inferred_area_fraction",
                                            fuse.get("inferred_area_fraction")),
-        "close": cfg["fusion"]["close"]}
+        "close": fuse.get("close", cfg["fusion"]["close"]),
+        "hull_contradicted": bool(fuse.get("hull_contradicted", False))}
     carve = stages.get("carve", {})
     if isinstance(carve, dict) and "views_left_out" in carve:
         metrics["views_left_out"] = carve["views_left_out"]

@@ -42,7 +42,10 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     views), ``rrd`` (images with their masks at their cameras) and, when given,
     ``masks``: a folder of one PNG per view (``view_000.png``, 255 = silhouette).
     A view whose segmentation fails (empty, uniform, or covering its whole region) is
-    an error naming it; a mask that is merely absurd is flagged, not dropped.
+    named in a warning and flagged (``views_failed``, its QA flag ``segmentation failed:
+    ...``) with an empty mask, which the carve leaves out; when more than half of the
+    views fail, the stage fails with an error naming the first. A mask that is merely
+    absurd is flagged, not dropped.
     """
     from ..silhouettes import SegmentOptions
 
@@ -56,15 +59,26 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ws = rec.workspace
     backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses,
                                      inputs.get("calibration"))
-    masks, per_view = [], []
+    masks, per_view, failed = [], [], []
     progress = Progress("segmenting views", len(views))
     for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
-        mask, row = _segment_one(inputs["recording"], rec, i, msg, cam, T, backgrounds[i],
-                                 ws, options)
+        try:
+            mask, row = _segment_one(inputs["recording"], rec, i, msg, cam, T,
+                                     backgrounds[i], ws, options)
+        except StageError as exc:
+            # one view that cannot be segmented (its object in the background's colours)
+            # does not stop the others: an empty mask, flagged, which no stage uses
+            failed.append(str(exc))
+            log.warning("%s; the view is flagged and not used", exc)
+            mask, row = np.zeros((cam.height, cam.width), bool), _failed_row(i, msg, exc)
         masks.append(mask)
         per_view.append(row)
         progress(i + 1)
+    if views and len(failed) > len(views) // 2:
+        raise StageError(f"{len(failed)} of {len(views)} views could not be segmented "
+                         f"(at most half may fail); the first: {failed[0]}")
     report = _report(per_view, ws, t0)
+    report["views_failed"] = [v["index"] for v in per_view if v.get("failed")]
     Silhouettes.from_views(masks, poses, [m.timestamp_ns for m in views], cameras,
                            [bool(v["qa"]["flags"]) for v in per_view], ws
                            ).save(outputs["npz"])
@@ -119,6 +133,19 @@ def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,
            "refined": sil.refined, "qa": sil.qa,
            "mask_png": f"view_{i:03d}.png"}
     return sil.mask, row
+
+
+def _failed_row(i: int, msg, exc: StageError) -> dict[str, Any]:
+    """The report's row of view ``i`` whose segmentation failed with ``exc``: QA-flagged
+    (``segmentation failed: ...``), an empty mask."""
+    reason = str(exc).split("): ", 1)[-1]
+    return {"index": i, "timestamp_ns": msg.timestamp_ns, "failed": reason,
+            "threshold": None, "polarity": None, "area_px": 0, "n_components": 0,
+            "touches_border": False, "touches_image_border": False, "roi": None,
+            "roi_source": None, "centroid_uv": None, "background_subtracted": False,
+            "background_sample": None, "refined": False,
+            "qa": {"flags": [f"segmentation failed: {reason}"]},
+            "mask_png": f"view_{i:03d}.png"}
 
 
 def _report(per_view: list[dict], ws, t0: float) -> dict[str, Any]:

@@ -342,7 +342,8 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
     Snakemake then removes the job's outputs and, with ``--keep-going``, finishes the
     other recordings. Temporary files that a killed earlier attempt left beside the
     outputs (``.<name>.*.tmp<suffix>``, never mistaken for outputs) are removed first.
-    A stage that takes ``threads`` gets the job's.
+    A stage that takes ``threads`` gets the job's; one that takes ``has_laser`` the rule's
+    ``params.has_laser``.
     """
     import inspect
 
@@ -355,6 +356,9 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
     kwargs = {}
     if "threads" in inspect.signature(fn).parameters and getattr(smk, "threads", None):
         kwargs["threads"] = int(smk.threads)
+    if "has_laser" in inspect.signature(fn).parameters and hasattr(
+            getattr(smk, "params", None), "has_laser"):
+        kwargs["has_laser"] = bool(smk.params.has_laser)
     # the rule's params hold the sections this stage reads (what triggers its re-runs);
     # the stage sees only those, so a section it reads but does not declare is a bug
     params = getattr(smk, "params", None)

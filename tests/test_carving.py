@@ -518,14 +518,16 @@ def test_surface_is_the_shell():
 
 
 # ---------------------------------------------------------------------- the pipeline stage
-def _silhouettes_npz(path, cam, Ts, masks):
+def _silhouettes_npz(path, cam, Ts, masks, workspace=None):
     from robo3d.atomic import save_npz
     from robo3d.stages.common import camera_arrays
 
     stack = np.stack(masks)
+    box = {} if workspace is None else {"workspace_min": np.asarray(workspace[0]),
+                                        "workspace_max": np.asarray(workspace[1])}
     save_npz(path, masks=np.packbits(stack, axis=-1), mask_shape=np.array(stack.shape),
              T_base_camera=Ts, stamps_ns=np.arange(len(Ts), dtype=np.int64),
-             **camera_arrays([cam] * len(Ts)))
+             **camera_arrays([cam] * len(Ts)), **box)
 
 
 @pytest.mark.parametrize("method", ["octree", "dense"])
@@ -763,6 +765,41 @@ def test_stage_carve_always_leaves_an_empty_mask_out(tmp_path, ring):
     _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms)
     with pytest.raises(StageError, match="no view is left to carve"):
         stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+
+
+def test_stage_carve_with_laser_frames_leaves_an_empty_hull_not_an_error(tmp_path, ring):
+    """Silhouettes that carve every voxel (masks of the wrong part in every view) stop a
+    photo set; a scan with laser frames goes on with an empty hull, which says why."""
+    from robo3d.config import load_config
+    from robo3d.meshio import read_mesh
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks, _grid, _exact = ring
+    ms = []  # each mask a square in a corner of its image, far off the workspace box
+    for _ in range(len(masks)):
+        m = np.zeros_like(masks[0])
+        m[:8, :8] = True
+        ms.append(m)
+    box = (CENTRE - 1.2 * RADIUS, CENTRE + 1.2 * RADIUS)
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms, box)
+    out = {k: str(tmp_path / f"hull.{k}") for k in ("npz", "ply", "rrd")}
+    out["report"] = str(tmp_path / "carve.json")
+    cfg = load_config(overrides={"carving": {"resolution": 40}})
+    with pytest.raises(StageError, match="carving removed every voxel"):
+        stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+    assert not any(Path(f).exists() for f in out.values())
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s",
+                         has_laser=True)
+    assert report["empty"] is True and "removed every voxel" in report["reason"]
+    grid, extra = VoxelGrid.load_npz(out["npz"], return_extra=True)
+    assert grid.n_occupied == 0 and "removed every voxel" in str(extra["empty"])
+    V, F = read_mesh(out["ply"])
+    assert len(V) == 0 and len(F) == 0
+    # every mask empty: the same
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, [np.zeros_like(m) for m in ms], box)
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s",
+                         has_laser=True)
+    assert report["empty"] is True and "all 12 masks are empty" in report["reason"]
 
 
 def test_stage_carve_reads_the_segmentation_flags(tmp_path, ring):

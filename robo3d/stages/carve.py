@@ -26,7 +26,8 @@ from .common import cameras_from, load_silhouettes, log, mesh_volume, summary, w
 
 
 def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
-                cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+                cfg: Mapping[str, Any], rec_name: str, has_laser: bool = False
+                ) -> dict[str, Any]:
     """Place the box, check the views agree, carve the visual hull (seed §3.1–3.5), mesh it.
 
     Before the carve, each silhouette is scored against the hull of the other views on
@@ -63,8 +64,10 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     # an empty mask (a view the segmentation could not do) would carve every voxel
     empty = [i for i in range(len(cameras)) if not masks[i].any()]
     if cameras and len(empty) == len(cameras):
-        raise StageError(f"{inputs['silhouettes']}: no view is left to carve: all "
-                         f"{len(cameras)} masks are empty")
+        why = f"no view is left to carve: all {len(cameras)} masks are empty"
+        if has_laser:
+            return _no_hull(outputs, rec_name, sil, cc, why, t0)
+        raise StageError(f"{inputs['silhouettes']}: {why}")
     box_min, box_max, box_report = _carving_box(
         ws, masks, cameras, poses, cc,
         [i for i in range(len(cameras)) if i not in empty] if empty else None)
@@ -88,9 +91,12 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     for v in carve_report["views"]:  # the recording's view numbers, not the subset's
         v["view"] = used[v["view"]]
     if grid.n_occupied == 0:
-        raise StageError(f"{inputs['silhouettes']}: carving removed every voxel: the "
-                         "silhouettes do not agree with the cameras' poses (check the "
-                         "calibration, the transform tree and the masks)")
+        why = ("carving removed every voxel: the silhouettes do not agree with the cameras' "
+               "poses (check the calibration, the transform tree and the masks)")
+        if has_laser:
+            return _no_hull(outputs, rec_name, sil, cc, why, t0, grid=grid,
+                            views_used=used)
+        raise StageError(f"{inputs['silhouettes']}: {why}")
     vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
     left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
                      for i in left_out]
@@ -111,6 +117,39 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     summary.info("hull (%s): %d voxels of %.2f mm, volume %.1f cm3, mesh %d faces, %d of %d "
              "views (%.1f s)", opts.method, grid.n_occupied, grid.voxel_size * 1e3,
              report["volume_m3"] * 1e6, len(faces), len(used), n_views, report["seconds"])
+    return report
+
+
+def _no_hull(outputs: Mapping[str, str], rec_name: str, sil: Mapping[str, Any],
+             cc: Mapping[str, Any], why: str, t0: float, grid: VoxelGrid | None = None,
+             views_used: list[int] | None = None) -> dict[str, Any]:
+    """A scan with laser frames whose silhouettes carve nothing (objects of the
+    background's colours, masks that fail in every view): the laser's measurement does
+    not depend on them. An empty hull (``hull.npz`` with no occupied voxel, ``empty``;
+    an empty ``hull.ply``) and a report that says why; fusion then closes nothing."""
+    from ..carving import make_grid
+    from ..meshio import write_mesh
+    from ..viz import log_report, rerun_log
+
+    log.warning("no visual hull: %s; the scan goes on with the laser alone (the mesh "
+                "will be the measured surface, nothing closed)", why)
+    if grid is None:
+        ws = workspace_from(sil)
+        lo, hi = ws if ws is not None else (np.zeros(3), np.full(3, 1e-3))
+        grid = make_grid(lo, hi, resolution=8)
+    grid.occupancy[...] = False
+    report = {"empty": True, "reason": why, "occupied_voxels": 0, "volume_m3": 0.0,
+              "n_views": int(len(sil["masks"])), "views_used": views_used or [],
+              "views_left_out": [], "views_flagged": [],
+              "mesh": {"vertices": 0, "faces": 0, "volume_m3": 0.0},
+              "seconds": round(time.perf_counter() - t0, 3)}
+    grid.save_npz(outputs["npz"], views_used=np.array(views_used or [], dtype=np.int64),
+                  views_left_out=[], empty=why)
+    write_mesh(outputs["ply"], np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        log_report(rr_stream, "reports/carve", report)
+    write_json(outputs["report"], report)
+    summary.info("no visual hull (%s)", why)
     return report
 
 

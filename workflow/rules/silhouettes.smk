@@ -35,6 +35,8 @@ rule carve:
         rrd="results/{rec}/carve.rrd",
     params:
         **stage_params("carve"),
+        # with laser frames, silhouettes that carve nothing leave an empty hull, not an error
+        has_laser=lambda wc: "laser" in recording_stages(RECORDINGS[wc.rec]),
     log:
         "logs/carve/{rec}.log",
     benchmark:

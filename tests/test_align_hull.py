@@ -194,8 +194,19 @@ def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path)
     assert report["contradicted"] is True and report["dropped"] == 0 and len(dropped) == 0
     assert report["disputed_fraction"] > 0.25 and "contradict the laser" in report["skipped"]
     assert len(clouds[0]) == 500
+    # masks that are specks in every view: every point outside most of them
+    specks = [np.zeros_like(m) for m in masks]
+    for m in specks:
+        m[80:84, 100:104] = True
+    views_s = SilhouetteViews([m.astype(float) for m in specks], specks, [cam] * len(Ts), Ts)
+    clouds = [_cloud(surface.copy(), 0)]
+    report, dropped = _reject_outside_hull(clouds, views_s, {"silhouettes": str(npz)},
+                                           default_config()["alignment"])
+    assert report["contradicted"] is True and report["would_drop_fraction"] > 0.9
+    assert report["disputed_fraction"] < 0.25 and len(clouds[0]) == 500
     # the same masks with a lenient cap drop what they see outside: the test is the cap
-    lenient = {**default_config()["alignment"], "outside_hull_max_fraction": 0.9}
+    lenient = {**default_config()["alignment"], "outside_hull_max_fraction": 0.9,
+               "outside_hull_max_total_fraction": 0.95}
     clouds = [_cloud(surface.copy(), 0)]
     report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)}, lenient)
     assert report["dropped"] == len(dropped) > 200 and len(clouds[0]) < 300

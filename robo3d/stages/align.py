@@ -152,11 +152,13 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     ``outside_hull_max_view_fraction`` of the points where at most a quarter of the views
     (at least one) see them outside (the laser contradicts the mask: the others see the
     points inside). When more than ``outside_hull_max_fraction`` of the points would be
-    dropped by fewer than half of the views, the silhouettes contradict the laser as a
-    whole (masks that failed alike in many views): no point is dropped, and the report
-    says so (``contradicted``). Stray points are few or seen outside by most views: the
-    cells of the front-end benchmark (the laser on the table and the wall inside the box)
-    drop 1.7-6 %, 3.2 % by fewer than half of the views.
+    dropped by fewer than half of the views, or more than
+    ``outside_hull_max_total_fraction`` (half) of all the points, the
+    silhouettes contradict the laser as a whole (masks that failed alike in many views):
+    no point is dropped, and the report says so (``contradicted``). Stray points are few
+    or seen outside by most views: the cells of the front-end benchmark (the laser on the
+    table and the wall inside the box) drop 1.7-6 %, 3.2 % by fewer than half of the
+    views.
 
     Returns the report (per sweep: points dropped) and the dropped points.
     """
@@ -195,25 +197,33 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     # table lit inside the box: a third of a scan's points, outside every view); the
     # others each only some views drop
     disputed = float((drop & (n_out < max(1, (len(idx) - int(distrust.sum())) / 2))).mean())
-    if disputed > float(ac["outside_hull_max_fraction"]):
+    # ... and masks that are wrong everywhere (an object of the background's colours
+    # segmented as a few specks per view) put every point outside most of them: more
+    # than half of what the laser measured in the box is never stray light
+    if (disputed > float(ac["outside_hull_max_fraction"])
+            or float(drop.mean()) > float(ac["outside_hull_max_total_fraction"])):
         # the silhouettes as a whole contradict the laser: segmentation that failed
         # together in many views (a white cup on a black-and-white checker table: every
         # mask missed its white patches; 84 % of the laser points lay outside some of
         # them, each outside fewer than half)
         would = float(drop.mean())
         log.warning("alignment: the silhouettes would drop %.1f %% of the laser points, "
-                    "%.1f %% of them outside fewer than half of the views (more than "
-                    "alignment.outside_hull_max_fraction %.0f %%): they contradict the "
-                    "laser, which is kept whole; the masks are likely wrong (see "
+                    "%.1f %% outside fewer than half of the views (limits "
+                    "alignment.outside_hull_max_fraction %.0f %%, "
+                    "outside_hull_max_total_fraction %.0f %%): they contradict the laser, "
+                    "which is kept whole; the masks are likely wrong (see "
                     "pictures/masks.png)", 100 * would, 100 * disputed,
-                    100 * float(ac["outside_hull_max_fraction"]))
+                    100 * float(ac["outside_hull_max_fraction"]),
+                    100 * float(ac["outside_hull_max_total_fraction"]))
         return {"skipped": "the silhouettes contradict the laser: they would drop "
                            f"{100 * would:.1f} % of the laser points, {100 * disputed:.1f} "
                            "% outside fewer than half of the views (more than "
-                           "alignment.outside_hull_max_fraction); none is dropped",
+                           "alignment.outside_hull_max_fraction, or more than "
+                           "outside_hull_max_total_fraction in all); none is dropped",
                 "contradicted": True, "would_drop_fraction": would,
                 "disputed_fraction": disputed,
                 "max_fraction": float(ac["outside_hull_max_fraction"]),
+                "max_total_fraction": float(ac["outside_hull_max_total_fraction"]),
                 "views_used": int(len(idx) - distrust.sum()), "points": int(n_all),
                 "dropped": 0, "dropped_fraction": 0.0}, np.zeros((0, 3))
     starts = np.cumsum([0] + [len(c) for c in clouds])

@@ -889,3 +889,31 @@ def test_points_outside_the_silhouettes(sphere_views):
     n_far, _ = outside_silhouettes(far[None], masks, cam, Ts)
     assert n_far[0] == sum(sees) < len(Ts)
     assert outside_silhouettes(np.zeros((0, 3)), masks, cam, Ts)[0].shape == (0,)
+
+
+def test_the_workflow_tells_the_carve_whether_the_scan_has_laser_frames(tmp_path, ring,
+                                                                        monkeypatch):
+    """The rule's ``params.has_laser`` reaches the stage (what lets a scan's carve leave
+    an empty hull); a rule without it runs the stage as before."""
+    from types import SimpleNamespace
+
+    import robo3d.pipeline as pipeline
+    from robo3d.config import load_config
+
+    seen = []
+    monkeypatch.setattr(pipeline, "_setup_logging", lambda *a, **k: None)  # pytest's own
+    monkeypatch.setitem(pipeline.STAGES, "carve",
+                        lambda i, o, c, r, has_laser=False: seen.append(has_laser))
+
+    class _Named(dict):
+        def items(self):  # snakemake's Namedlist
+            return super().items()
+
+    cfg = load_config()
+    for params, want in ((SimpleNamespace(cfg=cfg, has_laser=True), True),
+                         (SimpleNamespace(cfg=cfg), False)):
+        smk = SimpleNamespace(wildcards={"rec": "r"}, log=[str(tmp_path / "carve.log")],
+                              input=_Named(silhouettes="s.npz"), output=_Named(npz="h.npz"),
+                              threads=1, params=params, config=cfg)
+        pipeline.run_from_snakemake("carve", smk)
+        assert seen[-1] is want

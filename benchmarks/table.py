@@ -134,6 +134,16 @@ DESCRIBED: dict[str, dict[str, tuple[str, str, str]]] = {
         "completeness_0_5mm": ("completeness at 0.5 mm", "", "simulated"),
         "end_to_end_s": ("end to end, one recording, --cores 2", "s", "simulated"),
     },
+    "hard_scenes": {
+        "completed": ("objects of the background's colours: the scan completes", "",
+                      "simulated"),
+        "mask_iou_mean": ("masks vs the truth, mean (known limit)", "IoU", "simulated"),
+        "measured_median_mm": ("measured surface, median", "mm", "simulated"),
+        "measured_completeness_0_5mm": ("observable surface within 0.5 mm", "",
+                                        "simulated"),
+        "inferred_area_fraction": ("inferred share of the mesh's area", "", "simulated"),
+        "mesh_median_mm": ("whole mesh, median", "mm", "simulated"),
+    },
     "objects": {
         "aligned_median_mm": ("aligned clouds vs the truth, median", "mm", "simulated"),
         "pose_err_after_mm": ("worst sweep after alignment", "mm", "simulated"),

@@ -123,6 +123,9 @@ def _hull(path: str, metrics: Mapping[str, Any], up: np.ndarray, how: str,
              if isinstance(carve.get("volume_m3"), int | float) else f"{len(F)} faces"]
     if isinstance(ev.get("hull_volume_iou"), int | float):
         lines[0] += f"; volume IoU with the true object {ev['hull_volume_iou']:.3f}"
+    if carve.get("empty"):
+        lines.append(f"no hull: {carve.get('reason', 'the silhouettes carved every voxel')}"
+                     "; the scan's mesh is its measured surface")
     lines.append(f"up: {how}")
     col = np.tile([0.55, 0.70, 0.85], (len(V), 1))
     return titled(_tiles_row(mesh_views(V, F, col, up, tile_px=tile)),
@@ -183,6 +186,9 @@ def _mesh(path: str, mesh: tuple[np.ndarray, np.ndarray], rec, metrics: Mapping[
         inf = (metrics.get("surface_sources") or {}).get("inferred_area_fraction")
         lines = [f"{len(F)} faces" + (f"; {100 * inf:.1f} % of its area inferred, not "
                                       "measured" if isinstance(inf, int | float) else "")]
+    if (metrics.get("surface_sources") or {}).get("hull_contradicted"):
+        lines.append("the visual hull contradicts the laser: nothing was closed from it, "
+                     "the mesh is the measured surface")
     tiles = mesh_views(V, F, col, up, tile_px=tile)
     tiles_out[:] = tiles[:1]
     return titled(np.concatenate([_tiles_row(tiles), foot], axis=0), title, lines)

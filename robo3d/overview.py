@@ -187,6 +187,17 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     left = metrics.get("views_left_out") or []
     if left:
         notes.append(f"{len(left)} view(s) left out of the hull by the agreement check")
+    failed = _get(metrics, ("stages", "silhouettes", "views_failed")) or []
+    if failed:
+        notes.append(f"{len(failed)} view(s) gave no silhouette and were not used")
+    if _get(metrics, ("stages", "carve", "empty")):
+        notes.append("no visual hull: the silhouettes carved every voxel")
+    if _get(metrics, ("stages", "align", "outside_hull", "contradicted")):
+        notes.append("the silhouettes contradict the laser: no laser point was dropped "
+                     "by them")
+    if _get(metrics, ("surface_sources", "hull_contradicted")):
+        notes.append("the hull contradicts the laser: nothing closed, the mesh is the "
+                     "measured surface")
     flagged = [s.get("sweep") for s in _get(metrics, ("stages", "align", "per_sweep")) or []
                if isinstance(s, Mapping) and s.get("flagged")]
     if flagged:

@@ -264,6 +264,17 @@ def test_key_figures_against_their_targets_and_the_status():
                                                      "mesh.ply"]
     judged = [f["label"] for f in key_figures(_metrics(False)) if f["met"] is not None]
     assert judged == ["Time of all stages (job time, one core each)"]  # no truth: no error
+    # silhouettes that failed: named in the notes, beside the figures
+    failed = _metrics(False)
+    failed["stages"] = {"silhouettes": {"views_failed": [1, 4]}, "carve": {"empty": True},
+                        "align": {"outside_hull": {"contradicted": True}}}
+    failed["surface_sources"] = {"hull_contradicted": True}
+    _, notes = recording_status(failed)
+    assert notes == ["2 view(s) gave no silhouette and were not used",
+                     "no visual hull: the silhouettes carved every voxel",
+                     "the silhouettes contradict the laser: no laser point was dropped by them",
+                     "the hull contradicts the laser: nothing closed, the mesh is the "
+                     "measured surface"]
 
 
 def test_overview_and_batch_table_speak_in_words_with_units(tmp_path):

@@ -44,7 +44,10 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     origin, voxel size, frame and how it was carved, ``hull.ply`` the smoothed
     watertight marching-cubes mesh, the report the box, the agreement scores, the
     resolution check (eq. 7–8), the volume and the hull's bounding box (``bbox_min``,
-    ``bbox_max``: the outer faces of the occupied voxels, metres).
+    ``bbox_max``: the outer faces of the occupied voxels, metres). Silhouettes that leave
+    nothing to carve, or carve every voxel, are an error, except in a scan with laser
+    frames (``has_laser``, the rule's ``params.has_laser``): there the hull is empty
+    (``empty`` and ``reason`` in the report and ``hull.npz``), and fusion closes nothing.
     """
     from ..carving import CarveOptions, carve_visual_hull, hull_to_mesh, make_grid
     from ..errors import ConfigError
@@ -66,7 +69,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     if cameras and len(empty) == len(cameras):
         why = f"no view is left to carve: all {len(cameras)} masks are empty"
         if has_laser:
-            return _no_hull(outputs, rec_name, sil, cc, why, t0)
+            return _no_hull(outputs, rec_name, sil, why, t0)
         raise StageError(f"{inputs['silhouettes']}: {why}")
     box_min, box_max, box_report = _carving_box(
         ws, masks, cameras, poses, cc,
@@ -81,8 +84,10 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     left_out = sorted(set(left_out) | set(empty))
     used = [i for i in range(n_views) if i not in set(left_out)]
     if not used:
-        raise StageError(f"{inputs['silhouettes']}: no view is left to carve: "
-                         f"{n_views} views, all with empty or disagreeing masks")
+        why = f"no view is left to carve: {n_views} views, all with empty or disagreeing masks"
+        if has_laser:
+            return _no_hull(outputs, rec_name, sil, why, t0)
+        raise StageError(f"{inputs['silhouettes']}: {why}")
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
         box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
@@ -94,8 +99,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         why = ("carving removed every voxel: the silhouettes do not agree with the cameras' "
                "poses (check the calibration, the transform tree and the masks)")
         if has_laser:
-            return _no_hull(outputs, rec_name, sil, cc, why, t0, grid=grid,
-                            views_used=used)
+            return _no_hull(outputs, rec_name, sil, why, t0, grid=grid, views_used=used)
         raise StageError(f"{inputs['silhouettes']}: {why}")
     vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
     left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
@@ -120,8 +124,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     return report
 
 
-def _no_hull(outputs: Mapping[str, str], rec_name: str, sil: Mapping[str, Any],
-             cc: Mapping[str, Any], why: str, t0: float, grid: VoxelGrid | None = None,
+def _no_hull(outputs: Mapping[str, str], rec_name: str, sil: Mapping[str, Any], why: str,
+             t0: float, grid: VoxelGrid | None = None,
              views_used: list[int] | None = None) -> dict[str, Any]:
     """A scan with laser frames whose silhouettes carve nothing (objects of the
     background's colours, masks that fail in every view): the laser's measurement does

@@ -128,7 +128,9 @@ carves the object's hidden part away). The pipeline warns naming the view.
 
 An empty result, or one that covers every pixel of the analysed region, is a
 :class:`~robo3d.errors.StageError`: both mean the threshold, polarity or lighting are
-wrong for this view. The caller adds the view's topic and time to the message.
+wrong for this view. The caller adds the view's topic and time to the message; the
+pipeline's stage names the view in a warning, flags it and goes on with the others
+(:func:`robo3d.stages.silhouettes.stage_silhouettes`).
 
 QA (:func:`silhouette_qa`, ``Silhouette.qa``): a mask no object in the workspace can cast
 is flagged, not dropped — ``fills_region`` (over 95 % of its region), ``touches_all_sides``

@@ -144,7 +144,7 @@ def main() -> int:
                                   for k, v in details[name].items() if k in KEYS}),
               f"(scored in {time.perf_counter() - t0:.0f} s)", flush=True)
     result = {**{n: {k: d.get(k) for k in KEYS} for n, d in details.items()},
-              "targets": {k: list(v) for k, v in TARGETS.items()},
+              "targets": {k: f"{op} {b}" for k, (op, b) in TARGETS.items()},
               "met": {n: {"completed": bool(d.get("completed"))} for n, d in details.items()},
               "details": details, "date": str(date.today()),
               "notes": old.get("notes", "")}

@@ -192,7 +192,7 @@ def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path)
     report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)},
                                            default_config()["alignment"])
     assert report["contradicted"] is True and report["dropped"] == 0 and len(dropped) == 0
-    assert report["disputed_fraction"] > 0.1 and "contradict the laser" in report["skipped"]
+    assert report["disputed_fraction"] > 0.2 and "contradict the laser" in report["skipped"]
     assert len(clouds[0]) == 500
     # masks that are specks in every view: every point outside most of them
     specks = [np.zeros_like(m) for m in masks]
@@ -203,7 +203,7 @@ def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path)
     report, dropped = _reject_outside_hull(clouds, views_s, {"silhouettes": str(npz)},
                                            default_config()["alignment"])
     assert report["contradicted"] is True and report["would_drop_fraction"] > 0.9
-    assert report["disputed_fraction"] < 0.1 and len(clouds[0]) == 500
+    assert report["disputed_fraction"] < 0.2 and len(clouds[0]) == 500
     # the same masks with a lenient cap drop what they see outside: the test is the cap
     lenient = {**default_config()["alignment"], "outside_hull_max_fraction": 0.9,
                "outside_hull_max_total_fraction": 0.95}

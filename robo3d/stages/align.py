@@ -158,7 +158,10 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     no point is dropped, and the report says so (``contradicted``). Stray points are few
     or seen outside by most views: the cells of the front-end benchmark (the laser on the
     table and the wall inside the box) drop 1.7-6 %, 0.7-3.9 % by fewer than half of
-    the views (``disputed_fraction`` in the report).
+    the views (``disputed_fraction`` in the report); a near-symmetric orange body under a
+    red laser, its masks right (0.995 IoU), 10.1 %: the lit rim and glints of a glossy
+    object. Masks that missed parts of a grey bracket on a grey table (0.76 IoU) would
+    have dropped 22 % of its points, 91 % of them within 0.3 mm of the true surface.
 
     Returns the report (per sweep: points dropped) and the dropped points.
     """

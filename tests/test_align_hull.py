@@ -210,3 +210,30 @@ def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path)
     clouds = [_cloud(surface.copy(), 0)]
     report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)}, lenient)
     assert report["dropped"] == len(dropped) > 200 and len(clouds[0]) < 300
+
+
+def test_the_lit_table_next_to_the_floor_does_not_make_the_silhouettes_contradicted(tmp_path):
+    """A box whose floor is the table: the laser on the table inside it can be most of a
+    scan's points, all outside every silhouette. They are dropped; the rule that more
+    than half of the points dropped means wrong masks counts the points above the floor
+    only."""
+    cam, Ts, masks = _views()
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = CENTRE + RADIUS * d
+    floor = CENTRE[2] - RADIUS - 0.001  # the box's floor, just below the sphere
+    xy = rng.uniform(-0.09, 0.09, size=(2000, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) > RADIUS + 0.01][:400]
+    table = np.column_stack([xy, np.full(len(xy), floor + 0.0005)])  # in the box
+    cloud = _cloud(np.concatenate([surface, table]), 0)
+    cloud.report = {"workspace": [[-0.1, -0.1, floor], [0.1, 0.1, 0.2]],
+                    "workspace_margin_m": 0.002}
+    npz = tmp_path / "silhouettes.npz"
+    np.savez(npz, qa_flagged=np.zeros(len(Ts), bool))
+    views = SilhouetteViews([m.astype(float) for m in masks], masks, [cam] * len(Ts), Ts)
+    report, dropped = _reject_outside_hull([cloud], views, {"silhouettes": str(npz)},
+                                           default_config()["alignment"])
+    assert len(table) == 400 and "contradicted" not in report  # two thirds are the table
+    assert report["dropped"] == 400 and len(cloud) == 200
+    np.testing.assert_allclose(np.linalg.norm(cloud.points_base - CENTRE, axis=1), RADIUS)

@@ -140,6 +140,20 @@ def _crop_to_workspace(clouds: list) -> dict[str, Any]:
             "per_sweep": per_sweep}
 
 
+def _above_floor(clouds: list, pts: np.ndarray) -> np.ndarray:
+    """Which of the clouds' points ``pts`` lie above the workspace box's floor by more
+    than the triangulation's margin (``workspace_margin_m``, 2 mm when not reported): not
+    the table; all of them without a box."""
+    from ..artefacts import clouds_workspace
+
+    box = clouds_workspace(clouds)
+    if box is None:
+        return np.ones(len(pts), bool)
+    margin = max([float((c.report or {}).get("workspace_margin_m", 0.002)) for c in clouds]
+                 or [0.002])
+    return pts[:, 2] > box[0][2] + margin
+
+
 def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
                          ac: Mapping[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
     """Drop the aligned points that lie outside a view's silhouette (in place).
@@ -153,7 +167,8 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     (at least one) see them outside (the laser contradicts the mask: the others see the
     points inside). When more than ``outside_hull_max_fraction`` of the points would be
     dropped by fewer than half of the views, or more than
-    ``outside_hull_max_total_fraction`` (half) of all the points, the
+    ``outside_hull_max_total_fraction`` (half) of the points above the box's floor (the
+    table lit inside the box next to it is no evidence), the
     silhouettes contradict the laser as a whole (masks that failed alike in many views):
     no point is dropped, and the report says so (``contradicted``). Stray points are few
     or seen outside by most views: the cells of the front-end benchmark (the laser on the
@@ -202,9 +217,12 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     disputed = float((drop & (n_out < max(1, (len(idx) - int(distrust.sum())) / 2))).mean())
     # ... and masks that are wrong everywhere (an object of the background's colours
     # segmented as a few specks per view) put every point outside most of them: more
-    # than half of what the laser measured in the box is never stray light
+    # than half of what the laser measured above the box's floor is never stray light
+    # (the table lit inside the box, next to the floor, can be most of a scan's points)
+    above = _above_floor(clouds, pts)
     if (disputed > float(ac["outside_hull_max_fraction"])
-            or float(drop.mean()) > float(ac["outside_hull_max_total_fraction"])):
+            or (above.any() and float(drop[above].mean())
+                > float(ac["outside_hull_max_total_fraction"]))):
         # the silhouettes as a whole contradict the laser: segmentation that failed
         # together in many views (a white cup on a black-and-white checker table: every
         # mask missed its white patches; 84 % of the laser points lay outside some of

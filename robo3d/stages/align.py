@@ -220,14 +220,15 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     # than half of what the laser measured above the box's floor is never stray light
     # (the table lit inside the box, next to the floor, can be most of a scan's points)
     above = _above_floor(clouds, pts)
-    if (disputed > float(ac["outside_hull_max_fraction"])
-            or (above.any() and float(drop[above].mean())
-                > float(ac["outside_hull_max_total_fraction"]))):
+    would = float(drop.mean())
+    contradicted = (disputed > float(ac["outside_hull_max_fraction"])
+                    or (above.any() and float(drop[above].mean())
+                        > float(ac["outside_hull_max_total_fraction"])))
+    if contradicted:
         # the silhouettes as a whole contradict the laser: segmentation that failed
         # together in many views (a white cup on a black-and-white checker table: every
         # mask missed its white patches; 84 % of the laser points lay outside some of
         # them, each outside fewer than half)
-        would = float(drop.mean())
         log.warning("alignment: the silhouettes would drop %.1f %% of the laser points, "
                     "%.1f %% outside fewer than half of the views (limits "
                     "alignment.outside_hull_max_fraction %.0f %%, "
@@ -236,17 +237,7 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
                     "pictures/masks.png)", 100 * would, 100 * disputed,
                     100 * float(ac["outside_hull_max_fraction"]),
                     100 * float(ac["outside_hull_max_total_fraction"]))
-        return {"skipped": "the silhouettes contradict the laser: they would drop "
-                           f"{100 * would:.1f} % of the laser points, {100 * disputed:.1f} "
-                           "% outside fewer than half of the views (more than "
-                           "alignment.outside_hull_max_fraction, or more than "
-                           "outside_hull_max_total_fraction in all); none is dropped",
-                "contradicted": True, "would_drop_fraction": would,
-                "disputed_fraction": disputed,
-                "max_fraction": float(ac["outside_hull_max_fraction"]),
-                "max_total_fraction": float(ac["outside_hull_max_total_fraction"]),
-                "views_used": int(len(idx) - distrust.sum()), "points": int(n_all),
-                "dropped": 0, "dropped_fraction": 0.0}, np.zeros((0, 3))
+        drop = np.zeros_like(drop)
     starts = np.cumsum([0] + [len(c) for c in clouds])
     per_sweep = []
     for k, c in enumerate(clouds):
@@ -263,6 +254,16 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
               "dropped": int(drop.sum()), "points": int(n_all),
               "dropped_fraction": float(drop.mean()), "disputed_fraction": disputed,
               "per_sweep": per_sweep}
+    if contradicted:
+        report.update(
+            skipped="the silhouettes contradict the laser: they would drop "
+                    f"{100 * would:.1f} % of the laser points, {100 * disputed:.1f} % outside "
+                    "fewer than half of the views (more than "
+                    "alignment.outside_hull_max_fraction, or more than "
+                    "outside_hull_max_total_fraction above the floor); none is dropped",
+            contradicted=True, would_drop_fraction=would,
+            max_fraction=float(ac["outside_hull_max_fraction"]),
+            max_total_fraction=float(ac["outside_hull_max_total_fraction"]))
     log.info("alignment: %d of %d laser points (%.2f %%) lie outside a silhouette: dropped "
              "(%d views used%s)", int(drop.sum()), n_all, 100 * float(drop.mean()),
              report["views_used"],

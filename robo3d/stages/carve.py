@@ -64,13 +64,16 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         raise ConfigError(f"config key carving.leaf_rule: {opts.leaf_rule!r} needs "
                           "carving.method octree (the dense method tests voxel centres)")
     ws = workspace_from(sil)
+
+    def no_hull(why: str, **kw: Any) -> dict[str, Any]:
+        if has_laser:  # the laser's measurement does not depend on the silhouettes
+            return _no_hull(outputs, rec_name, sil, why, t0, **kw)
+        raise StageError(f"{inputs['silhouettes']}: {why}")
+
     # an empty mask (a view the segmentation could not do) would carve every voxel
     empty = [i for i in range(len(cameras)) if not masks[i].any()]
     if cameras and len(empty) == len(cameras):
-        why = f"no view is left to carve: all {len(cameras)} masks are empty"
-        if has_laser:
-            return _no_hull(outputs, rec_name, sil, why, t0)
-        raise StageError(f"{inputs['silhouettes']}: {why}")
+        return no_hull(f"no view is left to carve: all {len(cameras)} masks are empty")
     box_min, box_max, box_report = _carving_box(
         ws, masks, cameras, poses, cc,
         [i for i in range(len(cameras)) if i not in empty] if empty else None)
@@ -84,10 +87,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     left_out = sorted(set(left_out) | set(empty))
     used = [i for i in range(n_views) if i not in set(left_out)]
     if not used:
-        why = f"no view is left to carve: {n_views} views, all with empty or disagreeing masks"
-        if has_laser:
-            return _no_hull(outputs, rec_name, sil, why, t0)
-        raise StageError(f"{inputs['silhouettes']}: {why}")
+        return no_hull(f"no view is left to carve: {n_views} views, all with empty or "
+                       "disagreeing masks")
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
         box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
@@ -96,11 +97,9 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     for v in carve_report["views"]:  # the recording's view numbers, not the subset's
         v["view"] = used[v["view"]]
     if grid.n_occupied == 0:
-        why = ("carving removed every voxel: the silhouettes do not agree with the cameras' "
-               "poses (check the calibration, the transform tree and the masks)")
-        if has_laser:
-            return _no_hull(outputs, rec_name, sil, why, t0, grid=grid, views_used=used)
-        raise StageError(f"{inputs['silhouettes']}: {why}")
+        return no_hull("carving removed every voxel: the silhouettes do not agree with the "
+                       "cameras' poses (check the calibration, the transform tree and the "
+                       "masks)", grid=grid, views_used=used)
     vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
     left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
                      for i in left_out]

@@ -70,7 +70,8 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
             # does not stop the others: an empty mask, flagged, which no stage uses
             failed.append(str(exc))
             log.warning("%s; the view is flagged and not used", exc)
-            mask, row = np.zeros((cam.height, cam.width), bool), _failed_row(i, msg, exc)
+            reason = str(exc).removeprefix(_where(inputs["recording"], i, msg) + ": ")
+            mask, row = np.zeros((cam.height, cam.width), bool), _failed_row(i, msg, reason)
         masks.append(mask)
         per_view.append(row)
         progress(i + 1)
@@ -104,8 +105,7 @@ def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,
     try:
         sil, roi_source = segment_view(image, cam, T, ws, background, options=options)
     except StageError as exc:
-        raise StageError(f"{path}: topic {msg.topic}, view {i} "
-                         f"(t={msg.timestamp_ns} ns): {exc}") from None
+        raise StageError(f"{_where(path, i, msg)}: {exc}") from None
     if sil.touches_image_border:
         log.warning("view %d (topic %s, t=%d ns): the silhouette touches the image border, "
                     "the object is cut off in this view; with carving.outside_image=carve "
@@ -135,10 +135,14 @@ def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,
     return sil.mask, row
 
 
-def _failed_row(i: int, msg, exc: StageError) -> dict[str, Any]:
-    """The report's row of view ``i`` whose segmentation failed with ``exc``: QA-flagged
-    (``segmentation failed: ...``), an empty mask."""
-    reason = str(exc).split("): ", 1)[-1]
+def _where(path: str, i: int, msg) -> str:
+    """Where a view's message is: the file, its topic, its number and time."""
+    return f"{path}: topic {msg.topic}, view {i} (t={msg.timestamp_ns} ns)"
+
+
+def _failed_row(i: int, msg, reason: str) -> dict[str, Any]:
+    """The report's row of view ``i`` whose segmentation failed for ``reason``:
+    QA-flagged (``segmentation failed: ...``), an empty mask."""
     return {"index": i, "timestamp_ns": msg.timestamp_ns, "failed": reason,
             "threshold": None, "polarity": None, "area_px": 0, "n_components": 0,
             "touches_border": False, "touches_image_border": False, "roi": None,

@@ -94,7 +94,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from common import check_target  # noqa: E402 (after the path setup)
+from common import check_target, repo_config  # noqa: E402 (after the path setup)
 
 REAL = REPO.parent / "shared" / "real"
 KUKA1 = REAL / "rwhe_kuka1_calibration.mcap"
@@ -176,14 +176,6 @@ def _sheet_of(T_camera_laser: np.ndarray) -> tuple[np.ndarray, float]:
     """The sheet (the laser's x-z plane) as ``normal . x = offset`` in the camera."""
     n = np.asarray(T_camera_laser)[:3, 1]
     return n, float(n @ np.asarray(T_camera_laser)[:3, 3])
-
-
-def _config() -> dict[str, Any]:
-    import yaml
-
-    from robo3d.config import validate_config
-
-    return validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
 
 
 def _calibrate(path: Path, cfg: dict[str, Any]):
@@ -656,7 +648,7 @@ def main() -> int:
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="robo3d-calib-"))
     (work / "parts").mkdir(parents=True, exist_ok=True)
-    cfg = _config()
+    cfg = repo_config()
     code = _code()
     print(f"code {code['code']} at {code['git_head']}"
           + (f", uncommitted: {', '.join(code['uncommitted_code'])}"

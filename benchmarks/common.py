@@ -12,6 +12,26 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 
 
+def repo_config() -> dict[Any, Any]:
+    """The repository's ``config/config.yaml``, validated: the configuration the
+    workflow runs with by default."""
+    import yaml
+
+    from robo3d.config import validate_config
+
+    return validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
+
+
+def fresh_workdir(work: Path) -> Path:
+    """``work``, emptied (a previous run's outputs would be reused by Snakemake)."""
+    import shutil
+
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    return work
+
+
 def run_workflow(recording: Path | list[Path], work: Path, targets: tuple[str, ...] = ("all",),
                  cores: int = 2) -> float:
     """One Snakemake run on one recording (or a list) in ``work`` with the default config,

@@ -69,7 +69,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import tempfile
 import time
@@ -83,7 +82,7 @@ REAL = REPO.parent / "shared" / "real"
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from common import run_workflow  # noqa: E402 (after the path setup)
+from common import fresh_workdir, run_workflow  # noqa: E402 (after the path setup)
 
 TARGETS = {"dtu24_mask_iou_mean": (">=", 0.97), "dtu24_mask_iou_min": (">=", 0.93),
            "sim_mask_iou_min": (">=", 0.99), "stripe_median_mm": ("<=", 0.05),
@@ -134,9 +133,7 @@ def _prepared(work: Path, reuse: bool) -> bool:
     """True when ``work`` holds a finished run to reuse; else an empty ``work``."""
     if reuse and (work / "done.json").exists():
         return True
-    if work.exists():
-        shutil.rmtree(work)
-    work.mkdir(parents=True)
+    fresh_workdir(work)
     return False
 
 

@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, run_workflow  # noqa: E402
+from common import REPO, fresh_workdir, repo_config, run_workflow  # noqa: E402
 
 #: name: the object and its ``robo3d simulate`` options (besides ``COMMON``).
 SCENES: dict[str, list[str]] = {
@@ -112,11 +112,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "hard_scenes.json"))
     args = ap.parse_args()
 
-    import yaml
-
-    from robo3d.config import validate_config
-
-    cfg = validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
+    cfg = repo_config()
     names = [n for n in args.only.split(",") if n]
     bad = [n for n in names if n not in SCENES]
     if bad:
@@ -127,10 +123,7 @@ def main() -> int:
     details: dict[str, Any] = dict(old.get("details", {}))
     for name in names:
         rec = simulate(base, name)
-        work = base / "work" / name
-        if work.exists():
-            shutil.rmtree(work)
-        work.mkdir(parents=True)
+        work = fresh_workdir(base / "work" / name)
         print(f"== {name}: workflow ...", flush=True)
         try:
             e2e = run_workflow(rec, work)

@@ -91,7 +91,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from common import run_workflow  # noqa: E402 (after the path setup)
+from common import fresh_workdir, repo_config, run_workflow  # noqa: E402 (after the path setup)
 
 #: object name -> simulator seed (the user's mesh is the bracket, turned, as an STL file)
 OBJECTS = {"bracket": 11, "cup": 12, "bumpy_blob": 13, "near_symmetric": 14,
@@ -380,11 +380,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "objects.json"))
     args = ap.parse_args()
 
-    import yaml
-
-    from robo3d.config import validate_config
-
-    cfg = validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
+    cfg = repo_config()
     objs = [o for o in args.only.split(",") if o]
     bad = [o for o in objs if o not in OBJECTS]
     if bad:
@@ -405,9 +401,7 @@ def main() -> int:
                 e2e = json.loads(done.read_text())["end_to_end_s"]
                 print(f"== {key}: reusing {work}", flush=True)
             else:
-                if work.exists():
-                    shutil.rmtree(work)
-                work.mkdir(parents=True)
+                fresh_workdir(work)
                 print(f"== {key}: workflow ...", flush=True)
                 try:
                     e2e = run_workflow(rec_path, work)

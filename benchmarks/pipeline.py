@@ -48,7 +48,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from common import run_workflow  # noqa: E402 (after the path setup)
+from common import fresh_workdir, repo_config, run_workflow  # noqa: E402 (after the path setup)
 
 TARGETS = {"pose_err_after_mm": 0.05, "pose_err_after_deg": 0.02, "mesh_median_mm": 0.05,
            "mesh_p95_mm": 0.2, "completeness_0_5mm": 0.99, "end_to_end_s": 60.0}
@@ -213,14 +213,11 @@ def main() -> int:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "pipeline.json"))
     args = ap.parse_args()
 
-    import yaml
-
-    from robo3d.config import validate_config
     from robo3d.evaluate import TruthSurface
     from robo3d.meshio import read_mesh
     from robo3d.recording.reader import read_recording
 
-    cfg = validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
+    cfg = repo_config()
     if not args.recordings:  # the demo recordings are generated, not kept in git
         from robo3d.simulate import write_demos
 
@@ -238,9 +235,7 @@ def main() -> int:
             e2e = json.loads(saved.read_text())["end_to_end_s"]
             print(f"== {name}: reusing {work}", flush=True)
         else:
-            if work.exists():
-                shutil.rmtree(work)
-            work.mkdir(parents=True)
+            fresh_workdir(work)
             print(f"== {name}: workflow ...", flush=True)
             e2e = run_workflow(rec_path, work)
             saved.write_text(json.dumps({"end_to_end_s": e2e}))

@@ -248,9 +248,12 @@ def test_laser_sheet_crosses_optical_axis_at_working_distance():
 
 # --------------------------------------------------------------------------- rendering
 def test_view_object_pixels_are_the_projection_of_the_truth(sphere_scene):
+    # at pixel centres alone (view_supersample 1) a pixel shows the object exactly when
+    # its centre ray hits the sphere
+    scene = SimScene(sphere_scene.mesh, Appearance(view_supersample=1))
     camera = default_camera(320, 240)
     t_bc = look_at(np.array([0.2, -0.15, 0.2]), CENTRE, roll=0.1)
-    signal = render_view(sphere_scene, camera, t_bc)
+    signal = render_view(scene, camera, t_bc)
     image = sensor_noise(signal, np.random.default_rng(0), 0.025, 1.0)
     dirs = pixel_grid_rays(camera) @ t_bc[:3, :3].T
     t_hit, closest = _ray_sphere(t_bc[:3, 3], dirs)
@@ -261,6 +264,47 @@ def test_view_object_pixels_are_the_projection_of_the_truth(sphere_scene):
     # a pixel may differ only where its ray grazes the sphere within the facets' sagitta
     assert np.all(np.abs(closest.reshape(240, 320)[wrong] - RADIUS) < 3e-5), wrong.sum()
     assert wrong.sum() <= 3
+
+
+def test_view_outline_pixels_are_their_area_mean(sphere_scene):
+    # a sensor integrates over the pixel: on the outline each pixel is the mean of its
+    # sub-pixel rays (the same as rendering every pixel supersampled), elsewhere the
+    # centre ray; a staircase outline biased the silhouette's sub-pixel edge (stop 28)
+    from robo3d.sim.render import _shade
+
+    camera = default_camera(320, 240)
+    t_bc = look_at(np.array([0.2, -0.15, 0.2]), CENTRE, roll=0.1)
+    n = sphere_scene.appearance.view_supersample
+    assert n >= 2
+    image = render_view(sphere_scene, camera, t_bc)
+    offs = (np.arange(n) + 0.5) / n - 0.5
+    du, dv = np.meshgrid(offs, offs)
+    u, v = np.meshgrid(np.arange(320.0), np.arange(240.0))
+    sub_uv = (np.stack([u.ravel(), v.ravel()], 1)[:, None, :]
+              + np.stack([du.ravel(), dv.ravel()], 1)[None]).reshape(-1, 2)
+    rgb, _ = _shade(sphere_scene, t_bc[:3, 3], camera.rays(sub_uv) @ t_bc[:3, :3].T)
+    full = (rgb.reshape(-1, n * n, 3).mean(1) * sphere_scene.appearance.view_exposure_dn
+            ).reshape(240, 320, 3)
+    diff = np.abs(image - full).max(axis=2)
+    dirs = pixel_grid_rays(camera) @ t_bc[:3, :3].T
+    truth = np.isfinite(_ray_sphere(t_bc[:3, 3], dirs)[0]).reshape(240, 320)
+    outline = np.zeros_like(truth)  # a 4-neighbour on the other side of the outline
+    dy, dx = truth[1:] != truth[:-1], truth[:, 1:] != truth[:, :-1]
+    outline[1:] |= dy
+    outline[:-1] |= dy
+    outline[:, 1:] |= dx
+    outline[:, :-1] |= dx
+    assert outline.sum() > 300
+    # the outline is the area mean (exactly, but where the faceted mesh and the
+    # analytic sphere put the outline in different pixels); inside it the shading moves
+    # smoothly, so that the centre ray is the pixel's mean within a few DN (the table
+    # keeps its shadow's hard edge at pixel centres)
+    assert np.mean(diff[outline] < 1e-9) > 0.99
+    assert diff[outline].max() < 0.5
+    assert diff[truth & ~outline].max() < 3.0
+    # and the outline's pixels take values between the object's and the table's
+    partial = outline & (image.mean(axis=2) > 26) & (image.mean(axis=2) < 54)
+    assert partial.sum() > 0.3 * (outline.sum() / 2)
 
 
 def test_laser_stripe_back_projects_onto_sheet_and_surface(sphere_scene):

@@ -636,14 +636,18 @@ def _view_signal(scene: SimScene, camera: CameraModel,
         idx = _edge_pixels(hits, camera.height, camera.width)
         if len(idx):
             w = camera.width
-            offs = (np.arange(n) + 0.5) / n - 0.5
-            du, dv = np.meshgrid(offs, offs)
-            uv = np.stack([idx % w, idx // w], axis=1).astype(np.float64)
-            sub_uv = (uv[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=1)[None]
-                      ).reshape(-1, 2)
-            sub_rgb, _ = _shade(scene, t[:3, 3], camera.rays(sub_uv) @ t[:3, :3].T)
+            sub_rgb, _ = _shade(scene, t[:3, 3], camera.rays(_subpixels(idx, w, n)) @ t[:3, :3].T)
             rgb[idx] = sub_rgb.reshape(len(idx), n * n, 3).mean(axis=1)
     return rgb * a.view_exposure_dn, hits
+
+
+def _subpixels(idx: np.ndarray, width: int, n: int) -> np.ndarray:
+    """``(len(idx) * n * n, 2)`` sub-pixel positions: an ``n x n`` grid over the area of
+    each pixel of the flat indices ``idx`` (row-major, image ``width``), pixel by pixel."""
+    offs = (np.arange(n) + 0.5) / n - 0.5
+    du, dv = np.meshgrid(offs, offs)
+    uv = np.stack([idx % width, idx // width], axis=1).astype(np.float64)
+    return (uv[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=1)[None]).reshape(-1, 2)
 
 
 #: Relative depth jump between neighbouring pixel centres that marks an occluding edge
@@ -758,11 +762,7 @@ def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.n
     if len(idx) == 0:
         return image.reshape(h, w)
     s = max(int(a.supersample), 1)
-    offs = (np.arange(s) + 0.5) / s - 0.5
-    du, dv = np.meshgrid(offs, offs)
-    uv = np.stack([idx % w, idx // w], axis=1).astype(np.float64)
-    sub_uv = (uv[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=1)[None]).reshape(-1, 2)
-    sub_dirs = camera.rays(sub_uv) @ t[:3, :3].T
+    sub_dirs = camera.rays(_subpixels(idx, w, s)) @ t[:3, :3].T
     sub = scene.cast(t[:3, 3], sub_dirs)
     sub_dn = scene.albedo_grey(sub, texture=False) * ambient + _laser_dn(scene, sub, t_l)
     image[idx] = sub_dn.reshape(len(idx), s * s).mean(axis=1)
@@ -837,12 +837,7 @@ def _render_laser_frame_lit(scene: SimScene, camera: CameraModel, t: np.ndarray,
     laser = np.zeros(h * w)
     if len(idx):
         s = max(int(a.supersample), 1)
-        offs = (np.arange(s) + 0.5) / s - 0.5
-        du, dv = np.meshgrid(offs, offs)
-        uv = np.stack([idx % w, idx // w], axis=1).astype(np.float64)
-        sub_uv = (uv[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=1)[None]
-                  ).reshape(-1, 2)
-        sub_dirs = camera.rays(sub_uv) @ t[:3, :3].T
+        sub_dirs = camera.rays(_subpixels(idx, w, s)) @ t[:3, :3].T
         sub = scene.cast(t[:3, 3], sub_dirs)
         laser[idx] = _laser_dn_lit(scene, sub, t_l, sub_dirs).reshape(len(idx), s * s).mean(1)
     if a.laser_rgb is None:

@@ -26,6 +26,7 @@ status. To add a command (``robo3d info``, ...), write the pair and append it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from collections.abc import Callable, Sequence
@@ -93,6 +94,10 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
                         "table at the workspace centre")
     r.add_argument("--mesh-unit", choices=("m", "cm", "mm", "um", "in"), default=None,
                    help="unit of --object-mesh's coordinates (default m)")
+    r.add_argument("--view-supersample", type=int, default=None, metavar="N",
+                   help="rays per pixel side on the views' geometric edges, as a camera "
+                        "integrates the pixel (1: the pixel centre's ray only, a staircase "
+                        "outline, the renderer before 2026-12-03; default 4)")
     # every option below defaults to SimulationParams' value (shown), so that a bare
     # command line gives exactly the library's defaults
     g = p.add_argument_group("simulation parameters")
@@ -231,6 +236,9 @@ def _run_simulate(args: argparse.Namespace) -> int:
         params = (SimulationParams.small() if args.preset == "small"
                   else SimulationParams())
     try:
+        if args.view_supersample is not None:
+            params = dataclasses.replace(params, appearance=dataclasses.replace(
+                params.appearance, view_supersample=args.view_supersample))
         simulate_recording(out, obj, params=params, threads=args.threads,
                            message_encoding=args.encoding, **overrides)
     except ValueError as exc:  # a parameter out of range, an unknown colour

@@ -457,6 +457,30 @@ def test_cli_simulate_views_only(tmp_path):
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_cli_view_supersample(tmp_path):
+    # --view-supersample 1 renders the views as before 2026-12-03 (pixel centres only) and
+    # says so in the recording; the default integrates the outline's pixels
+    reader = pytest.importorskip("robo3d.recording.reader")
+    views = {}
+    for n in ("1", None):
+        out = tmp_path / f"v{n}.mcap"
+        extra = ["--view-supersample", n] if n else []
+        assert main(["simulate", "sphere", str(out), "--no-laser", "--views", "1", "--width",
+                     "96", "--height", "72", "--view-encoding", "png", *extra]) == 0
+        rec = reader.read_recording(out, roles=("views",))
+        meta = json.loads(rec.metadata["robo3d.simulation"]["appearance.view_supersample"])
+        assert meta == (int(n) if n else 4)
+        views[n] = rec.decode(rec.views[0]).astype(float)
+    # beyond the sensor noise (drawn anew: the shot noise's draws follow the signal),
+    # the two differ on the outline only
+    diff = np.abs(views["1"] - views[None]).max(axis=2)
+    changed = np.count_nonzero(diff > 15)
+    assert 10 < changed < 0.05 * diff.size, changed
+    assert main(["simulate", "sphere", str(tmp_path / "x.mcap"), "--no-laser",
+                 "--view-supersample", "0"]) == 1
+    assert not (tmp_path / "x.mcap").exists()
+
+
 def test_bad_parameters_are_named():
     with pytest.raises(ValueError, match="unknown object"):
         simulate_recording("x.mcap", "teapot")

@@ -22,6 +22,36 @@ def repo_config() -> dict[Any, Any]:
     return validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()))
 
 
+def chosen(ap: Any, text: str, known: Any, what: str) -> list[str]:
+    """The comma-separated names of ``text`` (``--only``), each one of ``known``; an
+    argparse error naming the unknown ones otherwise."""
+    names = [n for n in text.split(",") if n]
+    bad = [n for n in names if n not in known]
+    if bad:
+        ap.error(f"unknown {what}(s) {', '.join(bad)}; expected {', '.join(known)}")
+    return names
+
+
+def previous_results(path: Path) -> dict[str, Any]:
+    """The results file a run updates (its notes and the parts not run are kept), or {}."""
+    import json
+
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def laser_frame_poses(rec: Any, res: Path) -> tuple[Any, Any]:
+    """Each laser frame's TRUE camera pose at its exposure (``ground_truth/image_poses.json``)
+    and the pose the pipeline used (``stripes.npz``), ``(N, 4, 4)`` each; the caller
+    checks that the counts agree."""
+    import numpy as np
+
+    from robo3d.simulate import image_poses
+
+    with np.load(res / "stripes.npz") as z:
+        T_rep = z["T_base_camera"]
+    return np.stack([e["T_base_camera"] for e in image_poses(rec)["/camera/laser_image"]]), T_rep
+
+
 def fresh_workdir(work: Path) -> Path:
     """``work``, emptied (a previous run's outputs would be reused by Snakemake)."""
     import shutil

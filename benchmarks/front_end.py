@@ -82,7 +82,7 @@ REAL = REPO.parent / "shared" / "real"
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from common import fresh_workdir, run_workflow  # noqa: E402 (after the path setup)
+from common import fresh_workdir, previous_results, run_workflow  # noqa: E402 (after the path setup)
 
 TARGETS = {"dtu24_mask_iou_mean": (">=", 0.97), "dtu24_mask_iou_min": (">=", 0.93),
            "sim_mask_iou_min": (">=", 0.99), "stripe_median_mm": ("<=", 0.05),
@@ -422,7 +422,7 @@ def main() -> int:
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="robo3d-fe-"))
     base.mkdir(parents=True, exist_ok=True)
     out_path = Path(args.out)
-    old = json.loads(out_path.read_text()) if out_path.exists() else {}
+    old = previous_results(out_path)
     details: dict[str, Any] = dict(old.get("details", {}))
     if "dtu" in parts:
         print("== dtu_scan24 (real) ...", flush=True)

@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, fresh_workdir, repo_config, run_workflow  # noqa: E402
+from common import REPO, chosen, fresh_workdir, previous_results, repo_config, run_workflow  # noqa: E402
 
 #: name: the object and its ``robo3d simulate`` options (besides ``COMMON``).
 SCENES: dict[str, list[str]] = {
@@ -113,13 +113,10 @@ def main() -> int:
     args = ap.parse_args()
 
     cfg = repo_config()
-    names = [n for n in args.only.split(",") if n]
-    bad = [n for n in names if n not in SCENES]
-    if bad:
-        ap.error(f"unknown scene(s) {', '.join(bad)}; expected {', '.join(SCENES)}")
+    names = chosen(ap, args.only, SCENES, "scene")
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="robo3d-hard-"))
     out_path = Path(args.out)
-    old = json.loads(out_path.read_text()) if out_path.exists() else {}
+    old = previous_results(out_path)
     details: dict[str, Any] = dict(old.get("details", {}))
     for name in names:
         rec = simulate(base, name)

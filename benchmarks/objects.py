@@ -91,7 +91,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from common import fresh_workdir, repo_config, run_workflow  # noqa: E402 (after the path setup)
+from common import (  # noqa: E402 (after the path setup)
+    chosen,
+    fresh_workdir,
+    laser_frame_poses,
+    previous_results,
+    repo_config,
+    run_workflow,
+)
 
 #: object name -> simulator seed (the user's mesh is the bracket, turned, as an STL file)
 OBJECTS = {"bracket": 11, "cup": 12, "bumpy_blob": 13, "near_symmetric": 14,
@@ -238,11 +245,8 @@ def frame_pose_errors(rec, res: Path, aligned) -> dict[str, Any]:
     frame, the result the worst sweep (the workflow's ``worst_*_frame_*`` definition)."""
     from robo3d.evaluate import frame_displacement
     from robo3d.registration import correction_at
-    from robo3d.simulate import image_poses
 
-    T_true = np.stack([e["T_base_camera"] for e in image_poses(rec)["/camera/laser_image"]])
-    with np.load(res / "stripes.npz") as z:
-        T_rep = z["T_base_camera"]
+    T_true, T_rep = laser_frame_poses(rec, res)
     if len(T_true) != len(T_rep):
         return {"skipped": f"{len(T_true)} true laser poses, {len(T_rep)} stripe frames"}
     per = []
@@ -381,15 +385,12 @@ def main() -> int:
     args = ap.parse_args()
 
     cfg = repo_config()
-    objs = [o for o in args.only.split(",") if o]
-    bad = [o for o in objs if o not in OBJECTS]
-    if bad:
-        ap.error(f"unknown object(s) {', '.join(bad)}; expected {', '.join(OBJECTS)}")
+    objs = chosen(ap, args.only, OBJECTS, "object")
     sweeps = [int(s) for s in args.sweeps.split(",") if s]
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="robo3d-obj-"))
     base.mkdir(parents=True, exist_ok=True)
     out_path = Path(args.out)
-    old = json.loads(out_path.read_text()) if out_path.exists() else {}
+    old = previous_results(out_path)
     details: dict[str, Any] = dict(old.get("details", {}))
     for obj in objs:
         for n in sweeps:

@@ -35,6 +35,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+from common import laser_frame_poses  # noqa: E402 (after the path setup)
 
 STEP_PX = 0.02
 COS_BINS = (0.0, 0.03, 0.06, 0.09, 0.12, 0.15)
@@ -44,12 +46,9 @@ def true_points(rec, res: Path) -> tuple[list, list, list, list]:
     """The sweeps' points at their true places, their normals (rotated alike), and the
     profile keys, from ``clouds.npz`` and ``stripes.npz``."""
     from robo3d.artefacts import load_clouds_npz
-    from robo3d.simulate import image_poses
 
     clouds = load_clouds_npz(res / "clouds.npz")
-    with np.load(res / "stripes.npz") as z:
-        T_rep = z["T_base_camera"]
-    T_true = np.stack([e["T_base_camera"] for e in image_poses(rec)["/camera/laser_image"]])
+    T_true, T_rep = laser_frame_poses(rec, res)
     if len(T_true) != len(T_rep):
         raise SystemExit(f"{rec.path}: {len(T_true)} true laser poses, {len(T_rep)} frames")
     C = T_true @ np.linalg.inv(T_rep)  # the frame's correction, base -> base

@@ -43,7 +43,10 @@ E. **GrabCut** (``grabcut=True``, the pipeline's default): the mask seeds OpenCV
    (Rother et al. 2004) at most 640 px wide (a webcam view at full resolution: at half
    resolution its outline, scaled back, is 1-2 px off all round), one iteration: the mask
    eroded by 12 px is sure object, the mask probable object, a 24 px band around it
-   probable background, the rest and everything outside the ROI sure background. Its
+   probable background, the rest and everything outside the ROI sure background, and so
+   are the blends of two background colours that step D dropped (a shadow, a marker's
+   rim: GrabCut's mixtures would give their dark greys back to a dark face beside them;
+   not when the object itself has such colours and only its rims were dropped). Its
    colour mixtures and graph cut move the outline onto the object's colour edge where a
    shadow, a reflection on the table or a shaded part near a background colour misled
    the threshold. Holes and specks are cleaned again afterwards; a refinement that loses
@@ -704,6 +707,7 @@ def refine_with_grabcut(
     max_side_px: int = 640,
     band_px: int = 24,
     iterations: int = 1,
+    background: np.ndarray | None = None,
 ) -> np.ndarray:
     """Refine a silhouette's outline with GrabCut (Rother et al. 2004), seeded by the mask.
 
@@ -711,7 +715,10 @@ def refine_with_grabcut(
     cost grows with the pixels and with the number of undecided ones). At that scale the
     mask eroded by ``band_px / 2`` is sure object, the mask is probable object, a band of
     ``band_px`` around it probable background, everything farther and everything outside
-    the ROI sure background; only the crop around the undecided band is cut. GrabCut then
+    the ROI sure background, and so is ``background`` (what the colour model already
+    decided is background: a shadow or a marker's rim beside the object, whose dark
+    colours GrabCut's mixtures would otherwise give to a dark face next to them); only
+    the crop around the undecided band is cut. GrabCut then
     fits colour mixtures (5 Gaussians each) to object and background and cuts along
     colour edges: the outline follows the object's edge where the threshold was off by a
     shadow, a reflection or a shaded part near the background's colour. The result is
@@ -726,6 +733,8 @@ def refine_with_grabcut(
         Nothing outside it is object.
     max_side_px, band_px, iterations : int
         Working size, undecided band (pixels at the working size), GrabCut iterations.
+    background : (H, W) bool, optional
+        Pixels outside the mask that are known background (sure background for GrabCut).
 
     Returns
     -------
@@ -765,6 +774,13 @@ def refine_with_grabcut(
     labels[near > 0] = cv2.GC_PR_BGD
     labels[mk > 0] = cv2.GC_PR_FGD
     labels[core > 0] = cv2.GC_FGD
+    if background is not None:
+        sure = np.asarray(background, dtype=bool)
+        if sure.shape != m.shape:
+            raise ValueError(f"background must have the mask's size {m.shape}, got {sure.shape}")
+        if scale < 1.0:  # a working pixel any of whose pixels is known background
+            sure = cv2.resize(sure.view(np.uint8), (sw, sh), interpolation=cv2.INTER_AREA) > 0
+        labels[sure & (mk == 0)] = cv2.GC_BGD
     if roi is not None:
         keep = np.zeros((sh, sw), bool)
         keep[int(np.floor(v0 * scale)):int(np.ceil(v1 * scale)),
@@ -1125,11 +1141,14 @@ def _threshold(f: np.ndarray, box: tuple[int, int, int, int], sample: np.ndarray
 
 def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: str,
                 sample_kind: str, model: dict, box: tuple[int, int, int, int],
-                blur_sigma_px: float) -> np.ndarray:
+                blur_sigma_px: float) -> tuple[np.ndarray, np.ndarray | None]:
     """The ROI's foreground: ``f`` beyond ``s``, the outline band cut at its local
-    midpoints, and (automatic polarity) blends of two background colours dropped."""
+    midpoints, and (automatic polarity) blends of two background colours dropped; and
+    those dropped blends (None when none were, or when the object has such colours and
+    only its rims were dropped): background that GrabCut must not take back."""
     u0, v0, u1, v1 = box
     fg_roi = inside < s if mode == "darker" else inside > s
+    dropped = None
     if local is not None:  # refine the outline only: a band along the background
         r = max(2, int(np.ceil(3 * blur_sigma_px)))
         kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
@@ -1149,8 +1168,10 @@ def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: st
         if np.count_nonzero(blend) > 0.5 * np.count_nonzero(fg_roi):
             blend &= cv2.dilate((~fg_roi).view(np.uint8), np.ones((5, 5), np.uint8)
                                 ).astype(bool)
+        elif blend.any():
+            dropped = blend
         fg_roi &= ~blend
-    return fg_roi
+    return fg_roi, dropped
 
 
 def _clean(m: np.ndarray, f: np.ndarray, s_bg: float | None, hole_mode: str,
@@ -1225,8 +1246,8 @@ def segment_silhouette(
     f, mode, difference, model = _feature(image, grey, background, box, sample, sample_kind,
                                            o)
     s, level, local = _threshold(f, box, sample, mode, o)
-    fg_roi = _foreground(f[v0:v1, u0:u1], s, local, mode, sample_kind, model, box,
-                         o.blur_sigma_px)
+    fg_roi, dropped = _foreground(f[v0:v1, u0:u1], s, local, mode, sample_kind, model, box,
+                                  o.blur_sigma_px)
     where = f"(threshold s={s:.2f}, polarity {mode}, roi {box})"
     n_fg = int(np.count_nonzero(fg_roi))
     if n_fg == 0:
@@ -1241,7 +1262,12 @@ def segment_silhouette(
     s_bg = None if level is None else level[1]
     mask, n_components, n_removed = _clean(mask, f, s_bg, hole_mode, o, where)
     if o.grabcut or o.edge_refine_px > 0:
-        refined = refine_with_grabcut(image, mask, box) if o.grabcut else mask
+        known_bg = None
+        if dropped is not None:
+            known_bg = np.zeros_like(mask)
+            known_bg[v0:v1, u0:u1] = dropped
+        refined = refine_with_grabcut(image, mask, box, background=known_bg) if o.grabcut \
+            else mask
         if o.edge_refine_px > 0:
             refined = refine_edges(image, refined, box, reach_px=int(o.edge_refine_px))
         try:

@@ -138,7 +138,7 @@ def main() -> int:
               "met": {n: {"completed": bool(d.get("completed"))} for n, d in details.items()},
               "details": details, "date": str(date.today()),
               "notes": old.get("notes", "")}
-    out_path.write_text(json.dumps(result, indent=1, default=str) + "\n")
+    out_path.write_text(json.dumps(result, indent=2, default=str) + "\n")
     print(f"wrote {out_path}")
     if not args.keep:
         shutil.rmtree(base, ignore_errors=True)

@@ -22,7 +22,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does). Writes
     ``ply`` and, when given, ``stl`` / ``obj`` outputs. ``threads``: the job's, for the
     distance checks (the result does not depend on it)."""
-    from ..fusion import source_area_fractions
+    from ..fusion import MEASURED, source_area_fractions
     from ..meshio import read_mesh, read_vertex_attributes, write_mesh
     from ..simplify import SimplifyOptions, clean_mesh, simplify_mesh, transfer_vertex_attributes
     from ..viz import log_mesh, log_report, rerun_log
@@ -34,12 +34,24 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     attrs_in = read_vertex_attributes(inputs["fused"])
     V0 = V
     V, F, clean_report = clean_mesh(V, F, options=opts)
-    V2, F2, simp_report = simplify_mesh(V, F, options=opts)
+    inferred = None  # surface no sensor measured is held to its own, looser bound
+    if "source" in attrs_in:
+        inferred = transfer_vertex_attributes(V0, {"source": attrs_in["source"]}, V)[
+            "source"] != MEASURED
+    V2, F2, simp_report = simplify_mesh(V, F, options=opts, inferred=inferred)
     haus = simp_report.get("hausdorff_max_m")
-    within = haus is None or haus <= sc["hausdorff_tolerance_m"]
+    if "hausdorff_measured_max_m" in simp_report:
+        within = (simp_report["hausdorff_measured_max_m"] <= sc["hausdorff_tolerance_m"]
+                  and simp_report["hausdorff_inferred_max_m"]
+                  <= simp_report["inferred_error_m"])
+    else:
+        within = haus is None or haus <= sc["hausdorff_tolerance_m"]
     if not within:
         log.warning("simplified mesh departs %.3f mm from the fused one, more than the "
-                    "tolerance %.3f mm", haus * 1e3, sc["hausdorff_tolerance_m"] * 1e3)
+                    "tolerance %.3f mm (inferred surface: %s)", haus * 1e3,
+                    sc["hausdorff_tolerance_m"] * 1e3,
+                    f"{simp_report['inferred_error_m'] * 1e3:.3f} mm"
+                    if simp_report.get("inferred_error_m") else "the same")
     report = {"clean": clean_report, **simp_report, "faces_in": len(F), "faces_out": len(F2),
               "hausdorff_tolerance_m": sc["hausdorff_tolerance_m"],
               "within_tolerance": bool(within),

@@ -89,8 +89,8 @@ def _in_box(p: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None) -> np.ndar
     return np.all((p >= box[0]) & (p <= box[1]), axis=1)
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, *, seed: int = 0
-                   ) -> np.ndarray:
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, *, seed: int = 0,
+                   return_faces: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Points spread uniformly over a triangle mesh's area.
 
     Parameters
@@ -101,28 +101,34 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, *, seed: int
         Number of samples.
     seed : int
         Seed of the random generator (reproducible samples).
+    return_faces : bool
+        Also return the face of each sample.
 
     Returns
     -------
     (n, 3) float64, metres
         Empty (0, 3) when the mesh has no area.
+    (n,) int64
+        With ``return_faces``: the face each sample lies on.
     """
     v, f = check_mesh(vertices, faces)
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
+    none = (np.zeros((0, 3)), np.zeros(0, np.int64))
     if len(f) == 0 or n == 0:
-        return np.zeros((0, 3))
+        return none if return_faces else none[0]
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     total = area.sum()
     if not total > 0:
-        return np.zeros((0, 3))
+        return none if return_faces else none[0]
     rng = np.random.default_rng(seed)
     tri = rng.choice(len(f), size=n, p=area / total)
     r1 = np.sqrt(rng.random(n))
     r2 = rng.random(n)
     w_a, w_b, w_c = 1.0 - r1, r1 * (1.0 - r2), r1 * r2
-    return w_a[:, None] * a[tri] + w_b[:, None] * b[tri] + w_c[:, None] * c[tri]
+    pts = w_a[:, None] * a[tri] + w_b[:, None] * b[tri] + w_c[:, None] * c[tri]
+    return (pts, tri.astype(np.int64)) if return_faces else pts
 
 
 class TruthSurface:

@@ -222,12 +222,16 @@ def _distances_to(v: np.ndarray, f: np.ndarray, points: np.ndarray,
             (points - shift).astype(np.float32))).numpy().astype(np.float64)
 
 
-def _measure_samples(v: np.ndarray, f: np.ndarray, n: int, seed: int) -> np.ndarray:
+def _measure_samples(v: np.ndarray, f: np.ndarray, n: int, seed: int, faces: bool = False
+                     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The points a mesh is measured at: its vertices, then area samples up to ``n`` in
-    all (the search's checks and the report use the same, :class:`_Distance`)."""
+    all (the search's checks and the report use the same, :class:`_Distance`); with
+    ``faces`` also the face of each area sample."""
     from .evaluate import sample_surface
 
-    return np.concatenate([v, sample_surface(v, f, max(0, n - len(v)), seed=seed)])
+    pts, on = sample_surface(v, f, max(0, n - len(v)), seed=seed, return_faces=True)
+    out = np.concatenate([v, pts])
+    return (out, on) if faces else out
 
 
 def _stats(d: np.ndarray) -> dict[str, float]:
@@ -339,7 +343,7 @@ class _Distance:
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor((v - self.shift).astype(np.float32)),
                                  o3d.core.Tensor(f.astype(np.uint32)))
-        self.samples = _measure_samples(v, f, n_samples, seed)
+        self.samples, on_face = _measure_samples(v, f, n_samples, seed, faces=True)
         self.n_samples, self.seed, self.threads = n_samples, seed, threads
         self.loose = None
         if loose is not None and loose_bound is not None and np.any(loose):
@@ -347,8 +351,7 @@ class _Distance:
             # a vertex is loose when every face around it is; an area sample by its face
             tight_v = np.zeros(len(v), dtype=bool)
             tight_v[f[~self.loose].ravel()] = True
-            self.samples_loose = np.concatenate([~tight_v, self._loose_at(
-                self.samples[len(v):])])
+            self.samples_loose = np.concatenate([~tight_v, self.loose[on_face]])
 
     def _loose_at(self, points: np.ndarray) -> np.ndarray:
         """Whether the fixed mesh's face nearest to each point is inferred."""
@@ -362,6 +365,23 @@ class _Distance:
             prim = self.scene.compute_closest_points(o3d.core.Tensor(
                 (points - self.shift).astype(np.float32)))["primitive_ids"].numpy()
         return self.loose[prim.astype(np.int64)]
+
+    def _split_max(self, q: np.ndarray, d: np.ndarray, bound: float
+                   ) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """The candidate's samples ``q`` at distances ``d`` from the fixed mesh, split by the
+        fixed mesh's nearest face: (measured max, inferred max, the indices whose face
+        was looked up, their looseness). Only the samples beyond ``bound`` or near the
+        largest distance are looked up (the rest are within either bound), and more, a
+        halved threshold at a time, while one surface's maximum is still unknown."""
+        t = min(bound, 0.5 * float(d.max(initial=0.0)))
+        for k in range(6):
+            idx = np.nonzero(d > t / 2**k)[0] if k < 5 else np.arange(len(d))
+            lo = self._loose_at(q[idx])
+            known_m, known_i = bool(np.any(~lo)), bool(np.any(lo))
+            if (known_m and known_i) or k == 5:
+                break
+        return (float(d[idx][~lo].max()) if known_m else 0.0,
+                float(d[idx][lo].max()) if known_i else 0.0, idx, lo)
 
     def __call__(self, v: np.ndarray, f: np.ndarray, bound: float = np.inf
                  ) -> tuple[float, np.ndarray, dict[str, Any]]:
@@ -377,28 +397,25 @@ class _Distance:
 
         a = _distances_to(v, f, self.samples, self.shift, self.threads)
         q = _measure_samples(v, f, self.n_samples, self.seed + 1)  # b_to_a's seed
-        qs = o3d.core.Tensor((q - self.shift).astype(np.float32))
         with open3d_threads(self.threads):
-            if self.loose is None:
-                b = self.scene.compute_distance(qs).numpy()
-            else:  # the nearest points and their faces in one query
-                near = self.scene.compute_closest_points(qs)
-                b = np.linalg.norm(near["points"].numpy() - qs.numpy(), axis=1)
-                lb = self.loose[near["primitive_ids"].numpy().astype(np.int64)]
+            b = self.scene.compute_distance(o3d.core.Tensor(
+                (q - self.shift).astype(np.float32))).numpy()
         b = b.astype(np.float64)
         stats = {"a_to_b": _stats(a), "b_to_a": _stats(b), "max": float(max(a.max(), b.max()))}
         if self.loose is None:
             far = np.concatenate([self.samples[a > bound], q[b > bound]])
             return stats["max"], far, stats
         la = self.samples_loose
-        d = np.concatenate([a, b])
-        lo = np.concatenate([la, lb])
-        stats["measured_max"] = float(d[~lo].max()) if np.any(~lo) else 0.0
-        stats["inferred_max"] = float(d[lo].max()) if np.any(lo) else 0.0
+        mb, ib, idx, lb = self._split_max(q, b, bound)
+        ma = float(a[~la].max()) if np.any(~la) else 0.0
+        ia = float(a[la].max()) if np.any(la) else 0.0
+        stats["measured_max"], stats["inferred_max"] = max(ma, mb), max(ia, ib)
         scale = bound / self.loose_bound if np.isfinite(bound) else 1.0
-        scaled = np.where(lo, d * scale, d)
-        far = np.concatenate([self.samples, q])[scaled > bound]
-        return float(scaled.max()), far, stats
+        sa = np.where(la, a * scale, a)
+        sb = b.copy()
+        sb[idx[lb]] *= scale
+        far = np.concatenate([self.samples[sa > bound], q[sb > bound]])
+        return float(max(sa.max(), sb.max())), far, stats
 
 
 #: rounds of :func:`_decimate_within`'s local locks per step before it gives the step up

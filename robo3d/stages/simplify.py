@@ -19,7 +19,9 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     """Clean the fused mesh (duplicates, zero-area faces, small floating components) and
     simplify it by quadric edge collapse to ``simplify.target_faces`` and/or within
     ``simplify.max_error_m``; the Hausdorff distance to the fused mesh must stay within
-    ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does). Writes
+    ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does), and the
+    inferred surface (the fused mesh's ``source``: hull, filled) within
+    ``simplify.inferred_tolerance_m``. Writes
     ``ply`` and, when given, ``stl`` / ``obj`` outputs. ``threads``: the job's, for the
     distance checks (the result does not depend on it)."""
     from ..fusion import MEASURED, source_area_fractions
@@ -80,6 +82,10 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     kept = (f"; {report['kept_faces']} faces around {n_places} "
             f"place{'s' if n_places > 1 else ''} kept as fused (decimating them went beyond "
             "the tolerance)" if n_places else "")
-    summary.info("simplified %d -> %d faces, Hausdorff %.3f mm%s (%.1f s)", len(F), len(F2),
-                 (haus or 0.0) * 1e3, kept, report["seconds"])
+    split = (f" (measured {report['hausdorff_measured_max_m'] * 1e3:.3f} mm, inferred "
+             f"{report['hausdorff_inferred_max_m'] * 1e3:.3f} mm of "
+             f"{report['inferred_error_m'] * 1e3:.1f})"
+             if "hausdorff_measured_max_m" in report else "")
+    summary.info("simplified %d -> %d faces, Hausdorff %.3f mm%s%s (%.1f s)", len(F),
+                 len(F2), (haus or 0.0) * 1e3, split, kept, report["seconds"])
     return report

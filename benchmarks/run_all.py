@@ -18,8 +18,9 @@ each was measured); the exit status is 1 when any failed.
 The benchmarks that need ``../shared/real/`` (the real recordings) measure those parts
 only when it is there. About how long each takes on this project's 2-core machine, when
 nothing else runs: carving 10 min (Open3D at 512^3 measured: about 10 GB), laser 3 min,
-pipeline 5 min, front_end 30 min, hard_scenes 15 min, determinism 20 min, calibration 15
-min, batch 15 min, objects 1-2 h. Run it on a quiet machine: the figures are wall-clock times.
+pipeline 5 min, front_end 30 min, hard_scenes 15 min, random_scenes 10 min, determinism
+20 min, calibration 15 min, batch 15 min, objects 1-2 h. Run it on a quiet machine: the
+figures are wall-clock times.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ REPO = HERE.parent
 
 #: The benchmarks in the order they run (quick ones first), each a script in benchmarks/.
 BENCHMARKS = ("carving", "laser", "pipeline", "calibration", "front_end", "hard_scenes",
-              "determinism", "batch", "objects")
+              "random_scenes", "determinism", "batch", "objects")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -79,6 +79,10 @@ ROWS: tuple[Row, ...] = (
     Row("batch", "speedup_2_cores_job_time_scaled", "batch of small scans: the same, scaled "
         "by the jobs' time two at a time against alone (the cores' mutual slow-down apart)",
         "x"),
+    Row("random_scenes", "met.completed", "random small scenes (default config): every one "
+        "completes", "", "== true"),
+    Row("random_scenes", "end_to_end_s_max", "random small scenes: the slowest, end to end",
+        "s"),
     Row("calibration", "rms_px", "intrinsics reprojection RMS, worst seed and rig", "px",
         "<= 0.2"),
     Row("calibration", "focal_rel_err", "focal length relative error", "", "<= 0.001"),

@@ -374,11 +374,11 @@ class _Distance:
         largest distance are looked up (the rest are within either bound), and more, a
         halved threshold at a time, while one surface's maximum is still unknown."""
         t = min(bound, 0.5 * float(d.max(initial=0.0)))
-        for k in range(6):
-            idx = np.nonzero(d > t / 2**k)[0] if k < 5 else np.arange(len(d))
+        for t_k in (t, t / 2, t / 4, t / 8, t / 16, -np.inf):  # -inf: every sample
+            idx = np.nonzero(d > t_k)[0]
             lo = self._loose_at(q[idx])
             known_m, known_i = bool(np.any(~lo)), bool(np.any(lo))
-            if (known_m and known_i) or k == 5:
+            if known_m and known_i:
                 break
         return (float(d[idx][~lo].max()) if known_m else 0.0,
                 float(d[idx][lo].max()) if known_i else 0.0, idx, lo)
@@ -625,7 +625,7 @@ def simplify_mesh(
           hausdorff_distance(v, f, ov, of, n_samples=n_check, seed=seed,
                              threads=options.threads)
           if len(of) < len(f) else {"a_to_b": _zero(), "b_to_a": _zero(), "max": 0.0})
-    if hd is not None and "measured_max" in hd:
+    if "measured_max" in hd:
         report.update(hausdorff_measured_max_m=hd["measured_max"],
                       hausdorff_inferred_max_m=hd["inferred_max"])
     report.update(n_faces=int(len(of)), n_vertices=int(len(ov)), n_trials=n_trials,

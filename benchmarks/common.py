@@ -52,6 +52,17 @@ def laser_frame_poses(rec: Any, res: Path) -> tuple[Any, Any]:
     return np.stack([e["T_base_camera"] for e in image_poses(rec)["/camera/laser_image"]]), T_rep
 
 
+def simulate_cli(path: Path, args: list[str]) -> str | None:
+    """``robo3d simulate <args>`` writing ``path`` (the recording's place among ``args``
+    is the caller's); None, or the tail of its stderr when it failed."""
+    import subprocess
+    import sys
+
+    cmd = [str(Path(sys.executable).with_name("robo3d")), "simulate", *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    return proc.stderr[-2000:] if proc.returncode else None
+
+
 def fresh_workdir(work: Path) -> Path:
     """``work``, emptied (a previous run's outputs would be reused by Snakemake)."""
     import shutil

@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -48,7 +47,15 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, chosen, fresh_workdir, previous_results, repo_config, run_workflow  # noqa: E402
+from common import (  # noqa: E402
+    REPO,
+    chosen,
+    fresh_workdir,
+    previous_results,
+    repo_config,
+    run_workflow,
+    simulate_cli,
+)
 
 #: name: the object and its ``robo3d simulate`` options (besides ``COMMON``).
 SCENES: dict[str, list[str]] = {
@@ -79,11 +86,9 @@ def simulate(base: Path, name: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     args = SCENES[name]
     print(f"== {name}: simulating ...", flush=True)
-    cmd = [str(Path(sys.executable).with_name("robo3d")), "simulate", args[0], str(path),
-           *COMMON, *args[1:]]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode:
-        raise RuntimeError(f"simulation of {name} failed:\n{proc.stderr[-2000:]}")
+    err = simulate_cli(path, [args[0], str(path), *COMMON, *args[1:]])
+    if err is not None:
+        raise RuntimeError(f"simulation of {name} failed:\n{err}")
     return path
 
 

@@ -33,7 +33,6 @@ import argparse
 import json
 import random
 import shutil
-import subprocess
 import sys
 import tempfile
 from datetime import date
@@ -41,12 +40,12 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import REPO, fresh_workdir, previous_results, run_workflow  # noqa: E402
+from common import REPO, fresh_workdir, previous_results, run_workflow, simulate_cli  # noqa: E402
 
 OBJECTS = ["dimple_block", "vase", "blob", "sphere", "bracket", "cup", "bumpy_blob",
            "near_symmetric", "thin_wall", "user_box", "user_torus"]
 COLOURS = ["grey", "white", "orange", "red", "green", "blue", "yellow", "brown", "black"]
-TARGETS = {"completed": ("==", "n_scenes")}
+TARGETS = {"completed": "== n_scenes"}
 
 
 def user_meshes(base: Path) -> dict[str, list[str]]:
@@ -106,19 +105,17 @@ def scene(k: int) -> tuple[str, list[str]]:
     return obj, a
 
 
-def run_scene(k: int, base: Path, meshes: dict[str, list[str]]) -> dict[str, Any]:
-    """Simulate scene ``k`` (unless its recording is there), run the workflow, score it."""
-    obj, a = scene(k)
-    name = f"scene{k:03d}_{obj}"
+def run_scene(name: str, obj: str, a: list[str], base: Path, meshes: dict[str, list[str]]
+              ) -> dict[str, Any]:
+    """Simulate a scene (unless its recording is there), run the workflow, score it."""
     rec = base / "recordings" / f"{name}.mcap"
     rec.parent.mkdir(parents=True, exist_ok=True)
     out: dict[str, Any] = {"object": obj, "args": a}
     if not rec.exists():
-        cmd = [str(Path(sys.executable).with_name("robo3d")), "simulate",
-               *([obj] if obj not in meshes else []), str(rec), *meshes.get(obj, []), *a]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode:
-            return {**out, "completed": 0, "failed": "simulation: " + proc.stderr[-1500:]}
+        err = simulate_cli(rec, [*([obj] if obj not in meshes else []), str(rec),
+                                 *meshes.get(obj, []), *a])
+        if err is not None:
+            return {**out, "completed": 0, "failed": "simulation: " + err}
     work = fresh_workdir(base / "work" / name)
     try:
         e2e = run_workflow(rec, work)
@@ -149,10 +146,10 @@ def main() -> int:
     meshes = user_meshes(base / "meshes")
     details: dict[str, Any] = {}
     for k in range(args.start, args.start + args.n):
-        obj = scene(k)[0]
-        print(f"== scene {k} ({obj}): {' '.join(scene(k)[1])}", flush=True)
-        d = run_scene(k, base, meshes)
-        details[f"scene{k:03d}_{obj}"] = d
+        obj, a = scene(k)
+        print(f"== scene {k} ({obj}): {' '.join(a)}", flush=True)
+        name = f"scene{k:03d}_{obj}"
+        details[name] = d = run_scene(name, obj, a, base, meshes)
         if d["completed"]:
             med = d["measured_median_mm"]
             print(f"   completed in {d['end_to_end_s']:.1f} s (slowest: {d['slowest_stage']} "
@@ -164,7 +161,7 @@ def main() -> int:
     e2e = [d["end_to_end_s"] for d in details.values() if d["completed"]]
     result = {"n_scenes": len(details), "completed": done,
               "end_to_end_s_max": max(e2e) if e2e else None,
-              "targets": {"completed": "== n_scenes"},
+              "targets": TARGETS,
               "met": {"completed": done == len(details)},
               "details": details, "date": str(date.today()),
               "notes": old.get("notes", "")}

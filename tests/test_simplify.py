@@ -210,6 +210,67 @@ def test_places_beyond_the_bound_are_kept_and_the_rest_simplified(monkeypatch):
 
 
 
+def _edges(f):
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0, return_counts=True)[1]
+
+
+def test_large_meshes_are_collapsed_in_chunks_side_by_side(monkeypatch, caplog):
+    """Meshes above ``_CHUNK_MIN_FACES`` are collapsed in slabs, one process each, the
+    faces outside a slab kept as they are: the pieces weld into one closed mesh (no
+    border, no edge of three faces), within the bound, about as small as in one piece; a
+    step that went beyond the bound at a few places is made again only in the slabs
+    around them; the mesh does not depend on the job's threads nor on a worker process
+    that fails (its slabs are collapsed in the calling process)."""
+    import open3d as o3d
+
+    import robo3d.simplify as simplify
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.02, resolution=80)
+    v = np.asarray(m.vertices).copy()
+    f = np.asarray(m.triangles).astype(np.int64)
+    rng = np.random.default_rng(0)
+    for c in 0.02 * np.vstack([np.eye(3), -np.eye(3)]):
+        near = np.linalg.norm(v - c, axis=1) < 0.002
+        v[near] *= (1 + rng.normal(0, 0.0003, near.sum()) / 0.02)[:, None]
+    assert _edges(f).min() == _edges(f).max() == 2
+    opts = SimplifyOptions(target_faces=2000, hausdorff_tolerance_m=0.2e-3, seed=0)
+    _, f_one, r_one = simplify_mesh(v, f, options=opts)  # 12,640 faces: one piece
+    monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", 3000)
+    jobs = []
+    real_map = simplify._Workers.map
+    monkeypatch.setattr(simplify._Workers, "map",
+                        lambda self, js: jobs.append(len(js)) or real_map(self, js))
+    runs = [simplify_mesh(v, f, options=opts.replace(threads=n)) for n in (2, 1)]
+    (v2, f2, r2), (v1, f1, r1) = runs
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(f1, f2)
+    counts = _edges(f2)
+    assert counts.min() == counts.max() == 2  # welded: closed and manifold
+    # the faces around a slab hold its border still, not only the open-border option
+    _, f4, _ = simplify_mesh(v, f, options=opts, preserve_boundary=False)
+    assert _edges(f4).min() == _edges(f4).max() == 2
+    assert r2["hausdorff_m"]["max"] <= 0.2e-3
+    assert _independent_hausdorff(v, f, v2, f2) <= 0.2e-3 * 1.1
+    assert 0.85 * len(f_one) <= len(f2) <= 1.15 * len(f_one)
+    assert max(jobs) == simplify._N_CHUNKS and min(jobs) < simplify._N_CHUNKS  # a redo
+    # a worker that dies: its slabs collapsed here, the same mesh
+    import subprocess
+    import sys
+
+    def dead(self):
+        self.procs = [subprocess.Popen([sys.executable, "-c", "pass"],
+                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+                      for _ in range(self.n)]
+
+    monkeypatch.setattr(simplify._Workers, "_start", dead)
+    with caplog.at_level("WARNING", logger="robo3d.simplify"):
+        v3, f3, _ = simplify_mesh(v, f, options=opts.replace(threads=2))
+    np.testing.assert_array_equal(v3, v2)
+    np.testing.assert_array_equal(f3, f2)
+    assert "worker process failed" in caplog.text
+
+
 def test_inferred_surface_has_its_own_looser_bound():
     """A sphere with six rough patches (0.3 mm noise), three on its upper half, which is
     labelled inferred (hull-closed): with the labels the upper patches are simplified

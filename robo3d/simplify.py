@@ -29,12 +29,13 @@ measure took 5 of a small scan's 20 s).
 
 Large meshes (``_CHUNK_MIN_FACES``) are collapsed in four slabs, side by side on the
 job's threads, one process each at a time (:func:`_chunk_collapse`): MeshLab's collapse
-runs on one core and was most of the stage. The faces around a slab stay as they are, so the slabs' shared vertices do not
-move and the pieces weld exactly; the cut changes axis at every step, so its strip is
-collapsed in the next; a step that went beyond the bound is made again only in the slabs
-around the places where it did. The mesh does not depend on the job's threads. On the
-simulated cup/4's 656,898 fused faces the stage's collapses took 18.4 s in one piece and
-8.5 s in slabs, the whole simplification 28 s and 18 s (``benchmarks/README.md``, stop 30).
+runs on one core and was most of the stage. The faces around a slab stay as they are, so
+the slabs' shared vertices do not move and the pieces weld exactly; the cut changes axis
+at every step, so its strip is collapsed in the next; a step that went beyond the bound
+is made again only in the slabs around the places where it did. The mesh does not
+depend on the job's threads. On the simulated cup/4's 656,898 fused faces the collapses
+took 18.4 s in one piece and 8.5 s in slabs, the whole simplification 28 s and 18 s
+(``benchmarks/README.md``, stop 30).
 
 Units: pymeshlab's quadric collapse has absolute thresholds inside (a mesh decimates
 differently in metres and in millimetres, ``benchmarks/README.md``), so meshes are scaled
@@ -432,7 +433,7 @@ class _Workers:
             except Exception as e:  # a crashed worker: its jobs again, here
                 failed.append((proc, e))
                 results = [_collapse_chunk(jobs[i]) for i in idx]
-            for i, r in zip(idx, results):
+            for i, r in zip(idx, results, strict=True):
                 out[i] = r
         for proc, e in failed:  # not asked again
             log.warning("simplify: a worker process failed (%s: %s); its chunks were "
@@ -451,7 +452,7 @@ class _Workers:
                 proc.kill()
         self.procs = []
 
-    def __enter__(self) -> "_Workers":
+    def __enter__(self) -> _Workers:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -460,8 +461,8 @@ class _Workers:
 
 def _worker_main() -> None:
     """``python -m robo3d.simplify``: a :class:`_Workers` process. Lists of jobs come
-    pickled on stdin, lists of results go pickled to the original stdout; anything a library prints goes to
-    stderr, so it cannot corrupt the stream."""
+    pickled on stdin, lists of results go pickled to the original stdout; anything a
+    library prints goes to stderr, so it cannot corrupt the stream."""
     import os
     import pickle
     import sys
@@ -500,7 +501,7 @@ class _Chunks:
         x = points[:, self.axis]
         lo = np.searchsorted(self.cuts, x - radius)
         hi = np.searchsorted(self.cuts, x + radius)
-        return {int(k) for a, b in zip(lo, hi) for k in range(a, b + 1)}
+        return {int(k) for a, b in zip(lo, hi, strict=True) for k in range(a, b + 1)}
 
 
 def _chunk_collapse(v: np.ndarray, f: np.ndarray, chunks: _Chunks, count: int,
@@ -538,12 +539,12 @@ def _chunk_collapse(v: np.ndarray, f: np.ndarray, chunks: _Chunks, count: int,
                          target=int(round(count * np.sum(mine & free) / n_free)),
                          preserve_boundary=preserve_boundary,
                          preserve_normal=preserve_normal))
-    for k, res in zip(todo, workers.map(jobs)):
+    for k, res in zip(todo, workers.map(jobs), strict=True):
         chunks.results[k] = res
     parts = [chunks.results[k] for k in range(_N_CHUNKS)]
     allv = np.concatenate([p[0] for p in parts])
     offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
-    allf = np.concatenate([p[1] + o for p, o in zip(parts, offsets)])
+    allf = np.concatenate([p[1] + o for p, o in zip(parts, offsets, strict=True)])
     # weld: a vertex shared by two chunks did not move in either (the same bits)
     uniq, inv = np.unique(allv, axis=0, return_inverse=True)
     return uniq / scale, inv.reshape(-1)[allf]
@@ -680,7 +681,7 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
                      preserve_boundary: bool, preserve_normal: bool, tolerance: float,
                      n_check: int, seed: int, threads: int = 1,
                      loose: np.ndarray | None = None, loose_error: float | None = None,
-                     workers: "_Workers | None" = None):
+                     workers: _Workers | None = None):
     """The error-bounded mode of :func:`simplify_mesh`: progressive halving towards
     ``target``, each step checked as it is made. Where a step goes beyond ``max_error``
     the places where it does (the samples of either mesh farther than that from the

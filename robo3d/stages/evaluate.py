@@ -14,11 +14,20 @@ import numpy as np
 
 from ..atomic import write_json
 from ..errors import Robo3dError
-from .common import cameras_from, code_version, load_silhouettes, log, open_recording, summary
+from .common import (
+    cameras_from,
+    code_version,
+    load_silhouettes,
+    log,
+    open_recording,
+    stage_threads,
+    summary,
+)
 
 
 def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
-                   cfg: Mapping[str, Any], rec_name: str) -> dict[str, Any]:
+                   cfg: Mapping[str, Any], rec_name: str,
+                   threads: int | None = None) -> dict[str, Any]:
     """Gather what every stage measured, its time and peak memory, and, when the
     recording carries ground truth, the errors against it, into ``metrics.json`` (the
     report's pictures are rule ``pictures``', :mod:`robo3d.stages.pictures`).
@@ -30,9 +39,11 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     silhouettes attached (``ground_truth/silhouettes/NNN.png``), ``evaluation.mask_iou``
     scores each view's mask (:func:`robo3d.evaluate.silhouette_iou`). A missing or
     damaged attachment skips only what needs it (``skipped`` says why). The views the
-    carve's agreement check left out are listed in ``views_left_out``.
+    carve's agreement check left out are listed in ``views_left_out``. ``threads``: the
+    job's, for the distances to the truth (point-wise queries: the figures do not depend
+    on it).
     """
-    from ..evaluate import TRUE_SILHOUETTES
+    from ..evaluate import TRUE_SILHOUETTES, open3d_threads
     from ..meshio import read_mesh
 
     t0 = time.perf_counter()
@@ -46,8 +57,10 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     truth = _truth_surface(rec, rec_path, has_true_masks, metrics)
     ev_out: dict[str, Any] = {}
     if truth is not None:
-        ev_out = _surface_evaluation(inputs, rec, truth, cfg, (V_final, F_final), metrics)
-        vertex_error_mm = truth.distance(V_final) * 1e3
+        with open3d_threads(stage_threads(threads)):
+            ev_out = _surface_evaluation(inputs, rec, truth, cfg, (V_final, F_final),
+                                         metrics)
+            vertex_error_mm = truth.distance(V_final) * 1e3
     _mask_evaluation(inputs, rec, has_true_masks, metrics, ev_out)
     if ev_out:
         metrics["evaluation"] = ev_out

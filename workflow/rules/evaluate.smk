@@ -23,7 +23,7 @@ rule evaluate:
         "benchmarks/evaluate/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    threads: stage_threads(2)  # distances to the truth; a lone recording's last stage
     resources:
         mem_mb=lambda wc, attempt: 1500 * attempt,
         runtime=lambda wc, attempt: 15 * attempt,

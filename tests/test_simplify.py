@@ -210,6 +210,25 @@ def test_places_beyond_the_bound_are_kept_and_the_rest_simplified(monkeypatch):
 
 
 
+def test_far_within_the_bound_two_halvings_take_one_check(monkeypatch):
+    """A halving step that stays below an eighth of the bound is followed by a quarter
+    step (the error about doubles per halving): a smooth sphere within 2 mm reaches its
+    800 faces in 3 checked steps instead of 5, within the bound either way."""
+    import open3d as o3d
+
+    import robo3d.simplify as simplify
+
+    m = o3d.geometry.TriangleMesh.create_sphere(0.03, resolution=80)
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
+    opts = SimplifyOptions(target_faces=800, hausdorff_tolerance_m=2e-3)
+    _, f1, r1 = simplify_mesh(v, f, options=opts)
+    monkeypatch.setattr(simplify, "_QUARTER_BELOW", np.inf)  # halving only
+    _, f0, r0 = simplify_mesh(v, f, options=opts)
+    assert len(f1) == len(f0) == 800
+    assert (r1["n_trials"], r0["n_trials"]) == (3, 5)
+    assert r1["hausdorff_max_m"] <= 2e-3 / 4 and r0["hausdorff_max_m"] <= 2e-3 / 4
+
+
 def _edges(f):
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     return np.unique(e, axis=0, return_counts=True)[1]

@@ -688,10 +688,11 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     """The error-bounded mode of :func:`simplify_mesh`: progressive halving towards
     ``target``, each step checked as it is made (after a step below an eighth of the
     bound, two halvings in one step: the demo vase's steps stayed at 0.007-0.065 mm of
-    0.2, and its five checks of 0.7-1 s each became three, 10.0 -> 8.5 s). Where a step goes beyond ``max_error``
-    the places where it does (the samples of either mesh farther than that from the
-    other) are remembered and the step is made again with the faces around every such
-    place kept as they are (``_LOCK_RADIUS_BOUNDS`` times the bound), up to
+    0.2, and its five checks of 0.7-1 s each became three, 10.0 -> 8.5 s). Where a step
+    goes beyond ``max_error`` the places where it does (the samples of either mesh
+    farther than that from the other) are remembered and the step is made again with the
+    faces around every such place kept as they are (``_LOCK_RADIUS_BOUNDS`` times the
+    bound), up to
     ``_LOCK_ROUNDS`` times; a step still beyond it ends the halving, and a log-scale
     search between the last step within the bound and that one follows (the same
     places kept), each trial decimating the last mesh found within the bound;

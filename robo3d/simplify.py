@@ -393,6 +393,8 @@ class _Workers:
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         for _ in range(self.n - len(self.procs)):
             try:
+                if not sys.executable:  # an embedded interpreter: no python to start
+                    raise OSError("sys.executable is not set")
                 self.procs.append(subprocess.Popen(
                     [sys.executable, "-m", "robo3d.simplify"], stdin=subprocess.PIPE,
                     stdout=subprocess.PIPE, env=env))

@@ -288,6 +288,15 @@ def test_large_meshes_are_collapsed_in_chunks_side_by_side(monkeypatch, caplog):
     np.testing.assert_array_equal(v3, v2)
     np.testing.assert_array_equal(f3, f2)
     assert "worker process failed" in caplog.text
+    # no python to start a worker with (an embedded interpreter): collapsed here
+    monkeypatch.undo()
+    monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", 3000)
+    monkeypatch.setattr(sys, "executable", "")
+    with caplog.at_level("WARNING", logger="robo3d.simplify"):
+        v5, f5, _ = simplify_mesh(v, f, options=opts.replace(threads=2))
+    np.testing.assert_array_equal(v5, v2)
+    np.testing.assert_array_equal(f5, f2)
+    assert "no worker process" in caplog.text
 
 
 def test_inferred_surface_has_its_own_looser_bound():

@@ -304,6 +304,19 @@ def _scale_of(v: np.ndarray) -> float:
     return 100.0 / diag if diag > 0 else 1.0
 
 
+def _quadric_options(target: int, preserve_boundary: bool, preserve_normal: bool,
+                     selected: bool) -> dict[str, Any]:
+    """The arguments of pymeshlab's quadric edge collapse, one place for the whole mesh's
+    collapse (:func:`_decimate`) and a chunk's (:func:`_collapse_chunk`): towards
+    ``target`` faces (of the selected faces when ``selected``), optimal placement, planar
+    quadrics, quality threshold 0.3."""
+    return dict(targetfacenum=int(target), qualitythr=0.3,
+                preserveboundary=preserve_boundary, boundaryweight=1.0,
+                preservenormal=preserve_normal, preservetopology=False,
+                optimalplacement=True, planarquadric=True, autoclean=True,
+                selected=selected)
+
+
 def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool,
               preserve_normal: bool, keep: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -320,9 +333,7 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
         ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
     else:
         ms = _meshset(v * scale, f)
-    kw = dict(targetfacenum=int(target), qualitythr=0.3, preserveboundary=preserve_boundary,
-              boundaryweight=1.0, preservenormal=preserve_normal, preservetopology=False,
-              optimalplacement=True, planarquadric=True, autoclean=True, selected=locked)
+    kw = _quadric_options(target, preserve_boundary, preserve_normal, selected=locked)
     ms.meshing_decimation_quadric_edge_collapse(**kw)
     # the collapse may stop a few faces above the target on meshes with many boundaries
     tries = 0
@@ -358,11 +369,8 @@ def _collapse_chunk(job: dict) -> tuple[np.ndarray, np.ndarray]:
                                f_scalar_array=label.astype(np.float64)))
     if np.any(label == 1) and job["target"] < int(np.sum(label == 1)):
         ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
-        ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=int(job["target"]), qualitythr=0.3,
-            preserveboundary=job["preserve_boundary"], boundaryweight=1.0,
-            preservenormal=job["preserve_normal"], preservetopology=False,
-            optimalplacement=True, planarquadric=True, autoclean=True, selected=True)
+        ms.meshing_decimation_quadric_edge_collapse(**_quadric_options(
+            job["target"], job["preserve_boundary"], job["preserve_normal"], selected=True))
     m = ms.current_mesh()
     out_f = np.asarray(m.face_matrix(), dtype=np.int64).reshape(-1, 3)
     out_f = out_f[np.asarray(m.face_scalar_array()) > -0.5]
@@ -521,7 +529,6 @@ def _chunk_collapse(v: np.ndarray, f: np.ndarray, chunks: _Chunks, count: int,
     if chunks.count != count:
         chunks.results, chunks.count, redo = {}, count, None
     todo = list(range(_N_CHUNKS)) if redo is None else sorted(redo)
-    todo = [k for k in todo if k < _N_CHUNKS]
     scale = _scale_of(v)
     free = np.ones(len(f), dtype=bool) if keep is None else ~keep
     n_free = max(1, int(free.sum()))
@@ -694,10 +701,9 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     goes beyond ``max_error`` the places where it does (the samples of either mesh
     farther than that from the other) are remembered and the step is made again with the
     faces around every such place kept as they are (``_LOCK_RADIUS_BOUNDS`` times the
-    bound), up to
-    ``_LOCK_ROUNDS`` times; a step still beyond it ends the halving, and a log-scale
-    search between the last step within the bound and that one follows (the same
-    places kept), each trial decimating the last mesh found within the bound;
+    bound), up to ``_LOCK_ROUNDS`` times; a step still beyond it ends the halving, and a
+    log-scale search between the last step within the bound and that one follows (the
+    same places kept), each trial decimating the last mesh found within the bound;
     (vertices, faces, the search's distance of the result, trials, places kept, the
     result's :func:`hausdorff_distance` dict from its check, None for the input).
 

@@ -19,6 +19,7 @@ reference sweep on its truth.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 
@@ -196,3 +197,48 @@ def test_threads_do_not_change_the_result():
     np.testing.assert_array_equal(np.asarray(one.rotations), np.asarray(two.rotations))
     np.testing.assert_array_equal(np.asarray(one.translations), np.asarray(two.translations))
     assert json.dumps(one.pairs) == json.dumps(two.pairs)  # NaN-safe
+
+
+def _sweep_errors_mm(res, sweeps) -> list[float]:
+    return [float(np.sqrt(np.mean(np.sum((res.apply(k, s[0], s[2])[0] - s[4]) ** 2, axis=1))))
+            * 1e3 for k, s in enumerate(sweeps)]
+
+
+def test_refinement_also_starts_from_the_robot_poses_and_keeps_the_clearly_better_end(
+        monkeypatch):
+    """The refinement runs from the pose graph's corrections and from the robot's poses
+    (``robot_start``). Where both end in the same minimum the pose graph's is kept (the
+    report holds both RMS); where the pose graph's start ends worse (here: it stops
+    before it converges, as a start in a poor basin does) the robot start's end is taken,
+    and the sweeps land on their true poses instead of being kept at the robot's."""
+    import robo3d.registration as reg
+
+    sweeps, views = _scan("dimple_block", 4, 8, 30, 3)
+    kw = dict(origins=[s[2] for s in sweeps], profiles=[s[3] for s in sweeps],
+              silhouettes=views)
+    pts, nrm = [s[0] for s in sweeps], [s[1] for s in sweeps]
+    before = [float(np.sqrt(np.mean(np.sum((s[0] - s[4]) ** 2, axis=1)))) * 1e3
+              for s in sweeps]
+    same = align_sweeps(pts, nrm, options=AlignOptions(seed=3, threads=2), **kw)
+    st = same.refinement["starts"]
+    assert st["taken"] == "pose_graph"
+    assert abs(st["robot_rim_rms_px"] / st["pose_graph_rim_rms_px"] - 1) < 0.05
+    assert max(_sweep_errors_mm(same, sweeps)) < 0.2 * min(before)  # 0.11 against 0.73 mm
+
+    real = reg._refine_from
+
+    def stalled(problem, initial, options):  # the pose graph's start stalls
+        if initial is not None:
+            options = dataclasses.replace(options, refine_iterations=2)
+        return real(problem, initial, options)
+
+    monkeypatch.setattr(reg, "_refine_from", stalled)
+    only = align_sweeps(pts, nrm, options=AlignOptions(seed=3, threads=2, robot_start=False),
+                        **kw)
+    assert not only.refinement["converged"]  # without the second start: robot poses
+    np.testing.assert_allclose(_sweep_errors_mm(only, sweeps), before, rtol=1e-9)
+    both = align_sweeps(pts, nrm, options=AlignOptions(seed=3, threads=2), **kw)
+    st = both.refinement["starts"]
+    assert st["taken"] == "robot" and not st["pose_graph_converged"], st
+    assert both.refinement["converged"]
+    assert max(_sweep_errors_mm(both, sweeps)) < 0.2 * min(before)

@@ -106,10 +106,19 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         log_report(rr_stream, "reports/align", report)
     write_json(outputs["report"], report)
     flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
-    summary.info("aligned %d sweeps (gauge: %s, %.1f s)%s", len(clouds),
-             align_report.get("gauge", "-"), report["seconds"],
-             f"; flagged and kept at the robot's pose: {flagged}" if flagged else "")
+    starts = (align_report.get("refinement") or {}).get("starts")
+    summary.info("aligned %d sweeps (gauge: %s, %.1f s)%s%s", len(clouds),
+                 align_report.get("gauge", "-"), report["seconds"],
+                 f"; flagged and kept at the robot's pose: {flagged}" if flagged else "",
+                 "" if not starts else (
+                     f"; refined from the {starts['taken'].replace('_', ' ')}'s start "
+                     f"(silhouette RMS {_px(starts['pose_graph_rim_rms_px'])} px from the "
+                     f"pose graph's, {_px(starts['robot_rim_rms_px'])} px from the robot's)"))
     return report
+
+
+def _px(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f}"
 
 
 def _crop_to_workspace(clouds: list) -> dict[str, Any]:

@@ -74,8 +74,13 @@ Method
    by more than 60 degrees is left out too (the two sides of a thin wall lie within the
    correspondence distance); the silhouette term weighs ``rim_weight`` times its robust
    scale. When the correspondences cycle near the optimum the steps are shortened and
-   the cycle's mean taken. The bounds are checked again on the refined corrections; if
-   the refinement does not converge, every sweep stays at its robot pose, flagged.
+   the cycle's mean taken. The refinement settles in a minimum near its start, so with
+   views it also runs from the robot's poses (``robot_start``) and that end is taken
+   when its silhouette residuals are clearly lower (``robot_start_margin``): a pose graph
+   that rests on a pair of little overlap can start it far off
+   (:func:`_refine_two_starts`). The bounds are checked again on the refined
+   corrections; if the refinement does not converge, every sweep stays at its robot
+   pose, flagged.
 
 7. Directions the data do not constrain (issue 11: flat faces, symmetric bodies, few
    sweeps). Both the pairwise ICP and the refinement whiten their normal equations by

@@ -241,6 +241,8 @@ def test_centre_spread_over_a_bright_face_beside_the_stripe_is_dropped():
     assert np.abs(sp.v - vc[sp.line]).max() < 0.5  # what stays is on the line
     oblique = _stripe_image(vc, sigma=4.0, noise=0.0)  # FWHM 9.4 px in every column
     assert len(extract_stripe_centres(oblique, options=BASE)) == W
+    with pytest.raises(ValueError, match="max_width_rel"):
+        extract_stripe_centres(img, options=BASE.replace(max_width_rel=0.5))
 
 
 def test_background_frame_is_subtracted():

@@ -230,17 +230,18 @@ def test_centre_spread_over_a_bright_face_beside_the_stripe_is_dropped():
     face[:, cols] = (rows >= vc[None, cols] + 1.5) & (rows <= vc[None, cols] + 13)
     img[face] = 12.0 + 0.9 * 200.0
     img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-    off = extract_stripe_centres(img, options=BASE.replace(max_width_rel=0.0))
+    off = extract_stripe_centres(img, options=BASE)
     err = np.abs(off.v - vc[off.line])
     moved = err > 2.0  # without the test: centres spread onto the face, 8 px off
     assert moved.sum() >= 5 and np.all(np.isin(off.line[moved], np.arange(40, 64)))
     assert np.all(off.width_px[moved] > 3 * np.median(off.width_px))
-    sp = extract_stripe_centres(img, options=BASE)
+    assert BASE.max_width_rel == 0.0  # off by default (the alignment uses wide rim points)
+    sp = extract_stripe_centres(img, options=BASE.replace(max_width_rel=3.0))
     assert sp.rejected["too_wide"] == off.rejected["too_wide"] + int(moved.sum())
     np.testing.assert_array_equal(sp.line, off.line[~moved])  # only those go
     assert np.abs(sp.v - vc[sp.line]).max() < 0.5  # what stays is on the line
     oblique = _stripe_image(vc, sigma=4.0, noise=0.0)  # FWHM 9.4 px in every column
-    assert len(extract_stripe_centres(oblique, options=BASE)) == W
+    assert len(extract_stripe_centres(oblique, options=BASE.replace(max_width_rel=3.0))) == W
     with pytest.raises(ValueError, match="max_width_rel"):
         extract_stripe_centres(img, options=BASE.replace(max_width_rel=0.5))
 

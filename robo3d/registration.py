@@ -141,6 +141,7 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
+from .camera import distort_xy
 from .options import Options
 from .transforms import invert_transform, rotation_angle_deg
 
@@ -1328,12 +1329,7 @@ def _rim_front(x, n, centre, R, t, intr, D, sdf, cos_pre, search, cosg, uv, dept
         z = R[2, 0] * x[i, 0] + R[2, 1] * x[i, 1] + R[2, 2] * x[i, 2] + t[2]
         front = z > 1e-12
         zs = z if front else 1.0
-        xn = p0 / zs
-        yn = p1_ / zs
-        rr = xn * xn + yn * yn
-        radial = 1 + rr * (k1 + rr * (k2 + rr * k3))
-        xd = xn * radial + 2 * p1 * xn * yn + p2 * (rr + 2 * xn * xn)
-        yd = yn * radial + p1 * (rr + 2 * yn * yn) + 2 * p2 * xn * yn
+        xd, yd = distort_xy(p0 / zs, p1_ / zs, k1, k2, p1, p2, k3)
         u = fx * xd + skew * yd + cx
         v = fy * yd + cy
         uv[i, 0] = u

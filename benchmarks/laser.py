@@ -804,6 +804,12 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
     res = P_all @ n_l - d_l
     rms_all = float(np.sqrt(np.mean(res ** 2))) * 1e3
     rms_inl = float(np.sqrt(np.mean(res[inl] ** 2))) * 1e3
+    # the align stage's test of the centres' skew (alignment.max_centre_skew_px) on the
+    # same points: the pipeline drops these after the alignment
+    max_skew = float(default_config()["alignment"]["max_centre_skew_px"])
+    skew_all = np.abs(np.concatenate([p["stripe"].skew_px[p["inside"]] for p in boards]
+                                     or [np.zeros(0)]))
+    skewed = skew_all > max_skew if max_skew > 0 else np.zeros(len(skew_all), bool)
 
     # where the stripe must be on each board: the laser plane's line on the board plane
     n_found, n_expected, line_px, off_line, cover = 0, 0, [], 0, []
@@ -858,6 +864,16 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
         "srv_board_plane_rms_mm": rms_inl, "board_plane_rms_all_mm": rms_all,
         "points_on_board": int(len(P_all)), "points_on_board_inliers": int(inl.sum()),
         "points_on_board_outlier_fraction": float(1 - inl.mean()) if len(inl) else 0.0,
+        "skew_test": {
+            "max_skew_px": max_skew, "points_on_board_skewed": int(skewed.sum()),
+            "outlier_fraction_skewed": (float(1 - inl[skewed].mean()) if skewed.any()
+                                        else None),
+            "outlier_fraction_kept": (float(1 - inl[~skewed].mean()) if (~skewed).any()
+                                      else None),
+            "plane_rms_all_kept_mm": (float(np.sqrt(np.mean(res[~skewed] ** 2))) * 1e3
+                                      if (~skewed).any() else None),
+            "plane_rms_kept_inliers_mm": (float(np.sqrt(np.mean(res[~skewed & inl] ** 2)))
+                                          * 1e3 if (~skewed & inl).any() else None)},
         "points_off_board": n_off_board,
         "points_on_board_off_the_line": off_line,
         "centre_to_expected_line_px_median": float(np.median(line_px)) if line_px else None,
@@ -877,7 +893,9 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
     }
     log(f"srv: board in {len(boards)} of {len(per)} frames, stripe expected on {n_expected}, "
         f"found on {n_found}; plane RMS {rms_inl:.3f} mm ({inl.sum()} of {len(P_all)} points "
-        f"inliers; {rms_all:.3f} mm with all); {n_off_board} points off the board")
+        f"inliers; {rms_all:.3f} mm with all); {n_off_board} points off the board; "
+        f"{int(skewed.sum())} on the board skewed more than {max_skew:g} px, "
+        f"{out['skew_test']['outlier_fraction_skewed'] or 0:.1%} of them outliers")
     if overlay_dir is not None:
         overlay_dir = Path(overlay_dir)
         overlay_dir.mkdir(parents=True, exist_ok=True)

@@ -189,7 +189,7 @@ class Silhouettes:
 #: workspace's), and those that every file has (the others are missing in older files).
 _STRIPES_ARRAYS = ("u", "v", "confidence", "peak", "width_px", "line", "offsets", "axis",
                    "angle_deg", "colour", "s", "n_lines", "rejected", "rejection_reasons",
-                   "stamps_ns", "T_base_camera", "T_camera_laser")
+                   "stamps_ns", "T_base_camera", "T_camera_laser", "skew_px")
 _STRIPES_REQUIRED = ("u", "v", "confidence", "offsets", "stamps_ns", "T_base_camera")
 
 
@@ -218,6 +218,9 @@ class Stripes:
         The laser's pose in the camera at each frame.
     peak, width_px : (N,) float32 or None
         Each centre's peak height (grey levels) and width (pixels).
+    skew_px : (N,) float32 or None
+        Each centre's distance from its profile's top (pixels;
+        :attr:`robo3d.stripes.StripePoints.skew_px`).
     line : (N,) int32 or None
         The image line (column or row) of each centre.
     axis : (F,) str or None
@@ -259,6 +262,7 @@ class Stripes:
     rejected: np.ndarray | None = None
     rejection_reasons: np.ndarray | None = None
     workspace: tuple[np.ndarray, np.ndarray] | None = None
+    skew_px: np.ndarray | None = None
 
     @classmethod
     def from_frames(cls, found: Sequence[StripePoints], stamps_ns: Sequence[int],
@@ -289,7 +293,7 @@ class Stripes:
                    s=np.array([sp.s for sp in found], dtype=np.float64),
                    n_lines=np.array([sp.n_lines for sp in found], dtype=np.int64),
                    rejected=rejected, rejection_reasons=np.array(REJECTION_REASONS),
-                   workspace=workspace)
+                   workspace=workspace, skew_px=cat("skew_px", np.float32))
 
     @property
     def counts(self) -> np.ndarray:
@@ -349,6 +353,11 @@ class SweepCloud:
         ``frame_index`` they place the points on the sweep's range-image grid, on which
         fusion triangulates the sweep (:func:`robo3d.fusion.range_surface`); None when
         unknown (files written before they were kept).
+    skew_px : (N,) float32, optional
+        The point's stripe centre's distance from its profile's top (pixels;
+        :attr:`robo3d.stripes.StripePoints.skew_px`): the align stage drops the points
+        whose centre was pulled off the stripe (``alignment.max_centre_skew_px``); NaN
+        or None when unknown.
     """
 
     points_base: np.ndarray
@@ -360,6 +369,7 @@ class SweepCloud:
     report: dict = field(default_factory=dict)
     line: np.ndarray | None = None
     line_axis: np.ndarray | None = None
+    skew_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points_base = np.asarray(self.points_base, dtype=np.float64).reshape(-1, 3)
@@ -374,8 +384,11 @@ class SweepCloud:
         if self.line is not None:
             self.line = np.asarray(self.line, dtype=np.int64).reshape(-1)
             self.line_axis = np.asarray(self.line_axis, dtype=np.uint8).reshape(-1)
+        if self.skew_px is not None:
+            self.skew_px = np.asarray(self.skew_px, dtype=np.float32).reshape(-1)
         for name in ("normals_base", "sensor_origin_base", "frame_index", "confidence",
-                     *(("line", "line_axis") if self.line is not None else ())):
+                     *(("line", "line_axis") if self.line is not None else ()),
+                     *(("skew_px",) if self.skew_px is not None else ())):
             if len(getattr(self, name)) != n:
                 raise ValueError(f"SweepCloud.{name} must have {n} rows like points_base, "
                                  f"got {len(getattr(self, name))}")
@@ -404,6 +417,8 @@ class SweepCloud:
             self.sensor_origin_base = self.sensor_origin_base[keep]
             if self.line is not None:
                 self.line, self.line_axis = self.line[keep], self.line_axis[keep]
+            if self.skew_px is not None:
+                self.skew_px = self.skew_px[keep]
             self.report = {**(self.report or {}), f"dropped_{reason}": n}
         return n
 
@@ -448,6 +463,8 @@ def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], 
     if clouds and all(c.line is not None for c in clouds):
         arrays["line"] = _cat("line", (0,), np.int64)
         arrays["line_axis"] = _cat("line_axis", (0,), np.uint8)
+    if clouds and all(c.skew_px is not None for c in clouds):
+        arrays["skew_px"] = _cat("skew_px", (0,), np.float32)
     if corrections is not None:
         corr = np.asarray(corrections, dtype=np.float64)
         if corr.shape != (len(clouds), 4, 4):
@@ -506,5 +523,6 @@ def load_clouds_npz(path: str | os.PathLike[str]) -> list[SweepCloud]:
             sweep=int(sweep), sensor_origin_base=d["sensor_origin_base"][sel],
             report=reports[i],
             line=d["line"][sel] if "line" in d else None,
-            line_axis=d["line_axis"][sel] if "line" in d else None))
+            line_axis=d["line_axis"][sel] if "line" in d else None,
+            skew_px=d["skew_px"][sel] if "skew_px" in d else None))
     return out

@@ -101,8 +101,21 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    wide centres it drops are the grazing profiles' outermost points, which the
    alignment's silhouette term uses, and the alignment moved with them: on the hard
    scenes with poor masks the green-laser white cup's worst sweep went 0.67 -> 1.37 mm
-   and its measured p95 0.157 -> 0.310 mm (``benchmarks/README.md``, stop 31). The test
-   belongs after the alignment, on the delivered points only.
+   and its measured p95 0.157 -> 0.310 mm (``benchmarks/README.md``, stop 31). Step 5c
+   tells those centres apart better, and is applied after the alignment.
+5c. Each centre's skew (:attr:`StripePoints.skew_px`): its distance from the middle of
+   its profile's top (the laser channel's pixels around the brightest one within
+   :data:`_TOP_FRACTION` of the peak height). A stripe's centre lies at its top however
+   wide (seen obliquely) or flat (saturated) the stripe is; a run spread over a face
+   beside the stripe (the case of step 5b: a shoulder that fades over 10 px pulls the
+   centre 3 px) or a reflection merging into it pulls the centre away from the top. The
+   detector only reports it; the align stage drops the aligned points whose centre lies
+   more than ``alignment.max_centre_skew_px`` (2) from its top, after the alignment,
+   which uses the grazing profiles' outermost points. Measured: on the front-end
+   benchmark's cells the points more than 1 mm off have a median skew of 1.5-2.4 px,
+   the points within 0.3 mm a 99th percentile of 0.6-0.7 px; on the real desktop
+   scanner's boards 90 % of the centres skewed more than 2 px are off the laser plane,
+   0.03 % of the rest (``benchmarks/README.md``, stop 32).
 6. Confidence: the SNR term and the width term below, a contrast term (the peak over the
    frame's median peak, capped at 1) and a curve term (its length over ``2 min_run``,
    capped at 1). ``s`` (eq. 18) is reported on the centres' pixels.
@@ -336,6 +349,13 @@ class StripePoints:
         Peak height above the local background, in lightness units of the image.
     width_px : (N,) float64, pixels
         Full width at half maximum of the stripe across the line.
+    skew_px : (N,) float64, pixels
+        The centre's signed distance across the line from the middle of its profile's
+        top (the pixels within 5 % of the peak height around the brightest one; the
+        laser channel's profile). A symmetric stripe's centre lies at its top, however
+        wide or flat; a centre pulled away from it is an asymmetric run: the stripe
+        along an edge beside a face lit as brightly in the laser's channel, its run
+        spread over the face (module docstring, step 5c). NaN when not known.
     line : (N,) int64
         Index of the line each centre belongs to: the column for ``axis="columns"``,
         the row for ``axis="rows"``. Defaults to the rounded ``u`` (or ``v``).
@@ -373,6 +393,7 @@ class StripePoints:
     rejected: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REJECTION_REASONS, 0))
     angle_deg: float = float("nan")
     colour: str = ""
+    skew_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=np.float64).reshape(-1)
@@ -398,6 +419,7 @@ class StripePoints:
         self.confidence = _vec(self.confidence, 1.0, "confidence")
         self.peak = _vec(self.peak, np.nan, "peak")
         self.width_px = _vec(self.width_px, np.nan, "width_px")
+        self.skew_px = _vec(self.skew_px, np.nan, "skew_px")
         if self.line is None:
             along = self.u if self.axis == "columns" else self.v
             self.line = np.rint(along).astype(np.int64) if n else np.zeros(0, np.int64)
@@ -673,6 +695,9 @@ _JIT = {"nogil": True, "cache": True}
 #: Half-height of the first window read around a peak (rows); wider stripes are read again
 #: within the full window (from ``max_width_px``).
 _H_SMALL = 8
+#: A profile's top (:attr:`StripePoints.skew_px`): the pixels around its brightest within
+#: this fraction of the peak height (a saturated or broad top's middle).
+_TOP_FRACTION = 0.05
 #: In a line, a candidate on a long curve this many times the other's height wins even
 #: where the other lies on a longer curve.
 _DOMINANT = 2.0
@@ -892,9 +917,11 @@ def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
                 gaussian, linear=False):  # noqa: ANN001, ANN202
     """The stripe's profile in column c within +-hw rows of its brightest pixel p:
     (status, sub-pixel offset from p, peak height, FWHM, whether the window was too
-    small to hold the run or the half-maximum crossings). With ``linear`` the local
-    background is the line through the minima of the 3-pixel running mean on either
-    side of p (a baseline that follows a gradient), else the window's minimum."""
+    small to hold the run or the half-maximum crossings, the middle of the profile's top
+    from p: the contiguous pixels around p within :data:`_TOP_FRACTION` of the peak
+    height). With ``linear`` the local background is the line through the minima of the
+    3-pixel running mean on either side of p (a baseline that follows a gradient), else
+    the window's minimum."""
     nrow = img.shape[0]
     m = 2 * hw + 1
     for k in range(m):
@@ -937,7 +964,17 @@ def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
     amp = y[hw]
     t = max(tail_fraction * amp, noise_t)
     if not (amp >= min_peak and amp - t > 0):
-        return _TOO_WEAK, 0.0, amp, 0.0, False
+        return _TOO_WEAK, 0.0, amp, 0.0, False, 0.0
+    # the top: a flat (saturated) or broad top's middle, where a symmetric stripe's
+    # centre lies whichever of its pixels is brightest
+    tt = amp - _TOP_FRACTION * amp
+    tr = 0
+    while tr < hw and valid[hw + 1 + tr] and y[hw + 1 + tr] >= tt:
+        tr += 1
+    tl = 0
+    while tl < hw and valid[hw - 1 - tl] and y[hw - 1 - tl] >= tt:
+        tl += 1
+    top = 0.5 * (tr - tl)
     # the contiguous run around p where y > t
     nr = 0
     while nr < hw and valid[hw + 1 + nr] and y[hw + 1 + nr] > t:
@@ -1002,10 +1039,10 @@ def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
             short = short or mm >= hw
         width += mm + frac
     if filled:
-        return _TOO_WIDE, offset, amp, width, short
+        return _TOO_WIDE, offset, amp, width, short, top
     if cut:
-        return _AT_BORDER, offset, amp, width, short
-    return _OK, offset, amp, width, short
+        return _AT_BORDER, offset, amp, width, short, top
+    return _OK, offset, amp, width, short, top
 
 
 @njit(**_JIT)
@@ -1020,6 +1057,7 @@ def _centres(img, nch, good, carg, lo, hi, n_above, n_band, barg, h, h_small, ta
     centre = np.zeros(w, np.float64)
     amp_out = np.zeros(w, np.float64)
     width_out = np.zeros(w, np.float64)
+    top_out = np.zeros(w, np.float64)
     y = np.zeros(2 * h + 1, np.float64)
     valid = np.zeros(2 * h + 1, np.bool_)
     hs = min(h, h_small)
@@ -1067,11 +1105,11 @@ def _centres(img, nch, good, carg, lo, hi, n_above, n_band, barg, h, h_small, ta
         if two:
             status[c] = _TWO_BLOBS
             continue
-        st, offset, amp, width, short = _profile_at(img, nch, c, p, hs, y, valid,
+        st, offset, amp, width, short, top = _profile_at(img, nch, c, p, hs, y, valid,
                                                     tail_fraction, noise_t, min_peak,
                                                     gaussian)
         if short and hs < h:
-            st, offset, amp, width, short = _profile_at(img, nch, c, p, h, y, valid,
+            st, offset, amp, width, short, top = _profile_at(img, nch, c, p, h, y, valid,
                                                         tail_fraction, noise_t, min_peak,
                                                         gaussian)
         if st == _OK and width > max_width:
@@ -1081,7 +1119,8 @@ def _centres(img, nch, good, carg, lo, hi, n_above, n_band, barg, h, h_small, ta
             centre[c] = p + offset
             amp_out[c] = amp
             width_out[c] = width
-    return status, centre, amp_out, width_out
+            top_out[c] = p + top
+    return status, centre, amp_out, width_out, top_out
 
 
 # ---------------------------------------------------------------------------- ridge kernels
@@ -1665,19 +1704,20 @@ def _ridge_frame8(img, k, axis_mode, step, min_peak, noise_k, link_px, min_run, 
         lo, hi = (rlo, rhi) if rows_axis else (clo, chi)
         _extend(img, k, rows_axis, win, status, run, float(thr_w), link_px, _LINK_GAP, lo,
                 hi, 250.0)
-    st2, centre, amp, width = _ridge_centres(img, k, False, rows_axis, win, h, _H_SMALL,
-                                             tail_fraction, noise_k * sigma_n, min_peak,
-                                             max_width_px, gaussian)
+    st2, centre, amp, width, top = _ridge_centres(img, k, False, rows_axis, win, h,
+                                                  _H_SMALL, tail_fraction, noise_k * sigma_n,
+                                                  min_peak, max_width_px, gaussian)
     return (rows_axis, sigma_n, win, status, run, n_second, n_isolated, st2, centre, amp,
-            width)
+            width, top)
 
 
 @njit(**_JIT)
-def _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, run, min_run,
+def _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, top, run, min_run,
                  max_width_px):  # noqa: ANN001, ANN202
     """The end of :func:`_extract_ridge` for the byte kernels' frames, in one compiled
     call with numpy's arithmetic (the same values): the lines' final status and its
-    counts, the centres (u, v), their peak, width, the width, contrast and curve terms
+    counts, the centres (u, v), their peak, width, skew (the centre from its profile's
+    top, :class:`StripePoints`), the width, contrast and curve terms
     of the confidence (the SNR term's exp stays with numpy), eq. 18's channel sums on
     the centres' pixels and the median slope between neighbouring lines' centres (NaN
     with fewer than 3 pairs) for :func:`_angle_deg`."""
@@ -1706,6 +1746,7 @@ def _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, run, m
     line = ok.astype(np.int64)
     along = line.astype(np.float64)
     across = centre[ok]
+    skew = across - top[ok]
     sums = np.zeros(img.shape[2])
     for j in range(m):  # eq. 18 on the centres' pixels
         a = min(max(np.rint(along[j]), 0), (h_img if rows_axis else w_img) - 1)
@@ -1720,7 +1761,8 @@ def _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, run, m
             d[nd] = across[j + 1] - across[j]
             nd += 1
     slope = np.median(d[:nd]) if nd >= 3 else np.nan
-    return status, counts, line, across, amp_c, width_g, c_width, c_peak, c_run, sums, slope
+    return (status, counts, line, across, amp_c, width_g, skew, c_width, c_peak, c_run, sums,
+            slope)
 
 
 @njit(**_JIT)
@@ -1836,6 +1878,7 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
     centre = np.zeros(n, np.float64)
     amp_out = np.zeros(n, np.float64)
     width_out = np.zeros(n, np.float64)
+    top_out = np.zeros(n, np.float64)
     y = np.zeros(2 * h + 1, np.float64)
     valid = np.zeros(2 * h + 1, np.bool_)
     prof = np.zeros((2 * h + 1, 1, 1), np.float64)
@@ -1861,7 +1904,7 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
             if view[j, 0, 0] > pv:
                 pv = view[j, 0, 0]
                 p = j
-        st, offset, amp, width, short = _profile_at(view, 1, 0, p, hs, y, valid,
+        st, offset, amp, width, short, top = _profile_at(view, 1, 0, p, hs, y, valid,
                                                     tail_fraction, noise_t, min_peak,
                                                     gaussian, True)
         if short and hs < h:
@@ -1875,7 +1918,7 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
             p += lo - lo_f
             lo = lo_f
             view = prof[:hi_f - lo_f]
-            st, offset, amp, width, short = _profile_at(view, 1, 0, p, h, y, valid,
+            st, offset, amp, width, short, top = _profile_at(view, 1, 0, p, h, y, valid,
                                                         tail_fraction, noise_t, min_peak,
                                                         gaussian, True)
         if st == _OK and width > max_width:
@@ -1885,7 +1928,8 @@ def _ridge_centres(img, k, two, rows_axis, win, h, h_small, tail_fraction, noise
             centre[i] = p + lo + offset
             amp_out[i] = amp
             width_out[i] = width
-    return status, centre, amp_out, width_out
+            top_out[i] = p + lo + top
+    return status, centre, amp_out, width_out, top_out
 
 
 #: Hysteresis (step 3b): the laser's height of a curve's continuation may keep only
@@ -2326,7 +2370,8 @@ def _drop_wide(sp: StripePoints, rel: float) -> StripePoints:
     rejected = dict(sp.rejected)
     rejected["too_wide"] += int(np.count_nonzero(wide))
     return StripePoints(u=sp.u[keep], v=sp.v[keep], confidence=sp.confidence[keep],
-                        peak=sp.peak[keep], width_px=sp.width_px[keep], line=sp.line[keep],
+                        peak=sp.peak[keep], width_px=sp.width_px[keep],
+                        skew_px=sp.skew_px[keep], line=sp.line[keep],
                         axis=sp.axis, s=sp.s, n_lines=sp.n_lines, rejected=rejected,
                         colour=sp.colour, angle_deg=sp.angle_deg)
 
@@ -2373,7 +2418,7 @@ def _extract_band(img: np.ndarray, o: StripeOptions, min_peak_abs: float) -> Str
         rows = np.arange(img.shape[0], dtype=np.int64)
     n_above, n_band, barg = _scan_band(img, nch, lo, hi, good, rows)
     h = int(np.ceil(1.1 * max_width_px)) + 2
-    status, centre, amp, width = _centres(
+    status, centre, amp, width, top = _centres(
         img, nch, good, carg, lo, hi, n_above, n_band, barg, h, _H_SMALL,
         float(o.tail_fraction),
         float(o.noise_k * sigma_n), float(min_peak_abs), float(max_width_px),
@@ -2393,7 +2438,8 @@ def _extract_band(img: np.ndarray, o: StripeOptions, min_peak_abs: float) -> Str
     else:
         u, v = centre[ok], line_idx.astype(np.float64)
     return StripePoints(u=u, v=v, confidence=conf, peak=amp_g, width_px=width_g,
-                        line=line_idx, axis=axis, s=s_frame, n_lines=n_lines,
+                        skew_px=centre[ok] - top[ok], line=line_idx, axis=axis, s=s_frame,
+                        n_lines=n_lines,
                         rejected=rejected, colour="lightness",
                         angle_deg=_angle_deg(u, v, line_idx, axis == "rows"))
 
@@ -2529,7 +2575,7 @@ def _extract_ridge_axis(img: np.ndarray, *, axis: str, colour: str, min_peak: fl
     if _fast8(img, k):  # uint8, a laser colour or mono: one compiled call (no GIL)
         step = max(4, int(round(min(h_img, w_img) / 48)))
         (rows_axis, sigma_n, win, status, run, n_second, n_isolated, st2, centre, amp,
-         width) = _ridge_frame8(img, k, ("auto", "rows", "columns").index(axis), step,
+         width, top) = _ridge_frame8(img, k, ("auto", "rows", "columns").index(axis), step,
                                 float(min_peak), float(noise_k), float(link_px),
                                 int(min_run), h, float(tail_fraction), float(max_width_px),
                                 method == "gaussian", clo, chi, rlo, rhi, follow)
@@ -2540,9 +2586,9 @@ def _extract_ridge_axis(img: np.ndarray, *, axis: str, colour: str, min_peak: fl
                                    centre, float(tail_fraction), float(noise_k),
                                    float(min_peak), float(max_width_px),
                                    method == "gaussian")
-        (status, counts, line_idx, across, amp_c, width_g, c_width, c_peak, c_run, sums,
-         slope) = _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, run,
-                               int(min_run), float(max_width_px))
+        (status, counts, line_idx, across, amp_c, width_g, skew, c_width, c_peak, c_run, sums,
+         slope) = _ridge_tail8(img, rows_axis, status, st2, lo, hi, centre, amp, width, top,
+                               run, int(min_run), float(max_width_px))
         rejected = {nm: int(counts[i + 1]) for i, nm in enumerate(REJECTION_REASONS)}
         rejected["isolated"] += int(n_isolated)
         rejected["second_line"] += int(n_second)
@@ -2553,7 +2599,8 @@ def _extract_ridge_axis(img: np.ndarray, *, axis: str, colour: str, min_peak: fl
         means = sums / max(line_idx.size, 1)  # eq. 18 (as _eq18)
         s_frame = float((means.max() + means.min()) / 2.0) if line_idx.size else float("nan")
         return StripePoints(u=u, v=v, confidence=conf, peak=amp_c, width_px=width_g,
-                            line=line_idx, axis=axis, s=s_frame, n_lines=win.size,
+                            skew_px=skew, line=line_idx, axis=axis, s=s_frame,
+                            n_lines=win.size,
                             rejected=rejected, colour=name,
                             angle_deg=_angle_deg(u, v, line_idx, rows_axis,
                                                  None if np.isnan(slope) else float(slope)))
@@ -2585,7 +2632,7 @@ def _extract_ridge_axis(img: np.ndarray, *, axis: str, colour: str, min_peak: fl
         if follow:
             _extend(img, k, axis == "rows", win, status, run, float(thr_w), float(link_px),
                     _LINK_GAP, lo, hi, float(sat))
-        st2, centre, amp, width = _ridge_centres(img, k, two, axis == "rows", win, h,
+        st2, centre, amp, width, top = _ridge_centres(img, k, two, axis == "rows", win, h,
                                                  _H_SMALL, float(tail_fraction),
                                                  float(noise_k * sigma_n),
                                                  float(scale * min_peak),
@@ -2618,7 +2665,8 @@ def _extract_ridge_axis(img: np.ndarray, *, axis: str, colour: str, min_peak: fl
         cc = np.clip(np.rint(u).astype(np.int64), 0, w_img - 1)
         s_frame = _eq18(img, rr, cc)
     return StripePoints(u=u, v=v, confidence=conf, peak=amp_c / scale, width_px=width_g,
-                        line=line_idx, axis=axis, s=s_frame, n_lines=n_lines,
+                        skew_px=centre[ok] - top[ok], line=line_idx, axis=axis, s=s_frame,
+                        n_lines=n_lines,
                         rejected=rejected, colour=name,
                         angle_deg=_angle_deg(u, v, line_idx, axis == "rows"))
 
@@ -2630,7 +2678,7 @@ def _luma_centres(img: np.ndarray, rows_axis: bool, win: np.ndarray, h: int,
     5): where the luma has a peak of its own (the same tests as the laser channel's)
     within 1.5 px of the laser channel's centre; elsewhere the centre is kept."""
     sigma_y = float(_noise_contrast(img, _LUMA, False))
-    st_y, c_y, _, _ = _ridge_centres(img, _LUMA, False, rows_axis, win, h, _H_SMALL,
+    st_y, c_y, _, _, _ = _ridge_centres(img, _LUMA, False, rows_axis, win, h, _H_SMALL,
                                      tail_fraction, noise_k * sigma_y, min_peak,
                                      max_width_px, gaussian)
     use = (st_y == _OK) & (win >= 0) & (np.abs(c_y - centre) <= 1.5)

@@ -237,3 +237,41 @@ def test_the_lit_table_next_to_the_floor_does_not_make_the_silhouettes_contradic
     assert len(table) == 400 and "contradicted" not in report  # two thirds are the table
     assert report["dropped"] == 400 and len(cloud) == 200
     np.testing.assert_allclose(np.linalg.norm(cloud.points_base - CENTRE, axis=1), RADIUS)
+
+
+def test_points_whose_stripe_centre_was_pulled_off_the_stripe_are_dropped(tmp_path):
+    """After the alignment the points whose stripe centre lies more than
+    ``alignment.max_centre_skew_px`` from its profile's top are dropped, counted per
+    sweep, and returned for the rerun log; a skew not known (NaN) keeps the point; 0
+    keeps all; clouds written before the skew was kept are left as they are. The skew
+    survives clouds.npz."""
+    from robo3d.artefacts import load_clouds_npz, save_clouds_npz
+    from robo3d.stages.align import _drop_skewed
+
+    rng = np.random.default_rng(0)
+    skews = [np.array([0.1, -3.0, 2.5, np.nan, 1.9, -0.4]), np.array([-2.01, 0.0, 5.0])]
+    clouds = []
+    for k, s in enumerate(skews):
+        c = _cloud(rng.normal(size=(len(s), 3)), k)
+        c.skew_px = s.astype(np.float32)
+        clouds.append(c)
+    save_clouds_npz(tmp_path / "c.npz", clouds)
+    back = load_clouds_npz(tmp_path / "c.npz")
+    np.testing.assert_array_equal(back[1].skew_px, clouds[1].skew_px)
+    assert np.isnan(back[0].skew_px[3])
+    expect = np.concatenate([clouds[0].points_base[[1, 2]], clouds[1].points_base[[0, 2]]])
+    cfg = default_config()["alignment"]
+    assert cfg["max_centre_skew_px"] == 2.0
+    report, dropped = _drop_skewed(back, cfg)
+    assert report["dropped"] == 4 and [p["dropped"] for p in report["per_sweep"]] == [2, 2]
+    np.testing.assert_array_equal(dropped, expect)
+    assert [len(c) for c in back] == [4, 1]
+    assert np.isnan(back[0].skew_px).sum() == 1  # not known: kept
+    assert back[0].report["dropped_skewed_centre"] == 2
+    assert np.all(np.abs(np.nan_to_num(np.concatenate([c.skew_px for c in back]))) <= 2.0)
+    off = {**cfg, "max_centre_skew_px": 0.0}
+    report, dropped = _drop_skewed(clouds, off)
+    assert "skipped" in report and len(dropped) == 0 and len(clouds[0]) == 6
+    old = [_cloud(rng.normal(size=(5, 3)), 0)]  # no skew kept (an older clouds.npz)
+    report, dropped = _drop_skewed(old, cfg)
+    assert "older" in report["skipped"] and len(old[0]) == 5

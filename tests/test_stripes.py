@@ -246,6 +246,50 @@ def test_centre_spread_over_a_bright_face_beside_the_stripe_is_dropped():
         extract_stripe_centres(img, options=BASE.replace(max_width_rel=0.5))
 
 
+def test_skew_tells_a_centre_pulled_onto_a_lit_face_from_a_wide_or_saturated_stripe():
+    """``skew_px``: the centre's distance from the middle of its profile's top. A stripe
+    along an edge above a face lit in its channel (the blue cell's block: a shoulder
+    that starts at three quarters of the peak and fades over 10 px) pulls the centre of
+    gravity 2.5-3.5 px onto the face, and the skew says so (the align stage drops such
+    points, ``alignment.max_centre_skew_px``); a stripe seen obliquely (wide) or
+    saturated (a flat top) keeps its centre at its top: in the grey image, in a laser
+    colour, and searched along rows alike."""
+    vc = _centres()
+    rows = np.arange(H, dtype=np.float64)[:, None]
+    d = rows - vc[None, :]
+    shoulder = np.where(d >= 1.0, 0.75 * 120.0 * np.exp(-(d - 1.0) / 10.0), 0.0)
+    shoulder[:, :40] = shoulder[:, 64:] = 0.0
+    img = np.maximum(20.0 + 120.0 * _profile(vc, H, 1.2), 20.0 + shoulder)
+    img += np.random.default_rng(0).normal(0.0, 1.0, img.shape)
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    rgb = np.full((H, W, 3), 12, np.uint8)
+    rgb[..., 2] = img  # a blue laser above a face as blue
+    face = np.arange(40, 64)
+    for frame, transposed in ((img, False), (rgb, False), (img.T, True)):
+        sp = extract_stripe_centres(np.ascontiguousarray(frame), options=BASE)
+        c, line = (sp.u, sp.v) if transposed else (sp.v, sp.u)
+        line = np.rint(line).astype(int)
+        err = c - vc[line]
+        on_face = np.isin(line, face)
+        assert on_face.sum() == face.size and len(sp) == W
+        assert np.all(err[on_face] > 2.0)  # pulled onto the face ...
+        assert np.all(sp.skew_px[on_face] > 2.0)  # ... and far from the top
+        np.testing.assert_allclose(sp.skew_px[on_face], err[on_face], atol=0.6)
+        assert np.abs(err[~on_face]).max() < 0.3 and np.abs(sp.skew_px[~on_face]).max() < 0.6
+    oblique = extract_stripe_centres(_stripe_image(vc, sigma=4.0, noise=0.0), options=BASE)
+    assert len(oblique) == W and np.median(oblique.width_px) > 9
+    assert np.abs(oblique.skew_px).max() < 0.6
+    flat = np.clip(_stripe_image(vc, amp=600.0, sigma=2.0, noise=2.0), 0, 255).astype(np.uint8)
+    sat = extract_stripe_centres(flat, options=BASE)  # 4-6 px of 255 across the line
+    assert len(sat) >= W - 2 and np.sum(flat == 255, axis=0).min() >= 4
+    assert np.abs(sat.skew_px).max() < 0.8
+    assert np.abs(sat.v - vc[sat.line]).max() < 0.3
+    band = extract_stripe_centres(img, options=BASE.replace(detector="band"))
+    assert len(band) > W // 2 and np.all(np.isfinite(band.skew_px))
+    on_face = np.isin(band.line, face)
+    assert np.all(band.skew_px[on_face] > 2.0)
+
+
 def test_background_frame_is_subtracted():
     vc = _centres()
     rng = np.random.default_rng(3)
@@ -802,7 +846,7 @@ def test_stripes_artefact_round_trip_and_damage(tmp_path):
     art.save(tmp_path / "stripes.npz")
     back = Stripes.load(tmp_path / "stripes.npz")
     a, b = art.as_arrays(), back.as_arrays()
-    assert list(a) == list(b)
+    assert list(a) == list(b) and "skew_px" in b
     for k in a:
         assert a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes(), k
     assert [(c.frame_id, c.width, c.height) for c in back.cameras] == [("camera", W, H)] * 2

@@ -241,37 +241,49 @@ def test_the_lit_table_next_to_the_floor_does_not_make_the_silhouettes_contradic
 
 def test_points_whose_stripe_centre_was_pulled_off_the_stripe_are_dropped(tmp_path):
     """After the alignment the points whose stripe centre lies more than
-    ``alignment.max_centre_skew_px`` from its profile's top are dropped, counted per
-    sweep, and returned for the rerun log; a skew not known (NaN) keeps the point; 0
-    keeps all; clouds written before the skew was kept are left as they are. The skew
-    survives clouds.npz."""
+    ``alignment.max_centre_skew_px`` from its profile's top (taken from the recording's
+    median skew) are dropped, counted per sweep, and returned for the rerun log; a skew
+    not known (NaN) keeps the point; a stripe lopsided everywhere (more than
+    ``max_centre_skew_fraction`` would go) keeps every point and says so; 0 keeps all;
+    clouds written before the skew was kept are left as they are. The skew survives
+    clouds.npz."""
     from robo3d.artefacts import load_clouds_npz, save_clouds_npz
     from robo3d.stages.align import _drop_skewed
 
     rng = np.random.default_rng(0)
-    skews = [np.array([0.1, -3.0, 2.5, np.nan, 1.9, -0.4]), np.array([-2.01, 0.0, 5.0])]
+    # every centre 0.5 px off its top (a lopsided profile), four pulled 2.6-5 px further
+    skews = [0.5 + rng.uniform(-0.8, 0.8, 120), 0.5 + rng.uniform(-0.8, 0.8, 80)]
+    skews[0][[7, 30]] = [0.5 - 3.0, 0.5 + 2.6]
+    skews[0][50] = np.nan
+    skews[1][[3, 60]] = [0.5 + 5.0, 0.5 - 2.7]
     clouds = []
-    for k, s in enumerate(skews):
-        c = _cloud(rng.normal(size=(len(s), 3)), k)
-        c.skew_px = s.astype(np.float32)
+    for k, sk in enumerate(skews):
+        c = _cloud(rng.normal(size=(len(sk), 3)), k)
+        c.skew_px = sk.astype(np.float32)
         clouds.append(c)
     save_clouds_npz(tmp_path / "c.npz", clouds)
     back = load_clouds_npz(tmp_path / "c.npz")
     np.testing.assert_array_equal(back[1].skew_px, clouds[1].skew_px)
-    assert np.isnan(back[0].skew_px[3])
-    expect = np.concatenate([clouds[0].points_base[[1, 2]], clouds[1].points_base[[0, 2]]])
+    assert np.isnan(back[0].skew_px[50])
+    expect = np.concatenate([clouds[0].points_base[[7, 30]], clouds[1].points_base[[3, 60]]])
     cfg = default_config()["alignment"]
-    assert cfg["max_centre_skew_px"] == 2.0
+    assert cfg["max_centre_skew_px"] == 2.0 and cfg["max_centre_skew_fraction"] == 0.05
     report, dropped = _drop_skewed(back, cfg)
+    assert report["not_applied"] is False and abs(report["median_skew_px"] - 0.5) < 0.1
     assert report["dropped"] == 4 and [p["dropped"] for p in report["per_sweep"]] == [2, 2]
     np.testing.assert_array_equal(dropped, expect)
-    assert [len(c) for c in back] == [4, 1]
+    assert [len(c) for c in back] == [118, 78]
     assert np.isnan(back[0].skew_px).sum() == 1  # not known: kept
     assert back[0].report["dropped_skewed_centre"] == 2
-    assert np.all(np.abs(np.nan_to_num(np.concatenate([c.skew_px for c in back]))) <= 2.0)
+    # a limit of 0.6 px would take more than 5 % of the points (the profile's own spread
+    # of 0.8 px): the test does not describe this stripe, so none goes
+    strict = {**cfg, "max_centre_skew_px": 0.6}
+    report, dropped = _drop_skewed(clouds, strict)
+    assert report["not_applied"] is True and report["would_drop_fraction"] > 0.05
+    assert report["dropped"] == 0 and len(dropped) == 0 and len(clouds[0]) == 120
     off = {**cfg, "max_centre_skew_px": 0.0}
     report, dropped = _drop_skewed(clouds, off)
-    assert "skipped" in report and len(dropped) == 0 and len(clouds[0]) == 6
+    assert "skipped" in report and len(dropped) == 0 and len(clouds[0]) == 120
     old = [_cloud(rng.normal(size=(5, 3)), 0)]  # no skew kept (an older clouds.npz)
     report, dropped = _drop_skewed(old, cfg)
     assert "older" in report["skipped"] and len(old[0]) == 5

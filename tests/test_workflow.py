@@ -136,6 +136,16 @@ def test_full_scan_produces_every_output_accurately(batch):
     # aligning the sweeps to each other brings the cloud closer to the truth
     assert ev["aligned"]["mean_mm"] < ev["clouds"]["mean_mm"]
     assert len(ev["poses"]["per_sweep"]) == 3
+    # what it was computed with: the numeric packages' versions and the CPU
+    import numpy
+
+    env = _metrics(batch, "block")["environment"]
+    assert env["packages"]["numpy"] == numpy.__version__ and env["packages"]["open3d"]
+    assert env["cpu"] and env["python"].count(".") == 2
+    # the points whose stripe centre was pulled off the stripe are counted, not hidden
+    skew = _metrics(batch, "block")["stages"]["align"]["skewed_centres"]
+    assert skew["max_skew_px"] == 2.0 and skew["dropped"] == sum(
+        p["dropped"] for p in skew["per_sweep"])
 
 
 def test_views_only_recording_gets_the_hull_as_its_mesh(batch):

@@ -5,6 +5,7 @@ camera and workspace arrays of the artefacts, progress lines, thread counts.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -180,6 +181,37 @@ def topic_map(topics: Mapping[str, str] | None):
     from ..recording import TopicMap
 
     return TopicMap(**dict(topics or {}))
+
+
+#: The packages whose versions ``metrics.json`` records (``environment``).
+_VERSIONED = ("numpy", "scipy", "opencv-python-headless", "open3d", "numba", "pymeshlab",
+              "scikit-image")
+
+
+def environment() -> dict[str, Any]:
+    """What the results were computed with besides robo3d's code: Python, the numeric
+    packages' versions and the CPU. The same recording and config give the same files on
+    one machine (``benchmarks/determinism.py``); another CPU (its vector units) or
+    another release of these packages changes the last bits of floating-point results,
+    which the alignment can carry further (``benchmarks/README.md``, stop 32)."""
+    import platform
+    from importlib import metadata
+
+    versions = {}
+    for name in _VERSIONED:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f
+                        if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {"python": platform.python_version(), "platform": platform.platform(),
+            "cpu": cpu, "cpu_count": os.cpu_count(), "packages": versions}
 
 
 def code_version() -> str:

@@ -17,6 +17,7 @@ from ..errors import Robo3dError
 from .common import (
     cameras_from,
     code_version,
+    environment,
     load_silhouettes,
     log,
     open_recording,
@@ -87,7 +88,8 @@ def _stage_metrics(inputs: Mapping[str, str], results_dir: Path, cfg: Mapping[st
     import json
 
     metrics: dict[str, Any] = {"recording": str(inputs["recording"]), "name": rec_name,
-                               "robo3d": code_version(), "skipped": {}}
+                               "robo3d": code_version(), "environment": environment(),
+                               "skipped": {}}
     if inputs.get("calibration"):  # config scan_calibration: not the recording's own
         from ..calibration.io import calibration_note
 

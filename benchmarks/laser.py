@@ -740,7 +740,12 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
 
     from robo3d.config import default_config
     from robo3d.recording.reader import read_recording
-    from robo3d.stripes import centre_on_for, estimate_laser_colour, extract_stripe_centres
+    from robo3d.stripes import (
+        centre_on_for,
+        estimate_laser_colour,
+        extract_stripe_centres,
+        skewed_centres,
+    )
 
     rec = read_recording(path, roles=("views", "laser"))
     obj = _board_object_points()
@@ -806,10 +811,11 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
     rms_inl = float(np.sqrt(np.mean(res[inl] ** 2))) * 1e3
     # the align stage's test of the centres' skew (alignment.max_centre_skew_px) on the
     # same points: the pipeline drops these after the alignment
-    max_skew = float(default_config()["alignment"]["max_centre_skew_px"])
-    skew_all = np.abs(np.concatenate([p["stripe"].skew_px[p["inside"]] for p in boards]
-                                     or [np.zeros(0)]))
-    skewed = skew_all > max_skew if max_skew > 0 else np.zeros(len(skew_all), bool)
+    ac = default_config()["alignment"]
+    max_skew = float(ac["max_centre_skew_px"])
+    skewed = skewed_centres(np.concatenate([p["stripe"].skew_px[p["inside"]] for p in boards]
+                                           or [np.zeros(0)]),
+                            max_skew, float(ac["max_centre_skew_fraction"]))[0]
 
     # where the stripe must be on each board: the laser plane's line on the board plane
     n_found, n_expected, line_px, off_line, cover = 0, 0, [], 0, []

@@ -308,6 +308,7 @@ __all__ = [
     "StripeOptions",
     "StripePoints",
     "centre_on_for",
+    "skewed_centres",
     "REJECTION_REASONS",
     "brightness_coefficient",
     "lightness",
@@ -2355,6 +2356,26 @@ def extract_stripe_centres(
 #: :func:`_drop_wide` tests a frame's widths only when it has this many centres (the
 #: median of fewer says little about the stripe's own width)
 _WIDE_MIN_CENTRES = 16
+
+
+def skewed_centres(skew_px: np.ndarray, max_skew_px: float, max_fraction: float
+                   ) -> tuple[np.ndarray, float, bool]:
+    """Which centres were pulled off their stripe (module docstring, step 5c): skew more
+    than ``max_skew_px`` from the median of the known skews (NaN: not known, never
+    skewed). Returns the mask, the median and whether the test applies: not when more
+    than ``max_fraction`` of the centres would go (the stripe's profile is lopsided
+    throughout, not pulled off locally; the mask is then all false), nor when
+    ``max_skew_px`` is 0 or no skew is known."""
+    skew = np.asarray(skew_px, dtype=np.float64).reshape(-1)
+    known = skew[np.isfinite(skew)]
+    none = np.zeros(skew.size, bool)
+    if max_skew_px <= 0 or not known.size:
+        return none, float("nan"), False
+    centre = float(np.median(known))
+    bad = np.abs(skew - centre) > max_skew_px
+    if bad.mean() > max_fraction:
+        return none, centre, False
+    return bad, centre, True
 
 
 def _drop_wide(sp: StripePoints, rel: float) -> StripePoints:

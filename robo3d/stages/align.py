@@ -178,6 +178,8 @@ def _drop_skewed(clouds: list, ac: Mapping[str, Any]) -> tuple[dict[str, Any], n
     report says so (``not_applied``).
 
     Returns the report (per sweep: points dropped) and the dropped points."""
+    from ..stripes import skewed_centres
+
     limit = float(ac["max_centre_skew_px"])
     if limit <= 0:
         return {"skipped": "alignment.max_centre_skew_px is 0"}, np.zeros((0, 3))
@@ -186,25 +188,26 @@ def _drop_skewed(clouds: list, ac: Mapping[str, Any]) -> tuple[dict[str, Any], n
                  "an older robo3d)"}, np.zeros((0, 3)))
     n_all = sum(len(c) for c in clouds)
     skews = np.concatenate([c.skew_px for c in clouds]) if clouds else np.zeros(0)
-    known = skews[np.isfinite(skews)]
-    if not known.size:
+    if not np.isfinite(skews).any():
         return {"skipped": "no point's skew is known"}, np.zeros((0, 3))
-    centre = float(np.median(known))
-    bad = [np.abs(c.skew_px - centre) > limit for c in clouds]  # NaN (not known): kept
-    n = int(sum(b.sum() for b in bad))
-    report: dict[str, Any] = {"max_skew_px": limit, "median_skew_px": round(centre, 4),
-                              "would_drop_fraction": round(n / n_all, 6) if n_all else 0.0}
     cap = float(ac["max_centre_skew_fraction"])
-    if n_all and n / n_all > cap:
+    bad, centre, applied = skewed_centres(skews, limit, cap)
+    would = int(np.count_nonzero(np.abs(skews - centre) > limit))
+    report: dict[str, Any] = {"max_skew_px": limit, "median_skew_px": round(centre, 4),
+                              "would_drop_fraction": round(would / n_all, 6) if n_all else 0.0}
+    if not applied:
         log.warning("alignment: %.1f %% of the laser points come from stripe centres more "
                     "than %.1f px off their profile's top (more than "
                     "alignment.max_centre_skew_fraction, %.0f %%): the stripe's profile is "
                     "lopsided throughout, not pulled off locally; every point is kept",
-                    100.0 * n / n_all, limit, 100.0 * cap)
+                    100.0 * would / n_all, limit, 100.0 * cap)
         return {**report, "not_applied": True, "dropped": 0}, np.zeros((0, 3))
-    dropped = [c.points_base[b] for c, b in zip(clouds, bad, strict=True)]
+    starts = np.cumsum([0] + [len(c) for c in clouds])
+    parts = [bad[starts[k]:starts[k + 1]] for k in range(len(clouds))]
+    dropped = [c.points_base[b] for c, b in zip(clouds, parts, strict=True)]
     per_sweep = [{"sweep": c.sweep, "points": len(c), "dropped": c.drop(b, "skewed_centre")}
-                 for c, b in zip(clouds, bad, strict=True)]
+                 for c, b in zip(clouds, parts, strict=True)]
+    n = int(bad.sum())
     if n:
         log.info("alignment: %d laser points (%.2f %%) came from stripe centres more than "
                  "%.1f px off their profile's top (pulled off the stripe): dropped", n,

@@ -98,8 +98,9 @@ case "$cmd" in
     exec .venv/bin/snakemake --cores all --keep-going --rerun-incomplete "$@"
     ;;
   test)
-    # two workers (the machine the suite is sized for has 2 cores), one file at a time each
-    exec .venv/bin/python -m pytest -n 2 --dist loadfile "$@"
+    # two workers (the machine the suite is sized for has 2 cores), one file at a time each,
+    # handed out longest first (tests/conftest.py; xdist's own reorder by test count off)
+    exec .venv/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder "$@"
     ;;
   *)
     say "usage: ./run.sh demo|test [args...]"; exit 2

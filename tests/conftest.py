@@ -17,9 +17,9 @@ compile. The process is ended when the session ends; ``ROBO3D_TEST_NO_WARMUP=1``
 it off (e.g. to time the suite without it).
 
 Under pytest-xdist (``./run.sh test`` runs two workers, one test file per worker at a
-time) both cores are the tests' own, so there is no warm-up process; instead the files
-marked ``slow`` (the end-to-end workflow runs, minutes each) are handed out first, so
-that they run beside the many short files instead of after them.
+time) both cores are the tests' own, so there is no warm-up process; instead the longest files
+(the end-to-end workflow runs, minutes each) are handed out first, so that they run
+beside the many short files instead of after them.
 """
 
 from __future__ import annotations
@@ -89,13 +89,22 @@ def pytest_collection_finish(session: pytest.Session) -> None:
                              stderr=subprocess.DEVNULL)
 
 
+#: The files that take longest, longest first (seconds on a 2-core AMD EPYC, stop 33:
+#: workflow 220+, slurm 160, simplify 67, resume 66, stripes 63); the others follow in
+#: collection order.
+_LONGEST_FIRST = ("test_workflow.py", "test_slurm.py", "test_simplify.py", "test_resume.py",
+                  "test_stripes.py", "test_fusion.py", "test_alignment_property.py")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under xdist, the ``slow`` files first (stable order otherwise): xdist's ``loadfile``
-    schedule hands out files in collection order, and a long file handed out last
-    would run alone on one core at the end."""
+    """Under xdist, the longest files first (stable order otherwise): xdist's ``loadfile``
+    schedule hands out files in collection order (``./run.sh test`` passes
+    ``--no-loadscope-reorder``: xdist's own reorder, by number of tests per file, handed the
+    two-test SLURM file out near the end, where it ran alone on one core for minutes)."""
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         return
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:

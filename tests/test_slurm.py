@@ -90,7 +90,10 @@ def runs(cluster, tmp_path_factory) -> tuple[Path, Path, str]:
         remote, recs, "--workflow-profile", str(REPO / "profiles" / "slurm"),
         "--slurm-status-command", "squeue", "--slurm-no-account",
         "--slurm-init-seconds-before-status-checks", "1",
-        "--seconds-between-status-checks", "2", "--slurm-keep-successful-logs")
+        "--seconds-between-status-checks", "2", "--slurm-keep-successful-logs",
+        # one core per group job (the profile asks two): this one-node cluster has two,
+        # so the two recordings' jobs run side by side instead of one after the other
+        "--cores", "1")
     local_run = _snakemake(local, recs, "--cores", "2", "--quiet", "all")
     try:
         _wait(local_run, "the local run")

@@ -94,12 +94,17 @@ case "$cmd" in
         .venv/bin/robo3d simulate --demo recordings/ --missing --threads 0
         ;;
     esac
+    # the numba kernels compiled once (a fresh install), not once per job started side by
+    # side; about a second when they are in the cache already
+    .venv/bin/robo3d warm-up
     say "running the pipeline on the recordings in recordings/ (results in results/)"
     exec .venv/bin/snakemake --cores all --keep-going --rerun-incomplete "$@"
     ;;
   test)
     # two workers (the machine the suite is sized for has 2 cores), one file at a time each,
-    # handed out longest first (tests/conftest.py; xdist's own reorder by test count off)
+    # handed out longest first (tests/conftest.py; xdist's own reorder by test count off);
+    # the kernels compiled once first, not by each of the end-to-end tests' jobs at once
+    .venv/bin/robo3d warm-up
     exec .venv/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder "$@"
     ;;
   *)

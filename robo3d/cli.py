@@ -21,6 +21,9 @@ status. To add a command (``robo3d info``, ...), write the pair and append it.
 ``robo3d view REC [--results DIR] [--web] [--bind ADDR] [--web-port N] [--grpc-port N]``
     Every stage's rerun log of a recording together, with a designed layout (see
     :mod:`robo3d.view`); ``--web`` serves the web viewer and prints its address.
+``robo3d warm-up [--processes N]``
+    Compile the numba kernels into the cache once, before many jobs start side by side
+    (see :mod:`robo3d.warmup`).
 """
 
 from __future__ import annotations
@@ -397,6 +400,22 @@ def _run_view(args: argparse.Namespace) -> int:
 
 
 #: The registered subcommands, in the order ``robo3d --help`` lists them.
+# ---------------------------------------------------------------------------- warm-up
+def _add_warm_up(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--processes", type=int, default=2,
+                   help="compile the detector and the carver side by side in this many "
+                        "processes (default 2; 1: one after the other)")
+
+
+def _run_warm_up(args: argparse.Namespace) -> int:
+    from .warmup import compile_kernels
+
+    t = compile_kernels(args.processes)
+    _log.info("kernels compiled or loaded from the cache in %.1f s (stripe detector %.1f s, "
+              "carver %.1f s)", t["total"], t["stripes"], t["carver"])
+    return 0
+
+
 COMMANDS: list[Command] = [
     Command("simulate", "simulate a scan recording with ground truth (or the demos)",
             _add_simulate, _run_simulate),
@@ -409,6 +428,8 @@ COMMANDS: list[Command] = [
             _add_status, _run_status),
     Command("view", "open a recording's rerun logs together with a designed layout "
             "(--web: in a browser)", _add_view, _run_view),
+    Command("warm-up", "compile the numba kernels into the cache once (a fresh install), "
+            "before many jobs start side by side", _add_warm_up, _run_warm_up),
 ]
 
 

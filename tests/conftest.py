@@ -17,7 +17,9 @@ compile. The process is ended when the session ends; ``ROBO3D_TEST_NO_WARMUP=1``
 it off (e.g. to time the suite without it).
 
 Under pytest-xdist (``./run.sh test`` runs two workers, one test file per worker at a
-time) both cores are the tests' own, so there is no warm-up process; instead the longest files
+time) both cores are the tests' own, so there is no warm-up process here: ``./run.sh
+test`` runs ``robo3d warm-up`` before pytest (the 8-bit kernels, which the end-to-end
+tests' many jobs would otherwise each compile at once); instead the longest files
 (the end-to-end workflow runs, minutes each) are handed out first, so that they run
 beside the many short files instead of after them.
 """

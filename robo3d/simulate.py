@@ -184,6 +184,9 @@ class SimulationParams:
         past the object's box, pause between sweeps, ``/tf`` rate while moving.
     laser_encoding, laser_read_noise_dn, gain_dn_per_electron
         Laser frames' encoding (``png``, ``mono8``, ``jpeg``), read noise, shot noise gain.
+        ``mono8`` in a scene with a coloured laser is a monochrome camera (no colour
+        filters): each pixel sees the mean of the rendered channels, the laser's and the
+        room light's alike.
     baseline, crossing
         Camera-to-laser distance; depth where the sheet crosses the optical axis.
     sweep_error_mm, sweep_error_deg, view_error_mm, view_error_deg
@@ -349,8 +352,6 @@ class SimulationParams:
             ("pose_error_deg_per_m", self.pose_error_deg_per_m >= 0),
             ("clock_lag_ms", abs(self.clock_lag_ms) <= 30),
             ("mesh_unit", self.mesh_unit in MESH_UNITS),
-            ("laser_encoding", self.appearance.laser_rgb is None
-             or self.laser_encoding != "mono8"),  # RGB laser frames
         ]
         for name, ok in checks:
             if not ok:
@@ -855,6 +856,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             else:
                 _, k, j, cam = laser_frames[i]
                 signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
+                if signal.ndim == 3 and p.laser_encoding == "mono8":
+                    signal = signal.mean(axis=2)  # a monochrome camera: no colour filters
                 if vig is not None:
                     signal = signal * (vig if signal.ndim == 2 else vig[..., None])
                 img = sensor_noise(signal, np.random.default_rng([p.seed, 11, k, j]),

@@ -585,6 +585,59 @@ def test_cell_laser_frames_are_room_lit_rgb_jpeg(cell_recording):
     assert params.view_read_noise_dn >= 2 and params.vignetting > 0
 
 
+def _mono_against_colour(tmp_path, markers: str) -> list[float]:
+    """The same cell (red laser, grey sphere, room light) recorded by a colour camera
+    (png) and a monochrome one (mono8); per laser frame where the colour frame's stripe
+    has 20 centres or more, the median distance of the mono frame's centres to them (px;
+    inf: none found). Checks on the way that each mono pixel is the mean of the colour
+    camera's channels (over 5 x 5 pixels: the noise is drawn apart)."""
+    cv2 = pytest.importorskip("cv2")
+    from robo3d.recording.reader import read_recording
+    from robo3d.simulate import SimulationParams
+    from robo3d.stripes import extract_stripe_centres
+
+    recs = {}
+    for enc in ("png", "mono8"):
+        params = SimulationParams.cell(laser="red", object_color="grey", texture="none",
+                                       markers=markers, small=True,
+                                       **{**CELL_SMALL, "views": 0, "sweeps": 1,
+                                          "laser_encoding": enc})
+        simulate_recording(tmp_path / f"{enc}.mcap", "sphere", params=params)
+        recs[enc] = read_recording(tmp_path / f"{enc}.mcap", roles=("laser",))
+    assert {m.encoding for m in recs["mono8"].laser_frames} == {"mono8"}
+    out = []
+    for m_rgb, m_mono in zip(recs["png"].laser_frames, recs["mono8"].laser_frames,
+                             strict=True):
+        rgb, mono = recs["png"].decode(m_rgb), recs["mono8"].decode(m_mono)
+        assert mono.shape == rgb.shape[:2] and mono.dtype == np.uint8
+        diff = cv2.blur(mono.astype(np.float32) - rgb.astype(np.float32).mean(axis=2), (5, 5))
+        assert abs(np.median(diff)) < 1.0 and np.percentile(np.abs(diff), 90) < 3.0
+        a, b = extract_stripe_centres(rgb), extract_stripe_centres(mono)
+        if len(a) < 20:
+            continue
+        d = np.min(np.hypot(b.u[:, None] - a.u[None], b.v[:, None] - a.v[None]), axis=1)
+        out.append(float(np.median(d)) if len(b) else np.inf)
+    return out
+
+
+def test_cell_with_a_monochrome_camera(tmp_path):
+    """``--laser-encoding mono8`` in a cell (a coloured laser) is a monochrome camera
+    without a filter: room light and laser alike. On a plain table its stripe is found
+    where the colour camera's is (measured: 0.0-0.1 px in all 12 frames)."""
+    d = _mono_against_colour(tmp_path, "none")
+    assert len(d) >= 8 and max(d) < 0.5, d
+
+
+@pytest.mark.xfail(strict=True, reason="known limit (stop 33): a monochrome camera without "
+                   "a laser filter in room light over a printed table; the detector takes "
+                   "the printed pattern's thin white gaps, brighter than the stripe (which "
+                   "the camera sees at a third of a colour camera's contrast), in most "
+                   "frames (median 20-45 px off the stripe)")
+def test_cell_with_a_monochrome_camera_over_printed_dots(tmp_path):
+    d = _mono_against_colour(tmp_path, "dots")
+    assert len(d) >= 8 and np.median(d) < 0.5, d
+
+
 @pytest.mark.parametrize("laser,channel", [("red", 0), ("green", 1), ("blue", 2)])
 def test_laser_colour_dominates_the_stripe(sphere_scene, laser, channel):
     from robo3d.sim.render import visible_stripe_points

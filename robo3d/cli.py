@@ -154,7 +154,7 @@ _SIM_OPTIONS: list[tuple[str, str, object, str, str]] = [
     ("--view-encoding", "view_encoding", ("jpeg", "png", "rgb8", "bgr8"), "",
      "encoding of the views"),
     ("--laser-encoding", "laser_encoding", ("png", "mono8", "jpeg"), "",
-     "encoding of the laser frames"),
+     "encoding of the laser frames (mono8 with a coloured laser: a monochrome camera)"),
     ("--jpeg-quality", "jpeg_quality", int, "Q",
      "JPEG quality"),
     ("--view-noise", "view_read_noise_dn", float, "DN",

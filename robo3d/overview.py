@@ -201,7 +201,10 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     flagged = [s.get("sweep") for s in _get(metrics, ("stages", "align", "per_sweep")) or []
                if isinstance(s, Mapping) and s.get("flagged")]
     if flagged:
-        notes.append(f"alignment flagged sweep(s) {', '.join(map(str, flagged))}")
+        share = _get(metrics, ("stages", "fuse", "flagged_sweep_area_fraction"))
+        notes.append(f"alignment flagged sweep(s) {', '.join(map(str, flagged))}" + (
+            f": {100 * share:.0f} % of the mesh's area rests on their robot poses alone "
+            "(flagged_sweep in the PLY files)" if _number(share) and share > 0 else ""))
     if _get(metrics, ("stages", "simplify", "within_tolerance")) is False:
         notes.append("the simplified mesh is not within its Hausdorff tolerance")
     return status, notes

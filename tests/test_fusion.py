@@ -599,3 +599,32 @@ def test_tsdf_threads_do_not_change_the_mesh():
     np.testing.assert_array_equal(v1, v2)
     np.testing.assert_array_equal(f1, f2)
     assert r1["range_surfaces"] == r2["range_surfaces"]
+
+
+def test_surface_measured_by_a_flagged_sweep_is_labelled():
+    """``flagged_sweep``: measured vertices whose nearest laser point comes from a sweep
+    the alignment flagged (kept at the robot's pose, checked by nothing) are 1; inferred
+    vertices and the other sweeps' surface 0; nothing flagged costs nothing."""
+    from types import SimpleNamespace
+
+    from robo3d.stages.fuse import _flagged_sweep
+
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0, 0.01, (500, 3))  # sweep 0: x in [0, 10] mm
+    b = a + [0.02, 0, 0]  # sweep 1: x in [20, 30] mm
+    V = np.r_[a[:50] + 1e-4, b[:50] - 1e-4, [[0.005, 0.005, 0.05]]]
+    measured = np.r_[np.ones(100, bool), False]
+
+    def clouds(f0, f1):
+        return [SimpleNamespace(points_base=a, sweep=0, report={"flagged": f0}),
+                SimpleNamespace(points_base=b, sweep=1, report={"flagged": f1})]
+
+    out = _flagged_sweep(V, measured, clouds(False, True))
+    assert out.dtype == np.uint8
+    assert not out[:50].any() and out[50:100].all() and out[100] == 0
+    assert not _flagged_sweep(V, measured, clouds(False, False)).any()
+    both = _flagged_sweep(V, measured, clouds(True, True))
+    assert both[:100].all() and both[100] == 0
+    # older aligned.npz files have no "flagged" in their reports: nothing is labelled
+    old = [SimpleNamespace(points_base=a, sweep=0, report=None)]
+    assert not _flagged_sweep(V, measured, old).any()

@@ -232,11 +232,17 @@ def test_measured_surface_is_labelled_and_scored_apart(batch):
     V, F = read_mesh(out / "mesh.ply")
     assert len(Fm) > 1000
     a = read_vertex_attributes(out / "mesh.ply")
-    assert {"source", "confidence", "n_obs", "dist_measured_m", "far_from_measured"} <= set(a)
+    assert {"source", "confidence", "n_obs", "dist_measured_m", "far_from_measured",
+            "flagged_sweep"} <= set(a)
     assert len(a["source"]) == len(V) and set(np.unique(a["source"])) <= {0, 1, 2}
     assert np.all(a["confidence"][a["source"] != MEASURED] == 0)
     assert (a["source"] == MEASURED).any() and (a["source"] == HULL).any()
     m = _metrics(batch, "block")
+    # surface measured by a sweep the alignment flagged is labelled (none is here)
+    flagged = [s["sweep"] for s in m["stages"]["align"]["per_sweep"] if s["flagged"]]
+    assert m["stages"]["fuse"]["flagged_sweeps"] == flagged
+    assert bool(a["flagged_sweep"].any()) == bool(flagged)
+    assert not np.any(a["flagged_sweep"][a["source"] != MEASURED])
     src = m["surface_sources"]
     assert 0.1 < src["inferred_area_fraction"] < 0.9  # 3 sweeps see part of the block
     assert src["mesh"]["measured"] == pytest.approx(1 - src["inferred_area_fraction"])

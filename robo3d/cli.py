@@ -410,6 +410,8 @@ def _add_warm_up(p: argparse.ArgumentParser) -> None:
 def _run_warm_up(args: argparse.Namespace) -> int:
     from .warmup import compile_kernels
 
+    _log.info("compiling the numba kernels, or loading them from the cache (tens of seconds "
+              "the first time after an install, about a second after)")
     t = compile_kernels(args.processes)
     _log.info("kernels compiled or loaded from the cache in %.1f s (stripe detector %.1f s, "
               "carver %.1f s)", t["total"], t["stripes"], t["carver"])

@@ -86,8 +86,9 @@ def run_workflow(recording: Path | list[Path], work: Path, targets: tuple[str, .
     stripes stage)."""
     global _WARM
     if not _WARM:
-        subprocess.run([sys.executable, "-c", "from robo3d.warmup import compile_kernels; "
-                        "compile_kernels()"], check=True)
+        from robo3d.warmup import compile_kernels
+
+        compile_kernels()
         _WARM = True
     recs = recording if isinstance(recording, list) else [recording]
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",

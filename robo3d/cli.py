@@ -399,7 +399,6 @@ def _run_view(args: argparse.Namespace) -> int:
                           grpc_port=args.grpc_port, analytics=args.analytics)
 
 
-#: The registered subcommands, in the order ``robo3d --help`` lists them.
 # ---------------------------------------------------------------------------- warm-up
 def _add_warm_up(p: argparse.ArgumentParser) -> None:
     p.add_argument("--processes", type=int, default=2,
@@ -418,6 +417,7 @@ def _run_warm_up(args: argparse.Namespace) -> int:
     return 0
 
 
+#: The registered subcommands, in the order ``robo3d --help`` lists them.
 COMMANDS: list[Command] = [
     Command("simulate", "simulate a scan recording with ground truth (or the demos)",
             _add_simulate, _run_simulate),

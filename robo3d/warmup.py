@@ -24,7 +24,15 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-__all__ = ["compile_kernels"]
+__all__ = ["compile_kernels", "tiny_stripe_frame"]
+
+
+def tiny_stripe_frame() -> np.ndarray:
+    """A 48 x 64 8-bit mono frame with one slightly tilted Gaussian stripe (peak 200): the
+    smallest input that takes the detector through its kernels."""
+    yy, xx = np.mgrid[0:48, 0:64]
+    return np.clip(np.rint(200.0 * np.exp(-0.5 * ((yy - 20.0 - 0.1 * xx) / 1.5) ** 2)), 0,
+                   255).astype(np.uint8)
 
 
 def _stripes() -> float:
@@ -32,10 +40,7 @@ def _stripes() -> float:
     from .stripes import StripeOptions, extract_stripe_centres
 
     t0 = time.perf_counter()
-    h, w = 48, 64
-    yy, xx = np.mgrid[0:h, 0:w]
-    mono = np.clip(np.rint(200.0 * np.exp(-0.5 * ((yy - 20.0 - 0.1 * xx) / 1.5) ** 2)), 0,
-                   255).astype(np.uint8)
+    mono = tiny_stripe_frame()
     rgb = np.stack([mono, np.full_like(mono, 10), np.full_like(mono, 10)], axis=-1)
     opts = StripeOptions(min_peak=5.0)
     for img in (rgb, mono):

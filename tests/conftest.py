@@ -40,11 +40,9 @@ import os
 os.nice(10)
 import numpy as np
 from robo3d.stripes import StripeOptions, extract_stripe_centres
+from robo3d.warmup import tiny_stripe_frame
 
-h, w = 48, 64
-yy, xx = np.mgrid[0:h, 0:w]
-base = 200.0 * np.exp(-0.5 * ((yy - 20.0 - 0.1 * xx) / 1.5) ** 2)
-u8 = np.clip(np.rint(base), 0, 255).astype(np.uint8)
+u8 = tiny_stripe_frame()
 images = [
     (u8.astype(np.float32) / 255.0, 0.04),
     (u8.astype(np.uint16) * 257, 10.0 * 257),

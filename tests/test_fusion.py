@@ -619,12 +619,16 @@ def test_surface_measured_by_a_flagged_sweep_is_labelled():
         return [SimpleNamespace(points_base=a, sweep=0, report={"flagged": f0}),
                 SimpleNamespace(points_base=b, sweep=1, report={"flagged": f1})]
 
-    out = _flagged_sweep(V, measured, clouds(False, True))
+    def flagged(cs):
+        return _flagged_sweep(V, measured, cs, [bool((c.report or {}).get("flagged"))
+                                                 for c in cs])
+
+    out = flagged(clouds(False, True))
     assert out.dtype == np.uint8
     assert not out[:50].any() and out[50:100].all() and out[100] == 0
-    assert not _flagged_sweep(V, measured, clouds(False, False)).any()
-    both = _flagged_sweep(V, measured, clouds(True, True))
+    assert not flagged(clouds(False, False)).any()
+    both = flagged(clouds(True, True))
     assert both[:100].all() and both[100] == 0
     # older aligned.npz files have no "flagged" in their reports: nothing is labelled
     old = [SimpleNamespace(points_base=a, sweep=0, report=None)]
-    assert not _flagged_sweep(V, measured, old).any()
+    assert not flagged(old).any()

@@ -88,7 +88,6 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
             # kept at the robot's pose, checked against no other sweep or view: fusion
             # labels the surface it measured (``flagged_sweep``)
             c.report["flagged"] = bool(result.per_sweep[k].get("flagged"))
-            c.report["flag_reason"] = str(result.per_sweep[k].get("reason", ""))
         c.points_base, c.sensor_origin_base, c.normals_base = p, o, n
     ws_check = _crop_to_workspace(clouds)
     hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)

@@ -85,8 +85,11 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         raise StageError("fusion needs aligned clouds or a hull, got neither")
     if len(F) == 0:
         raise StageError(f"fusion produced an empty mesh from {source}")
-    attrs["flagged_sweep"] = (_flagged_sweep(V, attrs["source"] == MEASURED, clouds)
-                              if inputs.get("aligned") else np.zeros(len(V), np.uint8))
+    # sweeps the alignment flagged (kept at the robot's pose, checked by nothing)
+    laser = clouds if inputs.get("aligned") else []
+    flags = [bool((c.report or {}).get("flagged")) for c in laser]
+    attrs["flagged_sweep"] = (_flagged_sweep(V, attrs["source"] == MEASURED, laser, flags)
+                              if any(flags) else np.zeros(len(V), np.uint8))
     if isinstance(fuse_report.get("source_area_fraction"), dict):
         fuse_report.pop("source_area_fraction")
     fractions = source_area_fractions(V, F, attrs["source"])
@@ -98,9 +101,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "inferred_far_area_fraction": _area_fraction(V, F, attrs["far_from_measured"]
                                                            > 0),
               "flagged_sweep_area_fraction": _area_fraction(V, F, attrs["flagged_sweep"] > 0),
-              "flagged_sweeps": [int(c.sweep) for c in clouds
-                                 if (c.report or {}).get("flagged")] if inputs.get(
-                                     "aligned") else [],
+              "flagged_sweeps": [int(c.sweep) for c, f in zip(laser, flags, strict=True) if f],
               "measured_faces": len(Fm),
               "vertex_attributes": {"source": {str(i): n for i, n in enumerate(SOURCES)},
                                     "fields": sorted(attrs)},
@@ -128,16 +129,16 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     return report
 
 
-def _flagged_sweep(V: np.ndarray, measured: np.ndarray, clouds: list) -> np.ndarray:
+def _flagged_sweep(V: np.ndarray, measured: np.ndarray, clouds: list, flags: list[bool]
+                   ) -> np.ndarray:
     """1 on measured vertices whose nearest laser point comes from a sweep the alignment
-    flagged (kept at the robot's pose: no accepted pair and no view checked it; the
-    aligned cloud's report ``flagged``), else 0. Such surface is measured, but where it
-    lies rests on the robot's pose alone; when every sweep is flagged the laser points
-    may not be one surface at all (random scene 142 of stop 33: a stripe the detector
-    did not find, a printed pattern's gaps taken instead). Costs nothing when no sweep
-    is flagged."""
+    flagged (``flags``, per cloud: kept at the robot's pose, no accepted pair and no view
+    checked it; the aligned cloud's report ``flagged``), else 0. Such surface is
+    measured, but where it lies rests on the robot's pose alone; when every sweep is
+    flagged the laser points may not be one surface at all (random scene 142 of stop 33:
+    a stripe the detector did not find, a printed pattern's gaps taken instead). Costs
+    nothing when no sweep is flagged."""
     out = np.zeros(len(V), np.uint8)
-    flags = [bool((c.report or {}).get("flagged")) for c in clouds]
     if not any(flags) or not measured.any():
         return out
     if all(flags):

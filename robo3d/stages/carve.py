@@ -304,7 +304,9 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
     reasons = {int(v): list(qa["views"][v]["reasons"]) + seg_flags.get(v, [])
                for v in qa["flagged"]}
     scores = [{k: s[k] for k in ("view", "iou", "missing_fraction", "spurious_fraction",
-                                 "mask_px", "hull_px", "unknown_px", "flagged")}
+                                 "unexplained_fraction", "unexplained_max",
+                                 "unexplained_views", "mask_px", "hull_px", "unknown_px",
+                                 "flagged")}
               | {"segmentation_flags": seg_flags.get(s["view"], [])} for s in qa["views"]]
     ious = [s["iou"] for s in scores if s["iou"] is not None]
     out.update({"enabled": True, "resolution": int(max(grid.shape)),

@@ -29,7 +29,13 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    channels fall, the candidate is no light at all (zero): the ringing of a JPEG edge
    between a coloured object and the table, an object's dark rim (a laser's light is
    never confined to one channel: the filters overlap, JPEG spreads chroma; the real
-   srv stripe raises the other channels by 15 levels). The colour is chosen
+   srv stripe raises the other channels by 15 levels). Where *one* of them falls, its
+   fall is taken off the height: a laser only adds light, and a line where one channel
+   falls while the laser's rises is the surface's colour changing (a grey edge on an
+   orange block under a blue laser: red -8, green +5, blue +16 levels, height 11 -> 3).
+   Measured on the front-end cells (``benchmarks/README.md``, stop 34): points more
+   than 1 mm off red 0.31 -> 0.26 %, green 0.006 -> 0.003 %, blue 0.43 -> 0.39 %,
+   recall 0.1-0.2 points lower; the real srv board unchanged. The colour is chosen
    once per recording by the stage (:func:`estimate_laser_colour` on 12 spaced frames),
    or per frame with ``colour="auto"``: the contrast in which the stripe is the
    strongest *curve* (step 3) on every 1/48-th row and column; the lightness only when
@@ -1246,15 +1252,21 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     all three). Where the laser's channel is saturated (>= sat) its rise is clipped
     while the others still rise: there it must rise more than half of theirs. Where
     both others fall (an edge's ringing, a dark rim: a laser raises every channel a
-    little), zero."""
+    little), zero; where one falls, its fall is taken off (a laser only adds light: a
+    channel that falls is the surface's colour changing)."""
     i1 = 1 if k == 0 else 0
     i2 = 1 if k == 2 else 2
-    m = max(_rise_at(img, r, c, i1, a1, a2, along_u), _rise_at(img, r, c, i2, a1, a2, along_u))
+    r1 = _rise_at(img, r, c, i1, a1, a2, along_u)
+    r2 = _rise_at(img, r, c, i2, a1, a2, along_u)
+    m = max(r1, r2)
     if np.float32(img[r, c, k]) >= sat:
         m = np.float32(0.5) * m
     x = np.float32(xk)
     if m < -np.float32(_FALL):  # both other channels fall: an edge's ringing, not light
         return np.float32(0.0)
+    f = min(r1, r2)
+    if f < np.float32(0.0):  # one falls: the surface's colour changes; a laser only adds
+        return min(x, x - m) + f
     return min(x, x - m)
 
 

@@ -714,7 +714,7 @@ def view_agreement(
                for s in out]
     lost = _unexplained(grid, ms, cams, T_cb, limits, ref, k, outside_image, behind_camera,
                         np.array(explain, dtype=bool), min_unexplained)
-    for s, row in zip(out, lost):
+    for s, row in zip(out, lost, strict=True):
         s.update(row)
     return out
 
@@ -741,7 +741,8 @@ def _unexplained(grid: VoxelGrid, ms: list[np.ndarray], cams: list[CameraModel],
     On the coarse grid a thin part may fall between voxel centres; the test therefore
     carves with every mask grown by a voxel's half diagonal (at the depth of the box's
     nearer corners, plus a pixel) and counts a mask pixel only farther than one voxel
-    footprint (at the box centre's depth) from the hull's projection. A part thinner than that goes unseen.
+    footprint (at the box centre's depth) from the hull's projection. A part thinner
+    than that goes unseen.
     """
     n = len(ms)
     out: list[dict] = [{"unexplained_fraction": None, "unexplained_max": None,
@@ -880,12 +881,13 @@ def flag_disagreeing_views(
     ``qa_min_unexplained`` of two other views' silhouettes (one, when only one other
     view has a mask) with no hull behind them, or their foreground also lies outside the
     others' hull (more than ``qa_max_spurious``: an inverted or shifted mask, whose
-    carving can leave the loose hull's corners to explain the other views). The others' hull is never tighter than
-    the object, and where few views see a thin wall, a cup's opening or a bracket's
-    inside, it is much looser: a correct mask then "misses" a fifth to two fifths of it
-    (simulated scenes of 6 and 8 views; 2 of 24 views of a 1.8 mm fin), and without the
-    second test the views that carve most were left out and the hull's volume IoU
-    with the truth fell to 0.24 (``benchmarks/README.md``, stop 34). Such a mask also shrinks the reference of every other view, so a pass
+    carving can leave the loose hull's corners to explain the other views). The others'
+    hull is never tighter than the object, and where few views see a thin wall, a cup's
+    opening or a bracket's inside, it is much looser: a correct mask then "misses" a
+    fifth to two fifths of it (simulated scenes of 6 and 8 views; 2 of 24 views of a
+    1.8 mm fin), and without the second test the views that carve most were left out and
+    the hull's volume IoU with the truth fell to 0.24 (``benchmarks/README.md``, stop
+    34). Such a mask also shrinks the reference of every other view, so a pass
     flags only the clearly worst of them (a missing fraction at least half the
     largest), and the next pass scores again without them. When no more are found,
     masks with more than ``qa_max_spurious`` of their foreground outside the others' hull

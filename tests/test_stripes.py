@@ -667,6 +667,30 @@ def test_white_and_coloured_surfaces_are_not_the_laser():
             assert len(sp) == 0, (colour, len(sp))
 
 
+def test_a_line_where_one_channel_falls_is_not_the_laser():
+    """A laser only adds light. On an orange surface under a blue laser the stripe may be
+    invisible; a grey edge line there rises in blue and green but falls in red (random
+    scene 144: red -8, green +5, blue +16 levels, taken as 28 centres 4-24 mm off the
+    surface until the fall came off the height). It is no stripe; a faint blue stripe
+    that adds light in every channel on the same surface is one."""
+    rng = np.random.default_rng(11)
+    h, w = 120, 160
+    yy, xx = np.mgrid[0:h, 0:w]
+    orange = np.array([86.0, 38.0, 5.0])
+    base = np.broadcast_to(orange, (h, w, 3)).copy()
+    prof = np.exp(-0.5 * ((yy - 60.3) / 0.9) ** 2)[..., None]
+    edge = base + prof * np.array([-9.0, 8.0, 20.0])  # a grey line: red falls
+    stripe = base + prof * np.array([3.0, 3.0, 20.0])  # added blue light
+    opts = BASE.replace(colour="blue")
+    for img, want in ((edge, False), (stripe, True)):
+        img = np.clip(np.rint(img + rng.normal(0.0, 1.0, img.shape)), 0, 255).astype(np.uint8)
+        sp = extract_stripe_centres(img, options=opts)
+        if want:
+            assert len(sp) > 0.9 * w - 20 and np.median(np.abs(sp.v - 60.3)) < 0.15
+        else:
+            assert len(sp) == 0, len(sp)
+
+
 def test_laser_colour_of_a_recording():
     frames = [_room_scene("blue", a, seed=i)[0] for i, a in enumerate((0.0, 60.0, 100.0))]
     colour, scores = estimate_laser_colour(frames)

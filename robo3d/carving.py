@@ -544,6 +544,16 @@ def _voxel_uv(ijk: np.ndarray, grid: VoxelGrid, camera: CameraModel, T_camera_ba
     return u, v, z, valid
 
 
+def _voxel_squares(ijk: np.ndarray, grid: VoxelGrid, camera: CameraModel,
+                   T_camera_base: np.ndarray, limit_r2: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel centres as the squares :func:`_splat_voxels` draws: sub-pixel ``u, v``, the
+    half side ``half`` (half the voxel's footprint at its depth, pixels) and ``valid``."""
+    u, v, z, valid = _voxel_uv(ijk, grid, camera, T_camera_base, limit_r2)
+    half = 0.5 * grid.voxel_size * 0.5 * (camera.fx + camera.fy) / np.where(valid, z, 1.0)
+    return u, v, half, valid
+
+
 def _splat_voxels(u: np.ndarray, v: np.ndarray, half_px: np.ndarray, width: int,
                   height: int) -> np.ndarray:
     """Pixels covered by the squares ``[u - h, u + h] x [v - h, v + h]`` (pixel centres at
@@ -699,8 +709,7 @@ def view_agreement(
         unknown = kept & ~hull & shell_voxels(vol).reshape(-1)[flat_ijk]
         hull = hull_shell
         sel = np.flatnonzero(hull | unknown)
-        u, vv, z, valid = _voxel_uv(ijk[sel], cand, cam, T_cb[i], limits[i])
-        half = 0.5 * grid.voxel_size * 0.5 * (cam.fx + cam.fy) / np.where(valid, z, 1.0)
+        u, vv, half, valid = _voxel_squares(ijk[sel], cand, cam, T_cb[i], limits[i])
         h = hull[sel] & valid
         un = unknown[sel] & valid
         hull_px = _splat_voxels(u[h], vv[h], half[h], cam.width, cam.height)
@@ -786,8 +795,7 @@ def _unexplained(grid: VoxelGrid, ms: list[np.ndarray], cams: list[CameraModel],
         flat[:] = False
         flat[flat_ijk[sel]] = True
         sh = sel & shell_voxels(vol).reshape(-1)[flat_ijk]
-        u, vv, z, valid = _voxel_uv(ijk[sh], cand, cams[v], T_cb[v], limits[v])
-        half = 0.5 * grid.voxel_size * 0.5 * (cams[v].fx + cams[v].fy) / np.where(valid, z, 1.0)
+        u, vv, half, valid = _voxel_squares(ijk[sh], cand, cams[v], T_cb[v], limits[v])
         return _splat_voxels(u[valid], vv[valid], half[valid], cams[v].width, cams[v].height)
 
     def lost_pixels(covered: np.ndarray, v: int) -> np.ndarray:
@@ -938,6 +946,7 @@ def flag_disagreeing_views(
     passes = 0
     reference_done: list[int] | None = None
     spurious_phase = False
+
     def n_evidence(v: int) -> int:
         """The other reference views with a mask: the most that can lose pixels."""
         return sum(1 for r in reference if r != v and masks[r].any())
@@ -964,12 +973,13 @@ def flag_disagreeing_views(
             mf, sf = s["missing_fraction"], s["spurious_fraction"]
             reasons, excess = [], 0.0
             n_lost = s.get("unexplained_views")
+            cuts = n_lost is not None and n_lost >= min(2, n_evidence(v))
             both_ways = sf is not None and sf > max_spurious
             if (s["hull_px"] and (mf is None or mf > max_missing)
-                    and (n_lost is None or n_lost >= min(2, n_evidence(v)) or both_ways)):
+                    and (n_lost is None or cuts or both_ways)):
                 mf = 1.0 if mf is None else mf
                 why = f"misses {mf:.0%} of the other views' hull (> {max_missing:.0%})"
-                if n_lost and n_lost >= min(2, n_evidence(v)):
+                if cuts and n_lost:
                     why += (f" and leaves up to {s['unexplained_max']:.0%} of {n_lost} other "
                             f"views' silhouettes with no hull behind them")
                 elif both_ways:

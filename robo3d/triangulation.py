@@ -440,6 +440,45 @@ def sheet_in_workspace(T_base_camera: np.ndarray, T_camera_laser: np.ndarray,
     return pts @ T_cl[:3, :3].T + T_cl[:3, 3]
 
 
+def epipolar_axis(camera: CameraModel, T_camera_laser: np.ndarray, max_deg: float
+                  ) -> tuple[str | None, float]:
+    """The scan axis the laser's geometry gives: ``"columns"`` (one centre per image
+    column) where the laser's epipolar lines run within ``max_deg`` of the image's
+    columns everywhere in the image, ``"rows"`` where they run within it of the rows, else
+    None; and the largest angle between an epipolar line and that axis's lines (degrees).
+
+    Every ray of the laser sheet lights one point, the first surface it meets, and its
+    image lies on the ray's image: a line through the image of the laser's origin (the
+    epipole). So the stripe crosses each epipolar line once, and depth moves it along
+    them; lines of pixels that run along them each hold at most one point of the stripe,
+    whatever the surface. A bright line that runs along them (a printed pattern's edge or
+    gap, the object's rim) cannot be the stripe. The direction at pixel ``p`` is
+    ``p O_z - (K O)_xy`` with ``O`` the laser's origin in the camera frame (pinhole: the
+    lens distortion bends it by a few degrees at most, inside the margin); it is sampled
+    on a 5 x 5 grid over the image. A laser whose origin is the camera's centre has no
+    epipolar lines (None).
+    """
+    if not max_deg > 0:
+        return None, float("nan")
+    O = np.asarray(T_camera_laser, dtype=np.float64)[:3, 3]
+    if not np.all(np.isfinite(O)) or np.linalg.norm(O) < 1e-6:
+        return None, float("nan")
+    K = np.asarray(camera.K, dtype=np.float64)
+    u, v = np.meshgrid(np.linspace(0, camera.width - 1, 5), np.linspace(0, camera.height - 1, 5))
+    p = np.stack([u.ravel(), v.ravel()], axis=1)
+    d = p * O[2] - (K @ O)[:2]
+    n = np.linalg.norm(d, axis=1)
+    if np.any(n < 1e-9 * max(camera.width, camera.height)):  # the epipole in the image
+        return None, float("nan")
+    from_cols = np.degrees(np.arctan2(np.abs(d[:, 0]), np.abs(d[:, 1])))  # 0: vertical
+    worst_cols, worst_rows = float(from_cols.max()), float((90.0 - from_cols).max())
+    if worst_cols <= max_deg:
+        return "columns", worst_cols
+    if worst_rows <= max_deg:
+        return "rows", worst_rows
+    return None, min(worst_cols, worst_rows)
+
+
 def _clip_near(P: np.ndarray, near: float) -> np.ndarray:
     """A polygon (N, 3) of the camera frame clipped to ``z >= near`` (Sutherland-Hodgman
     against one plane, a handful of vertices). A polygon wholly in front, the usual

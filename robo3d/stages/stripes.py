@@ -62,7 +62,11 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     # (the laser's channel lives mostly in the blurred chroma there), else the laser's
     options = options.replace(centre_on=centre_on_for(options.centre_on,
                                                       frames[0].data if frames else None))
-    found, decode_s, detect_s = _detect(rec, frames, background, roi, options, n_threads)
+    # the scan axis: fixed by the laser's geometry where its epipolar lines run along the
+    # columns or the rows (a bright line across them cannot be the stripe), else per frame
+    axes, axis_report = _laser_axes(cfg, cameras, T_camera_laser, options)
+    found, decode_s, detect_s = _detect(rec, frames, background, roi, options, n_threads,
+                                        axes)
     stripes = Stripes.from_frames(found, [m.timestamp_ns for m in frames], poses,
                                   T_camera_laser, cameras, rec.workspace)
     if frames and len(stripes.u) == 0:
@@ -70,6 +74,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          f"found in any of {len(frames)} frames (check stripes.min_peak, "
                          "the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
+    report["axis_from_laser"] = axis_report
     report.update({"threads": n_threads, "decode_seconds_cpu": round(decode_s, 3),
                    "detect_seconds_cpu": round(detect_s, 3),
                    "seconds": round(time.perf_counter() - t0, 3)})
@@ -130,13 +135,7 @@ def _sheet_rois(rec, cfg: Mapping[str, Any], cameras: list, poses: np.ndarray,
     sc, tc = cfg["stripes"], cfg["triangulation"]
     use_roi = bool(sc["roi_from_workspace"] and ridge and rec.workspace is not None
                    and tc["crop_to_workspace"])
-    T_roi_laser = T_camera_laser
-    if use_roi and tc["laser_params"] is not None:  # the laser the triangulation will use
-        from ..triangulation import laser_transform_from_params
-
-        dx, dy, dz, phi, theta, psi = (float(x) for x in tc["laser_params"])
-        T_roi_laser = np.broadcast_to(laser_transform_from_params(
-            dx, dy, dz, *np.radians([phi, theta, psi])), T_camera_laser.shape)
+    T_roi_laser = _triangulation_laser(cfg, T_camera_laser) if use_roi else T_camera_laser
     roi_area = np.full(len(cameras), np.nan)
 
     def roi(i: int) -> np.ndarray | None:
@@ -153,6 +152,47 @@ def _sheet_rois(rec, cfg: Mapping[str, Any], cameras: list, poses: np.ndarray,
         return m
 
     return roi, use_roi, roi_area
+
+
+def _triangulation_laser(cfg: Mapping[str, Any], T_camera_laser: np.ndarray) -> np.ndarray:
+    """Each frame's laser pose in the camera as the triangulation will use it: the
+    recording's, or ``triangulation.laser_params`` where the user gives them."""
+    tc = cfg["triangulation"]
+    if tc["laser_params"] is None:
+        return T_camera_laser
+    from ..triangulation import laser_transform_from_params
+
+    dx, dy, dz, phi, theta, psi = (float(x) for x in tc["laser_params"])
+    return np.broadcast_to(laser_transform_from_params(
+        dx, dy, dz, *np.radians([phi, theta, psi])), T_camera_laser.shape)
+
+
+def _laser_axes(cfg: Mapping[str, Any], cameras: list, T_camera_laser: np.ndarray,
+                options: StripeOptions) -> tuple[list, dict[str, Any]]:
+    """Each frame's scan axis where the laser's geometry fixes it
+    (:func:`robo3d.triangulation.epipolar_axis`, with ``axis: auto`` and
+    ``stripes.axis_from_laser_within_deg``), else None (the frame's own stripe decides);
+    and what the report says about it."""
+    from ..triangulation import epipolar_axis
+
+    limit = float(cfg["stripes"]["axis_from_laser_within_deg"])
+    if options.axis != "auto" or not limit > 0 or not cameras:
+        return [None] * len(cameras), {"frames": 0, "within_deg": limit}
+    T = _triangulation_laser(cfg, T_camera_laser)
+    memo: dict[tuple, tuple[str | None, float]] = {}
+    axes, worst = [], []
+    for cam, T_i in zip(cameras, T, strict=True):
+        key = (id(cam), np.asarray(T_i).tobytes())
+        if key not in memo:
+            memo[key] = epipolar_axis(cam, T_i, limit)
+        axes.append(memo[key][0])
+        worst.append(memo[key][1])
+    n = sum(a is not None for a in axes)
+    fixed = [w for a, w in zip(axes, worst, strict=True) if a is not None]
+    return axes, {"frames": n, "within_deg": limit,
+                  "epipolar_angle_deg_max": round(max(fixed), 2) if fixed else None,
+                  "columns": sum(a == "columns" for a in axes),
+                  "rows": sum(a == "rows" for a in axes)}
 
 
 def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
@@ -173,10 +213,12 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
 
 
 def _detect(rec, frames: list, background: Callable, roi: Callable,
-            options: StripeOptions, n_threads: int) -> tuple[list, float, float]:
+            options: StripeOptions, n_threads: int, axes: list
+            ) -> tuple[list, float, float]:
     """Every frame decoded and searched (:func:`robo3d.stripes.extract_stripe_centres`)
-    on ``n_threads`` threads: the frames' stripe points, in order, and the CPU seconds of
-    decoding and of detection."""
+    on ``n_threads`` threads, along its axis where ``axes`` gives one: the frames' stripe
+    points, in order, and the CPU seconds of decoding and of detection."""
+    by_axis = {a: options.replace(axis=a) for a in ("columns", "rows")}
     from concurrent.futures import ThreadPoolExecutor
 
     from ..stripes import extract_stripe_centres
@@ -186,7 +228,8 @@ def _detect(rec, frames: list, background: Callable, roi: Callable,
         image = rec.decode(frames[i])
         bg = background(i)
         tb = time.perf_counter()
-        sp = extract_stripe_centres(image, background=bg, roi=roi(i), options=options)
+        sp = extract_stripe_centres(image, background=bg, roi=roi(i),
+                                    options=by_axis.get(axes[i], options))
         return sp, tb - ta, time.perf_counter() - tb
 
     progress = Progress("finding stripes", len(frames))

@@ -2743,6 +2743,7 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
                           backgrounds: Sequence[np.ndarray | None] | None = None,
                           min_peak: float | None = None,
                           rois: Sequence[np.ndarray | None] | None = None,
+                          axes: Sequence[str | None] | None = None,
                           ) -> tuple[str, dict[str, float]]:
     """The laser's colour in a set of laser frames: the contrast of :data:`CONTRASTS`
     in which the stripe is, summed over the frames, the most consistent ridge.
@@ -2765,6 +2766,10 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
         Each image's region of interest (see :func:`extract_stripe_centres`): only
         ridges inside it vote (a coloured object's lit rim outside the laser sheet's
         band does not). None: the whole images.
+    axes : sequence of {"columns", "rows", None}, optional
+        Each image's scan axis where the laser's geometry fixes it
+        (:func:`robo3d.triangulation.epipolar_axis`): only ridges across that axis's lines
+        vote (a printed pattern's lines along them are not the stripe). None: both.
 
     Returns
     -------
@@ -2783,7 +2788,11 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
         rois = [None] * len(images)
     if len(rois) != len(images):
         raise ValueError(f"need one roi per image, got {len(rois)} for {len(images)} images")
-    for image, bg, roi in zip(images, backgrounds, rois, strict=True):
+    if axes is None:
+        axes = [None] * len(images)
+    if len(axes) != len(images):
+        raise ValueError(f"need one axis per image, got {len(axes)} for {len(images)} images")
+    for image, bg, roi, ax in zip(images, backgrounds, rois, axes, strict=True):
         image = _check_image(np.asarray(image))
         img = _as_kernel_image(_subtract_background(image, bg))
         if img.size == 0:
@@ -2792,7 +2801,7 @@ def estimate_laser_colour(images: Sequence[np.ndarray], *,
         ks = (0, 1, 2, _LIGHTNESS) if img.shape[2] == 3 else (_LIGHTNESS,)
         roi = _check_roi(roi, img.shape)
         spans = _spans(roi, img.shape[0], img.shape[1])
-        _, _, scores = _choose_contrast(img, ks, "auto", thr, spans)
+        _, _, scores = _choose_contrast(img, ks, ax or "auto", thr, spans)
         for name, v in scores.items():
             totals[name] = totals.get(name, 0.0) + max(v, 0.0)
     colours = [c for c in CONTRASTS[:3] if c in totals]

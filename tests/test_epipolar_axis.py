@@ -109,3 +109,30 @@ def test_marker_gaps_along_the_epipolar_lines_are_not_the_stripe(black_vase, tmp
     # views remove those when views are recorded)
     assert np.sum(d > 1.0) < 0.6 * np.sum(d0 > 1.0)
     assert np.median(d) < 0.7 * np.median(d0)
+
+
+def _red_line_green_stripe(seed: int) -> np.ndarray:
+    """A grey frame with a bright red line down it (a printed pattern's edge, a red rim)
+    and a fainter green stripe across it, bending a little (the laser on a surface)."""
+    rng = np.random.default_rng(seed)
+    h, w = 240, 320
+    img = np.full((h, w, 3), 90.0) + rng.normal(0, 1.5, (h, w, 3))
+    cols = np.arange(w)
+    img[:, 150:153, 0] += 70.0
+    centre = 120 + 6 * np.sin(cols / 40.0 + seed)
+    rows = np.arange(h)[:, None]
+    img[:, :, 1] += 35.0 * np.exp(-0.5 * ((rows - centre[None, :]) / 1.2) ** 2)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_the_colour_vote_counts_only_lines_across_the_laser_s_axis():
+    from robo3d.stripes import estimate_laser_colour
+
+    frames = [_red_line_green_stripe(s) for s in range(4)]
+    # both axes: the red line down the frame is the longer, stronger ridge
+    assert estimate_laser_colour(frames)[0] == "red"
+    # the laser's epipolar lines are the columns: only ridges across them vote
+    colour, scores = estimate_laser_colour(frames, axes=["columns"] * 4)
+    assert colour == "green" and scores["red"] < scores["green"]
+    with pytest.raises(ValueError, match="one axis per image"):
+        estimate_laser_colour(frames, axes=["columns"])

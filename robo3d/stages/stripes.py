@@ -52,19 +52,19 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     background, n_off = _laser_off_frames(inputs["recording"], cfg, frames)
     roi, use_roi, roi_area = _sheet_rois(rec, cfg, cameras, poses, T_camera_laser,
                                          options.detector == "ridge")
+    # the scan axis: fixed by the laser's geometry where its epipolar lines run along the
+    # columns or the rows (a bright line across them cannot be the stripe), else per frame
+    axes, axis_report = _laser_axes(cfg, cameras, T_camera_laser, options)
     # the laser's colour, once for the recording, from a few evenly spaced frames (only
-    # their regions of interest vote)
+    # their regions of interest vote, along their axes)
     colour_scores = None
     if options.detector == "ridge" and options.colour == "auto" and frames:
-        colour, colour_scores = _laser_colour(rec, frames, background, roi, options)
+        colour, colour_scores = _laser_colour(rec, frames, background, roi, options, axes)
         options = options.replace(colour=colour)
     # the centre's profile: the luma for JPEGs whose colour is stored at half resolution
     # (the laser's channel lives mostly in the blurred chroma there), else the laser's
     options = options.replace(centre_on=centre_on_for(options.centre_on,
                                                       frames[0].data if frames else None))
-    # the scan axis: fixed by the laser's geometry where its epipolar lines run along the
-    # columns or the rows (a bright line across them cannot be the stripe), else per frame
-    axes, axis_report = _laser_axes(cfg, cameras, T_camera_laser, options)
     found, decode_s, detect_s = _detect(rec, frames, background, roi, options, n_threads,
                                         axes)
     stripes = Stripes.from_frames(found, [m.timestamp_ns for m in frames], poses,
@@ -196,9 +196,10 @@ def _laser_axes(cfg: Mapping[str, Any], cameras: list, T_camera_laser: np.ndarra
 
 
 def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
-                  options: StripeOptions) -> tuple[str, dict[str, float]]:
+                  options: StripeOptions, axes: list) -> tuple[str, dict[str, float]]:
     """The recording's laser colour from 12 evenly spaced frames
-    (:func:`robo3d.stripes.estimate_laser_colour`) and each contrast's score."""
+    (:func:`robo3d.stripes.estimate_laser_colour`, each along its axis where the laser's
+    geometry fixes it) and each contrast's score."""
     from ..stripes import estimate_laser_colour
     from ..viz import spaced_indices
 
@@ -206,7 +207,7 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     colour, scores = estimate_laser_colour(
         [rec.decode(frames[i]) for i in sample],
         backgrounds=[background(i) for i in sample], min_peak=options.min_peak,
-        rois=[roi(int(i)) for i in sample])
+        rois=[roi(int(i)) for i in sample], axes=[axes[int(i)] for i in sample])
     log.info("stripes: laser colour %s (scores: %s)", colour,
              ", ".join(f"{k} {v:.0f}" for k, v in scores.items()))
     return colour, scores

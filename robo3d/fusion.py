@@ -165,8 +165,9 @@ CLOSE_MODES: tuple[str, ...] = ("hull", "free_space", "none")
 @dataclass(frozen=True)
 class FuseOptions(Options):
     """The parameters of :func:`fuse_tsdf` and :func:`fuse_poisson` (config section
-    ``fusion``; ``method`` and ``crop_to_hull`` are the stage's: they choose the
-    algorithm and whether it gets the hull), and the recording's seed.
+    ``fusion``; ``method``, ``crop_to_hull`` and the ``table_*`` keys are the stage's:
+    they choose the algorithm, whether it gets the hull and which points only carve),
+    and the recording's seed.
 
     Attributes
     ----------
@@ -690,6 +691,7 @@ def fuse_tsdf(
     grids: list[np.ndarray | None] | None = None,
     hull: Any = None,
     workspace: tuple[np.ndarray, np.ndarray] | None = None,
+    carve_only: list[np.ndarray] | None = None,
     threads: int = 1,
     return_attributes: bool = False,
     hull_smooth_vox: float = 0.8,
@@ -730,6 +732,11 @@ def fuse_tsdf(
         outside it is empty and makes no surface (a sweep's band behind the surface
         reaches beyond it; on the objects benchmark it left a flap of inferred surface
         under the cup's bottom edge, below the box's floor).
+    carve_only : list of (N,) bool, optional
+        Per scan, the points that only carve: their lines of sight carve the space in
+        front of them (step 4), but they add no signed distance (no measured surface)
+        and are not measurements for ``dist_measured_m`` (the table the object stands
+        on, lit inside the box: it says where space is empty, it is not the object).
     hull_smooth_vox : float
         Gaussian smoothing of the hull's occupancy (hull voxels) before its 0.5 level.
     max_edge_factor : float
@@ -779,14 +786,18 @@ def fuse_tsdf(
     t_start = time.perf_counter()
     o = options
     P, N, O, Cf, G, n_total = _tsdf_inputs(points, normals, sensor_origins, confidences,
-                                           grids, o)
-    n_used = int(sum(len(p) for p in P))
+                                           grids, o, carve_only)
+    # the measured points (a carve-only point has weight 0: no surface of its own)
+    Pm = [p[c > 0] for p, c in zip(P, Cf, strict=True)]
+    n_used = int(sum(len(p) for p in Pm))
+    n_carve = int(sum(len(p) for p in P)) - n_used
     if n_used == 0:
         raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
                          f"cos(view angle) >= {o.min_cos_view} with confidence > 0)")
-    voxel_size, spacing = data_voxel(P, o, threads=threads)
+    voxel_size, spacing = data_voxel(Pm, o, threads=threads)
     trunc_voxels = o.tsdf_trunc_voxels
-    report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used, n_scans=len(P),
+    report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used,
+                                  n_points_carve_only=n_carve, n_scans=len(P),
                                   voxel_size=float(voxel_size), point_spacing_m=spacing,
                                   voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m))
     trunc = trunc_voxels * voxel_size
@@ -804,8 +815,8 @@ def fuse_tsdf(
                                                  workspace)
     clock["field"] = time.perf_counter() - ta
     ta = time.perf_counter()
-    v, f, attrs = _extract_surface(tsdf, observed, inside, filled, acc, shape, origin, allp,
-                                   voxel_size, threads, o, report)
+    v, f, attrs = _extract_surface(tsdf, observed, inside, filled, acc, shape, origin,
+                                   np.concatenate(Pm), voxel_size, threads, o, report)
     clock["marching_cubes"] = time.perf_counter() - ta
     lf = _laser_area_fraction(v, f, attrs["source"] == MEASURED)
     report.update(laser_area_fraction=lf, hull_area_fraction=(1.0 - lf) if len(f) else 0.0,
@@ -861,11 +872,12 @@ def point_spacing(scans: list[np.ndarray], *, threads: int = 1) -> float | None:
     return float(np.median(d[d > 0])) if np.any(d > 0) else 0.0
 
 
-def _tsdf_inputs(points, normals, sensor_origins, confidences, grids, o: FuseOptions):
+def _tsdf_inputs(points, normals, sensor_origins, confidences, grids, o: FuseOptions,
+                 carve_only=None):
     """The scans' points, normals, origins, confidences and range-image grids (None
     where unknown), checked, keeping the points seen from the front (normal toward the
-    sensor at ``cos >= min_cos_view``) with confidence > 0; and the number of points
-    given."""
+    sensor at ``cos >= min_cos_view``) with confidence > 0, and the ``carve_only``
+    points seen from the front with confidence 0; and the number of points given."""
     P = _as_list("points", points, 2)
     N = _as_list("normals", normals, 2)
     O = _as_list("sensor_origins", sensor_origins, 2)
@@ -880,6 +892,11 @@ def _tsdf_inputs(points, normals, sensor_origins, confidences, grids, o: FuseOpt
     if len(Cf) != len(P) or any(len(c) != len(p) or np.any(c < 0) for c, p in zip(Cf, P,
                                                                               strict=True)):
         raise ValueError("confidences must hold one value >= 0 per point, like points")
+    C = ([np.zeros(len(p), bool) for p in P] if carve_only is None
+         else [np.asarray(c, dtype=bool).reshape(-1) for c in carve_only])
+    if len(C) != len(P) or any(len(c) != len(p) for c, p in zip(C, P, strict=True)):
+        raise ValueError("carve_only must hold one bool per point, like points")
+    Cf = [np.where(c, 0.0, cf) for c, cf in zip(C, Cf, strict=True)]
     G = [None] * len(P) if grids is None else list(grids)
     if len(G) != len(P) or any(g is not None and np.shape(g) != (len(p), 3)
                                for g, p in zip(G, P, strict=True)):
@@ -901,7 +918,7 @@ def _tsdf_inputs(points, normals, sensor_origins, confidences, grids, o: FuseOpt
         los /= np.maximum(np.linalg.norm(los, axis=1, keepdims=True), 1e-12)
         nl = np.linalg.norm(N[k], axis=1)
         cos = np.einsum("ij,ij->i", N[k], los) / np.maximum(nl, 1e-12)
-        ok = (cos >= o.min_cos_view) & (Cf[k] > 0)
+        ok = (cos >= o.min_cos_view) & ((Cf[k] > 0) | C[k])
         P[k], N[k], O[k], Cf[k] = P[k][ok], N[k][ok], O[k][ok], Cf[k][ok]
         if G[k] is not None:
             G[k] = np.asarray(G[k], dtype=np.int64)[ok]
@@ -986,11 +1003,17 @@ def _integrate_scans(P, N, O, Cf, G, origin: np.ndarray, shape: tuple[int, ...],
         if len(faces) == 0:
             return rs, None, t
         ta = time.perf_counter()
-        terms = _scan_terms(P[k], N[k], O[k],
-                            Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m,
-                                                   o.border_weight_floor),
-                            faces, origin, shape, shift, voxel_size, trunc_voxels,
-                            interp_sigma_m, interp_floor, inner, o.min_cos_view)
+        # a triangle with a carve-only corner (weight 0: the table) makes no surface: its
+        # hits would spread the object's weight onto the table beside it
+        measured = np.all(Cf[k][faces] > 0, axis=1)
+        terms = None
+        if measured.any():
+            terms = _scan_terms(P[k], N[k], O[k],
+                                Cf[k] * _boundary_ramp(P[k], faces, border_ramp_m,
+                                                       o.border_weight_floor),
+                                faces if measured.all() else faces[measured], origin, shape,
+                                shift, voxel_size, trunc_voxels, interp_sigma_m,
+                                interp_floor, inner, o.min_cos_view)
         t[1] = time.perf_counter() - ta
         if o.carve_free_space:
             ta = time.perf_counter()

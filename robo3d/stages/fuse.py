@@ -136,7 +136,11 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
 def _table_points(clouds: list, fc: Mapping[str, Any]) -> list[np.ndarray]:
     """Per cloud, its points on the table the object stands on: at most
     ``fusion.table_above_floor_mm`` above the workspace box's floor, on a surface facing
-    up (normal within ``table_max_tilt_deg`` of +z; the normals face the sensor).
+    up (normal within ``table_max_tilt_deg``, 45 degrees, of +z; the normals face the
+    sensor). The table's normals come from neighbouring profiles that the robot's error
+    offsets: on random scene 166, 120 of its 281 lie within 25 degrees, 59 more within
+    45. The objects' own points near the floor are their sides: within 45 degrees at most
+    56 of a run's 2,700 on the objects benchmark (user_mesh/7).
 
     The box's floor is the table (the box contains the object, which stands on it): the
     crop drops the table below the floor, but the robot's error lifts the line the sheet

@@ -1,4 +1,4 @@
-"""The table the object stands on is not measured surface (``fusion.table_above_floor_mm``):
+"""The table the object stands on is not measured surface (``triangulation.table_above_floor_mm``):
 laser points just above the workspace box's floor on a surface facing up only carve free
 space in fusion (:func:`robo3d.fusion.fuse_tsdf`'s ``carve_only``)."""
 
@@ -63,7 +63,7 @@ def _fuse(rec: Path, res: Path, cfg: dict, above_floor_mm: float):
     from robo3d.recording import read_recording
 
     c = copy.deepcopy(cfg)
-    c["fusion"]["table_above_floor_mm"] = above_floor_mm
+    c["triangulation"]["table_above_floor_mm"] = above_floor_mm
     tag = f"t{above_floor_mm:g}"
     outs = {"ply": str(res / f"{tag}_fused.ply"), "measured": str(res / f"{tag}_measured.ply"),
             "report": str(res / "reports" / f"{tag}_fuse.json"),
@@ -79,7 +79,7 @@ def _fuse(rec: Path, res: Path, cfg: dict, above_floor_mm: float):
 
 def test_the_table_carves_but_is_not_measured(black_blob):
     rec, res, cfg = black_blob
-    assert cfg["fusion"]["table_above_floor_mm"] == 2.0  # the default tested
+    assert cfg["triangulation"]["table_above_floor_mm"] == 2.0  # the default tested
     rep, V, d = _fuse(rec, res, cfg, 2.0)
     rep0, V0, d0 = _fuse(rec, res, cfg, 0.0)
     # most of the aligned points are the line on the table (measured: 578)
@@ -87,7 +87,7 @@ def test_the_table_carves_but_is_not_measured(black_blob):
     # (those seen from the front: fusion's view-angle test applies to them too)
     assert 0.95 * rep["table_points"]["carve_only"] <= rep["n_points_carve_only"] <= rep[
         "table_points"]["carve_only"]
-    assert rep0["table_points"] == {"skipped": "fusion.table_above_floor_mm is 0"}
+    assert rep0["table_points"] == {"skipped": "triangulation.table_above_floor_mm is 0"}
     # without the rule the table is most of the measured surface, 0.2-2 mm above the
     # box's floor and far from the blob (measured: 2,051 of 2,666 vertices more than
     # 1 mm off, 78 % within 2 mm of the floor); with it, the measured surface is the

@@ -25,7 +25,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     The report says what fraction of the surface came from the laser and from the hull.
     """
-    from ..artefacts import clouds_workspace, load_clouds_npz
+    from ..artefacts import clouds_workspace, load_clouds_npz, table_points
     from ..carving import VoxelGrid, hull_to_mesh
     from ..fusion import (
         HULL,
@@ -47,7 +47,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
         crop = hull if (hull is not None and fc["crop_to_hull"]) else None
-        table = _table_points(clouds, fc)
+        table = table_points(clouds, cfg["triangulation"])
         if fc["method"] == "tsdf":
             V, F, fuse_report, attrs = fuse_tsdf(
                 [c.points_base for c in clouds], [c.normals_base for c in clouds],
@@ -105,7 +105,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "flagged_sweep_area_fraction": _area_fraction(V, F, attrs["flagged_sweep"] > 0),
               "flagged_sweeps": [int(c.sweep) for c, f in zip(laser, flags, strict=True) if f],
               "measured_faces": len(Fm),
-              "table_points": _table_report(table if inputs.get("aligned") else None, fc),
+              "table_points": _table_report(table if inputs.get("aligned") else None,
+                                            cfg["triangulation"]),
               "vertex_attributes": {"source": {str(i): n for i, n in enumerate(SOURCES)},
                                     "fields": sorted(attrs)},
               "seconds": round(time.perf_counter() - t0, 3)}
@@ -133,51 +134,20 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
 
 
-def _table_points(clouds: list, fc: Mapping[str, Any]) -> list[np.ndarray]:
-    """Per cloud, its points on the table the object stands on: at most
-    ``fusion.table_above_floor_mm`` above the workspace box's floor, on a surface facing
-    up (normal within ``table_max_tilt_deg``, 45 degrees, of +z; the normals face the
-    sensor). The table's normals come from neighbouring profiles that the robot's error
-    offsets: on random scene 166, 120 of its 281 lie within 25 degrees, 59 more within
-    45. The objects' own points near the floor are their sides: within 45 degrees at most
-    56 of a run's 2,700 on the objects benchmark (user_mesh/7).
-
-    The box's floor is the table (the box contains the object, which stands on it): the
-    crop drops the table below the floor, but the robot's error lifts the line the sheet
-    draws on the table into the box. The align stage's silhouette test drops it where
-    the views are right; with no views, or views that failed or disagree, it became
-    measured surface: on random scenes 142 and 147 (a black object, its stripe barely
-    visible; masks failed, or two views one of them wrong) half the aligned points, 97 %
-    of them more than 1 mm from the object. Its lines of sight still say where space is
-    empty (they carve a loose hull down to the object), so fusion carves with them and
-    makes no surface of them (:func:`robo3d.fusion.fuse_tsdf`, ``carve_only``). The
-    simulated objects' own up-facing faces lie 3.5 mm or more above the table (the
-    bracket's groove); a part thinner than the bound lying flat would be left unmeasured
-    (set 0 for such parts). Empty masks without a box, or with the bound 0."""
-    from ..artefacts import clouds_workspace
-
-    h = 1e-3 * float(fc["table_above_floor_mm"])
-    box = clouds_workspace(clouds)
-    if box is None or not h > 0:
-        return [np.zeros(len(c), bool) for c in clouds]
-    top = float(box[0][2]) + h
-    cos_tilt = float(np.cos(np.radians(float(fc["table_max_tilt_deg"]))))
-    return [(c.points_base[:, 2] <= top) & (c.normals_base[:, 2] >= cos_tilt) for c in clouds]
-
-
-def _table_report(table: list[np.ndarray] | None, fc: Mapping[str, Any]) -> dict[str, Any]:
-    """What the report says of the table's points (:func:`_table_points`)."""
+def _table_report(table: list[np.ndarray] | None, tc: Mapping[str, Any]) -> dict[str, Any]:
+    """What the report says of the table's points
+    (:func:`robo3d.artefacts.table_points`)."""
     if table is None:
         return {"skipped": "no laser points"}
-    if not float(fc["table_above_floor_mm"]) > 0:
-        return {"skipped": "fusion.table_above_floor_mm is 0"}
+    if not float(tc["table_above_floor_mm"]) > 0:
+        return {"skipped": "triangulation.table_above_floor_mm is 0"}
     n = int(sum(int(t.sum()) for t in table))
     if n:
         log.info("fusion: %d laser points lie on the table (within %.1f mm above the "
                  "workspace box's floor, facing up): they carve free space, they are not "
-                 "measured surface", n, float(fc["table_above_floor_mm"]))
-    return {"above_floor_mm": float(fc["table_above_floor_mm"]),
-            "max_tilt_deg": float(fc["table_max_tilt_deg"]), "carve_only": n,
+                 "measured surface", n, float(tc["table_above_floor_mm"]))
+    return {"above_floor_mm": float(tc["table_above_floor_mm"]),
+            "max_tilt_deg": float(tc["table_max_tilt_deg"]), "carve_only": n,
             "per_sweep": [int(t.sum()) for t in table]}
 
 def _flagged_sweep(V: np.ndarray, measured: np.ndarray, clouds: list, flags: list[bool]

@@ -506,18 +506,19 @@ def table_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any]) -> list[np
 
     The box's floor is the table (the box contains the object, which stands on it): the
     crop drops the table below the floor, but the robot's error lifts the line the sheet
-    draws on the table into the box. It is not the object: the align stage registers the
-    sweeps without it (a handful of points on the objects benchmark, half of the points of
-    a one-sweep scan over a black object), and its silhouette test drops it where the
-    views are right; with no views, or views that failed or disagree, it became measured surface:
-    on random scenes 142 and 147 (a black object, its stripe barely visible; masks
-    failed, or two views one of them wrong) half the aligned points, 97 % of them more
-    than 1 mm from the object. Its lines of sight still say where space is empty (they
-    carve a loose hull down to the object), so fusion carves with them and makes no
-    surface of them (:func:`robo3d.fusion.fuse_tsdf`, ``carve_only``). The simulated
-    objects' own up-facing faces lie 3.5 mm or more above the table (the bracket's
-    groove); a part thinner than the bound lying flat would be left unmeasured
-    (set 0 for such parts). Empty masks without a box, or with the bound 0."""
+    draws on the table into the box. It is rigid with the object, so the alignment
+    registers it (without it the objects benchmark's bracket/4, a flat plate on the
+    table, aligned 0.136 -> 0.262 mm), but it is not the object: the align stage's
+    silhouette test drops it where the views are right; with no views, or views that
+    failed or disagree, it became measured surface: on random scenes 142 and 147 (a
+    black object, its stripe barely visible; masks failed, or two views one of them
+    wrong) half the aligned points, 97 % of them more than 1 mm from the object. Its
+    lines of sight still say where space is empty (they carve a loose hull down to the
+    object), so fusion carves with them and makes no surface of them
+    (:func:`robo3d.fusion.fuse_tsdf`, ``carve_only``). The simulated objects' own up-
+    facing faces lie 3.5 mm or more above the table (the bracket's groove); a part
+    thinner than the bound lying flat would be left unmeasured (set 0 for such parts).
+    Empty masks without a box, or with the bound 0."""
     h = 1e-3 * float(tc["table_above_floor_mm"])
     box = clouds_workspace(clouds)
     if box is None or not h > 0:

@@ -299,7 +299,7 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
     "carve": ("carving", "topics", "frames", "timing", "rerun", "seed"),
     "stripes": ("stripes", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
     "triangulate": ("triangulation", "topics", "frames", "timing", "rerun", "seed"),
-    "align": ("alignment", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
+    "align": ("alignment", "topics", "frames", "timing", "rerun", "seed"),
     "fuse": ("fusion", "triangulation", "carving", "rerun", "seed"),
     "simplify": ("simplify", "rerun", "seed"),
     "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),

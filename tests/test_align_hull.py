@@ -158,8 +158,6 @@ def test_margin_points_are_placed_by_alignment_not_used_by_it(tmp_path, monkeypa
            "rrd": str(tmp_path / "align.rrd"), "report": str(tmp_path / "align.json")}
     cfg = default_config()
     cfg["alignment"]["reject_outside_hull"] = False
-    # (the synthetic points all face up: the table rule would take the wall's foot)
-    cfg["triangulation"]["table_above_floor_mm"] = 0.0
     report = stage_align({"clouds": str(tmp_path / "clouds.npz")}, out, cfg, "t")
     # registration: only the points inside the box at the reported poses
     n_in_a = int(np.sum(wall[:, 2] - lift >= 0.0005) + np.sum(foot[:, 2] - lift >= 0.0005))
@@ -170,48 +168,6 @@ def test_margin_points_are_placed_by_alignment_not_used_by_it(tmp_path, monkeypa
     np.testing.assert_allclose(aligned[0].points_base, np.concatenate([wall, foot]), atol=1e-12)
     assert report["outside_workspace"]["dropped"] == len(table)
     assert len(aligned[1]) == 40
-
-
-def test_the_table_inside_the_box_does_not_drive_the_alignment(tmp_path, monkeypatch):
-    """The line on the table lifted into the box by the robot's error (within
-    ``triangulation.table_above_floor_mm`` of the floor, facing up) is not registered;
-    the object's side down to the floor (facing sideways) is."""
-    import robo3d.registration as registration
-    from robo3d.artefacts import SweepCloud, save_clouds_npz
-    from robo3d.registration import AlignmentResult
-    from robo3d.stages.align import stage_align
-
-    box = [[-0.05, -0.05, 0.0005], [0.05, 0.05, 0.06]]
-    wall = np.column_stack([np.full(40, 0.01), np.zeros(40), np.linspace(0.0006, 0.03, 40)])
-    table = np.column_stack([np.linspace(0.015, 0.03, 8), np.zeros(8), np.full(8, 0.0012)])
-    pts = np.concatenate([wall, table])
-    nrm = np.concatenate([np.tile([1.0, 0.0, 0.0], (40, 1)), np.tile([0.0, 0.3, 0.95], (8, 1))])
-    a = SweepCloud(pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True),
-                   np.arange(48) // 10, np.ones(48), 0, np.tile([0.1, 0.0, 0.1], (48, 1)))
-    b = SweepCloud(wall.copy(), np.tile([1.0, 0.0, 0.0], (40, 1)), np.arange(40) // 10,
-                   np.ones(40), 1, np.tile([0.1, 0.0, 0.1], (40, 1)))
-    for c in (a, b):
-        c.report = {"workspace": box, "workspace_margin_m": 0.002}
-    save_clouds_npz(tmp_path / "clouds.npz", [a, b])
-    seen = {}
-
-    def fake_align(points, normals, *, options, origins, profiles, silhouettes):
-        seen["n"] = [len(p) for p in points]
-        return AlignmentResult(corrections=np.tile(np.eye(4), (2, 1, 1)),
-                               per_sweep=[{"sweep": 0}, {"sweep": 1}], reference=1)
-
-    monkeypatch.setattr(registration, "align_sweeps", fake_align)
-    out = {"npz": str(tmp_path / "aligned.npz"), "ply": str(tmp_path / "aligned.ply"),
-           "rrd": str(tmp_path / "align.rrd"), "report": str(tmp_path / "align.json")}
-    cfg = default_config()
-    cfg["alignment"]["reject_outside_hull"] = False
-    report = stage_align({"clouds": str(tmp_path / "clouds.npz")}, out, cfg, "t")
-    assert seen["n"] == [40, 40]  # the whole wall, down to 0.6 mm; not the table
-    assert report["table_points_not_registered"] == 8
-    assert report["points_in_margin_not_registered"] == 0
-    cfg["triangulation"]["table_above_floor_mm"] = 0.0
-    report = stage_align({"clouds": str(tmp_path / "clouds.npz")}, out, cfg, "t")
-    assert seen["n"] == [48, 40] and report["table_points_not_registered"] == 0
 
 
 def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path):

@@ -165,9 +165,8 @@ CLOSE_MODES: tuple[str, ...] = ("hull", "free_space", "none")
 @dataclass(frozen=True)
 class FuseOptions(Options):
     """The parameters of :func:`fuse_tsdf` and :func:`fuse_poisson` (config section
-    ``fusion``; ``method``, ``crop_to_hull`` and the ``table_*`` keys are the stage's:
-    they choose the algorithm, whether it gets the hull and which points only carve),
-    and the recording's seed.
+    ``fusion``; ``method`` and ``crop_to_hull`` are the stage's: they choose the
+    algorithm and whether it gets the hull), and the recording's seed.
 
     Attributes
     ----------

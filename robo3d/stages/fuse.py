@@ -133,7 +133,6 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     return report
 
 
-
 def _table_report(table: list[np.ndarray] | None, tc: Mapping[str, Any]) -> dict[str, Any]:
     """What the report says of the table's points
     (:func:`robo3d.artefacts.table_points`)."""
@@ -149,6 +148,7 @@ def _table_report(table: list[np.ndarray] | None, tc: Mapping[str, Any]) -> dict
     return {"above_floor_mm": float(tc["table_above_floor_mm"]),
             "max_tilt_deg": float(tc["table_max_tilt_deg"]), "carve_only": n,
             "per_sweep": [int(t.sum()) for t in table]}
+
 
 def _flagged_sweep(V: np.ndarray, measured: np.ndarray, clouds: list, flags: list[bool]
                    ) -> np.ndarray:

@@ -396,5 +396,8 @@ def test_a_scan_whose_silhouettes_fail_keeps_what_its_laser_measured(tmp_path):
     assert m["surface_sources"]["inferred_area_fraction"] == 0.0
     assert m["stages"]["fuse"]["hull_contradicted"] is True
     ev = m["evaluation"]["measured"]
-    assert ev["area_m2"] > 2e-3  # measured 2.8e-3 m2 (28 cm2) of the bracket's surface
-    assert ev["median_mm"] < 1.5  # measured 0.78 mm: the robot's poses hold the gauge
+    # measured 1.3e-3 m2 (13 cm2) of the bracket's surface, median 0.27 mm (the robot's
+    # poses hold the gauge); before the table rule (stop 35) 3.5e-3 m2 at 0.74 mm, the
+    # line on the table within 2 mm above the box's floor counted as measured
+    assert ev["area_m2"] > 1e-3
+    assert ev["median_mm"] < 0.6

@@ -4,10 +4,14 @@ space in fusion (:func:`robo3d.fusion.fuse_tsdf`'s ``carve_only``)."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stages_in_process import run_up_to_align  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -17,13 +21,6 @@ def black_blob(tmp_path_factory) -> tuple[Path, Path, dict]:
     the table into the box. Every stage up to the aligned clouds, in process."""
     from robo3d.cli import main
     from robo3d.config import default_config
-    from robo3d.pipeline import (
-        stage_align,
-        stage_carve,
-        stage_silhouettes,
-        stage_stripes,
-        stage_triangulate,
-    )
 
     work = tmp_path_factory.mktemp("table")
     rec = work / "blob.mcap"
@@ -33,24 +30,8 @@ def black_blob(tmp_path_factory) -> tuple[Path, Path, dict]:
                  "--object-color", "black", "--object-texture", "none",
                  "--table-markers", "none"]) == 0
     res = work / "results"
-    (res / "reports").mkdir(parents=True)
     cfg = default_config()
-
-    def out(stage: str, **files: str) -> dict[str, str]:
-        return {"rrd": str(res / f"{stage}.rrd"),
-                "report": str(res / "reports" / f"{stage}.json"),
-                **{k: str(res / v) for k, v in files.items()}}
-
-    r = str(rec)
-    stage_silhouettes({"recording": r}, out("silhouettes", npz="silhouettes.npz"), cfg, "b")
-    stage_carve({"silhouettes": str(res / "silhouettes.npz")},
-                out("carve", npz="hull.npz", ply="hull.ply"), cfg, "b")
-    stage_stripes({"recording": r}, out("stripes", npz="stripes.npz"), cfg, "b", threads=2)
-    stage_triangulate({"stripes": str(res / "stripes.npz")},
-                      out("triangulate", npz="clouds.npz", ply="clouds.ply"), cfg, "b")
-    stage_align({"clouds": str(res / "clouds.npz"), "recording": r,
-                 "silhouettes": str(res / "silhouettes.npz")},
-                out("align", npz="aligned.npz", ply="aligned.ply"), cfg, "b")
+    run_up_to_align(rec, res, cfg, "b", threads=2)
     return rec, res, cfg
 
 

@@ -20,6 +20,9 @@ from pathlib import Path
 
 import pytest
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stages_in_process import run_up_to_align, stage_outputs  # noqa: E402
+
 STAGES = ("silhouettes", "carve", "stripes", "triangulate", "align", "fuse", "simplify",
           "evaluate")
 N_VIEWS, N_SWEEPS, N_FRAMES = 4, 2, 8
@@ -29,16 +32,7 @@ N_VIEWS, N_SWEEPS, N_FRAMES = 4, 2, 8
 def scan(tmp_path_factory) -> Path:
     """``results/tiny/`` of a tiny simulated sphere scan, every stage run in process."""
     from robo3d.config import load_config
-    from robo3d.pipeline import (
-        stage_align,
-        stage_carve,
-        stage_evaluate,
-        stage_fuse,
-        stage_silhouettes,
-        stage_simplify,
-        stage_stripes,
-        stage_triangulate,
-    )
+    from robo3d.pipeline import stage_evaluate, stage_fuse, stage_simplify
     from robo3d.simulate import simulate_recording
 
     work = tmp_path_factory.mktemp("view")
@@ -47,26 +41,15 @@ def scan(tmp_path_factory) -> Path:
                        view_elevations_deg=(40.0,), sweeps=N_SWEEPS, sweep_low_count=0,
                        sweep_frames=N_FRAMES, mesh_faces=4000)
     res = work / "results" / "tiny"
-    (res / "reports").mkdir(parents=True)
     cfg = load_config(overrides={"carving": {"resolution": 48, "qa_resolution": 24},
                                  "fusion": {"tsdf_voxel_m": 0.001},
                                  "simplify": {"target_faces": 2000}})
 
     def out(stage: str, **files: str) -> dict[str, str]:
-        return {"rrd": str(res / f"{stage}.rrd"),
-                "report": str(res / "reports" / f"{stage}.json"),
-                **{k: str(res / v) for k, v in files.items()}}
+        return stage_outputs(res, stage, **files)
 
     r = str(rec)
-    stage_silhouettes({"recording": r}, out("silhouettes", npz="silhouettes.npz"), cfg, "tiny")
-    stage_carve({"silhouettes": str(res / "silhouettes.npz")},
-                out("carve", npz="hull.npz", ply="hull.ply"), cfg, "tiny")
-    stage_stripes({"recording": r}, out("stripes", npz="stripes.npz"), cfg, "tiny", threads=1)
-    stage_triangulate({"stripes": str(res / "stripes.npz")},
-                      out("triangulate", npz="clouds.npz", ply="clouds.ply"), cfg, "tiny")
-    stage_align({"clouds": str(res / "clouds.npz"), "recording": r,
-                 "silhouettes": str(res / "silhouettes.npz")},
-                out("align", npz="aligned.npz", ply="aligned.ply"), cfg, "tiny")
+    run_up_to_align(rec, res, cfg, "tiny", threads=1)
     stage_fuse({"aligned": str(res / "aligned.npz"), "hull": str(res / "hull.npz")},
                out("fuse", ply="fused.ply", measured="measured.ply"), cfg, "tiny")
     stage_simplify({"fused": str(res / "fused.ply")}, out("simplify", ply="mesh.ply"), cfg,

@@ -44,6 +44,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     fc = cfg["fusion"]
     opts = FuseOptions.from_config(fc, seed=cfg["seed"])
     hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
+    table = None  # the laser points on the table, per sweep (no laser: none)
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
         crop = hull if (hull is not None and fc["crop_to_hull"]) else None
@@ -105,8 +106,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "flagged_sweep_area_fraction": _area_fraction(V, F, attrs["flagged_sweep"] > 0),
               "flagged_sweeps": [int(c.sweep) for c, f in zip(laser, flags, strict=True) if f],
               "measured_faces": len(Fm),
-              "table_points": _table_report(table if inputs.get("aligned") else None,
-                                            cfg["triangulation"]),
+              "table_points": _table_report(table, cfg["triangulation"]),
               "vertex_attributes": {"source": {str(i): n for i, n in enumerate(SOURCES)},
                                     "fields": sorted(attrs)},
               "seconds": round(time.perf_counter() - t0, 3)}

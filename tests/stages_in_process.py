@@ -1,0 +1,44 @@
+"""The workflow's stages run in process on one recording, for tests that need a scan's
+intermediate files without Snakemake (``tests/test_view.py``, ``tests/test_table.py``)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+
+def stage_outputs(res: Path, stage: str, **files: str) -> dict[str, str]:
+    """A stage's outputs in ``res`` as the workflow names them: its rerun log, its report
+    in ``reports/`` and ``files`` (output name -> file name)."""
+    return {"rrd": str(res / f"{stage}.rrd"),
+            "report": str(res / "reports" / f"{stage}.json"),
+            **{k: str(res / v) for k, v in files.items()}}
+
+
+def run_up_to_align(rec: Path, res: Path, cfg: Mapping[str, Any], name: str,
+                    threads: int = 1) -> None:
+    """silhouettes, carve, stripes, triangulate and align on ``rec``, their files in
+    ``res`` (created, with ``reports/``)."""
+    from robo3d.pipeline import (
+        stage_align,
+        stage_carve,
+        stage_silhouettes,
+        stage_stripes,
+        stage_triangulate,
+    )
+
+    (res / "reports").mkdir(parents=True, exist_ok=True)
+    r = str(rec)
+    stage_silhouettes({"recording": r}, stage_outputs(res, "silhouettes", npz="silhouettes.npz"),
+                      cfg, name)
+    stage_carve({"silhouettes": str(res / "silhouettes.npz")},
+                stage_outputs(res, "carve", npz="hull.npz", ply="hull.ply"), cfg, name)
+    stage_stripes({"recording": r}, stage_outputs(res, "stripes", npz="stripes.npz"), cfg,
+                  name, threads=threads)
+    stage_triangulate({"stripes": str(res / "stripes.npz")},
+                      stage_outputs(res, "triangulate", npz="clouds.npz", ply="clouds.ply"),
+                      cfg, name)
+    stage_align({"clouds": str(res / "clouds.npz"), "recording": r,
+                 "silhouettes": str(res / "silhouettes.npz")},
+                stage_outputs(res, "align", npz="aligned.npz", ply="aligned.ply"), cfg, name)

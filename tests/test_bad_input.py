@@ -498,6 +498,20 @@ def test_empty_or_all_white_silhouette(tmp_path: Path, bad: np.ndarray, match: s
                                          rf"{p2}: topic /camera/image, view 1 .*"):
         stage_silhouettes({"recording": str(p2)}, out2, default_config(), "v")
     assert not any(Path(f).exists() for f in out2.values())  # nothing half made
+    # in a scan with laser frames the laser goes on alone: no view is used, and the
+    # report says why (the hull is then empty: test_carving's has_laser cases)
+    with caplog.at_level("WARNING"):
+        report = stage_silhouettes({"recording": str(p2)}, out2, default_config(), "v",
+                                   has_laser=True)
+    assert report["views_failed"] == [0, 1, 2] and report["qa_flagged_views"] == [0, 1, 2]
+    assert report["silhouettes_failed"].startswith("2 of 3 views could not be segmented")
+    assert "the scan goes on from the laser alone" in caplog.text
+    assert report["views"][0]["qa"]["flags"] == [
+        "segmentation failed: most views of the recording could not be segmented"]
+    with np.load(out2["npz"]) as z:
+        assert z["qa_flagged"].all() and not z["masks"].any()
+    assert stage_silhouettes({"recording": str(p)}, out, default_config(), "v",
+                             has_laser=True)["silhouettes_failed"] is None
 
 
 def test_laser_frame_with_no_stripe_or_two(tmp_path: Path) -> None:

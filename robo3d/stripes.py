@@ -81,19 +81,22 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    times the centres), the other axis is searched too and kept when it finds more
    centres and crosses two curves in fewer lines than it keeps. The stripe's direction
    ``angle_deg`` is the median slope between centres of neighbouring lines.
-   Optionally the stage fixes the axis from the laser's geometry instead
-   (``stripes.axis_from_laser_within_deg`` > 0, :func:`robo3d.triangulation.epipolar_axis`):
+   The stage fixes the axis from the laser's geometry instead where it can
+   (``stripes.axis_from_laser_within_deg``, 30 by default,
+   :func:`robo3d.triangulation.epipolar_axis`):
    each ray of the sheet lights one point, so the stripe crosses each of the laser's
    epipolar lines once, and where those run within that angle of the columns (rows) a
    bright line along the columns (rows) cannot be the stripe. On random scene 142's black
    vase over ArUco markers (a monochrome camera, the stripe barely visible on black) the
    probe took the markers' vertical gaps in 10 of 40 frames, 98 % of their points more
    than 1 mm off; with the laser's axis the points in the box more than 1 mm off fall
-   from 211 to 97 (``tests/test_epipolar_axis.py``). Off by default: where the stripe
-   grazes the surface (a cup's inner rim) it runs nearly along the epipolar lines, and
-   one centre per such line is ill-defined there; on the objects benchmark's cup/7 two
-   such frames (of 817) moved two sweeps' alignment by 0.1 mm, and the blue cell's
-   points more than 1 mm off rose from 0.39 to 0.47 % (``benchmarks/README.md``, stop 35).
+   from 211 to 97 (``tests/test_epipolar_axis.py``); a blue laser on a yellow striped
+   blob, whose frames took the stripes' edges, measured 0.93 mm instead of 2.04 mm. The
+   cost: where the stripe grazes the surface (a cup's inner rim) it runs nearly along
+   the epipolar lines, and one centre per such line is ill-defined there; on the objects
+   benchmark's cup/7 two such frames (of 817) moved two sweeps' alignment by 0.1 mm, and
+   the blue cell's points more than 1 mm off rose from 0.39 to 0.47 %
+   (``benchmarks/README.md``, stops 35 and 36).
 5. The sub-pixel centre is the band detector's (step 5 below) on the profile of the
    laser's own channel (flat-topped, still centred, where it saturates; a chroma
    difference would dip there) or the lightness, around the winning candidate's

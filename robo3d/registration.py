@@ -726,10 +726,9 @@ def _unconfirmed_by_views(ref: RefinementResult, active: list[int],
     first; (-1, "") for none. Such a sweep has nothing else to check it: masks that
     miss the object's outline move it (random scene 149 of stop 34: a green box on a
     green-striped table, 34 contour residuals of 1.75 px RMS, the refinement moved the
-    sweep 0.5 mm further from its true pose; six other one-sweep scenes with views,
-    whose residuals were 0.24-0.84 px, all came closer)."""
-    paired = {i for i, j in pairs if i in active and j in active} | {
-        j for i, j in pairs if i in active and j in active}
+    sweep 0.5 mm further from its true pose; the seven one-sweep scenes with views that
+    came closer had 0.24-0.87 px; benchmarks/README.md, stop 36)."""
+    paired = {s for p in pairs if p[0] in active and p[1] in active for s in p}
     worst, worst_rms = -1, o.views_only_max_rim_rms_px
     for s in active:
         if s in paired:

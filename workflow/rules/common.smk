@@ -60,6 +60,12 @@ def get_recording(wildcards):
     return RECORDINGS[wildcards.rec].path
 
 
+def has_laser(wildcards):
+    """Whether the recording has laser frames (the silhouettes and the carve then let a
+    failed segmentation leave no hull, not an error: the laser's measurement goes on)."""
+    return "laser" in recording_stages(RECORDINGS[wildcards.rec])
+
+
 def get_calibration(wildcards):
     """The calibration file a scan uses instead of its own ({} when it keeps its own):
     re-calibrating re-runs the scans that use it, and only those."""

@@ -12,7 +12,7 @@ rule silhouettes:
     params:
         **stage_params("silhouettes"),
         # with laser frames, most views failing leaves no view used, not an error
-        has_laser=lambda wc: "laser" in recording_stages(RECORDINGS[wc.rec]),
+        has_laser=has_laser,
     log:
         "logs/silhouettes/{rec}.log",
     benchmark:
@@ -38,7 +38,7 @@ rule carve:
     params:
         **stage_params("carve"),
         # with laser frames, silhouettes that carve nothing leave an empty hull, not an error
-        has_laser=lambda wc: "laser" in recording_stages(RECORDINGS[wc.rec]),
+        has_laser=has_laser,
     log:
         "logs/carve/{rec}.log",
     benchmark:

@@ -69,9 +69,9 @@ def test_the_outline_is_the_edge_beyond_a_dark_strip_not_the_strongest_edge():
 def test_outline_edge_keeps_the_strongest_edge_of_a_single_step():
     s = np.arange(-5.0, 5.01, 0.25)
     step = 1.0 / (1.0 + np.exp(-s / 0.5))  # a blurred step at s = 0
-    # two changes 1.5 px apart, both peaks of the gradient, the dip between them shallow
-    # (85 % of the weaker): one blurred edge with a shoulder, not two edges
-    shoulder = 1.0 / (1.0 + np.exp(-s / 0.35)) + 0.8 / (1.0 + np.exp(-(s - 1.5) / 0.35))
+    # two changes 1.3 px apart, both peaks of the gradient, the dip between them shallow
+    # (97 % of the weaker): one blurred edge with a shoulder, not two edges
+    shoulder = 1.0 / (1.0 + np.exp(-s / 0.35)) + 0.8 / (1.0 + np.exp(-(s - 1.3) / 0.35))
     dark_strip = 0.6 / (1.0 + np.exp(-s / 0.3)) + 0.4 / (1.0 + np.exp(-(s - 2.0) / 0.3))
     weak_outer = 0.9 / (1.0 + np.exp(-s / 0.3)) + 0.1 / (1.0 + np.exp(-(s - 2.0) / 0.3))
     g = np.gradient(np.stack([step, shoulder, dark_strip, weak_outer]), axis=1)

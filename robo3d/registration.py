@@ -1588,7 +1588,7 @@ def _outline_edge(g: np.ndarray) -> np.ndarray:
     point was measured against the wrong edge: on the simulated bracket/4 the image
     edge lay 0.55 px inside the true outline on the unlit side (median at the true
     poses), 0.13 px on the lit side, and the two pushed its sweeps the same way. Taking
-    the outer edge: 0.55 -> 0.37 px, the side's residual median +0.30 -> +0.10 px. The
+    the outer edge: 0.55 -> 0.36 px, the side's residual median +0.30 -> +0.09 px. The
     valley keeps a single blurred step with a shoulder (shading falling toward a smooth
     rim) on its strongest point: with it the blob's and the bottle's alignment is
     unchanged to 0.0001 mm, without it they moved by up to 0.0035 mm; 0.95 rather than

@@ -35,7 +35,11 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    orange block under a blue laser: red -8, green +5, blue +16 levels, height 11 -> 3).
    Measured on the front-end cells (``benchmarks/README.md``, stop 34): points more
    than 1 mm off red 0.31 -> 0.26 %, green 0.006 -> 0.003 %, blue 0.43 -> 0.39 %,
-   recall 0.1-0.2 points lower; the real srv board unchanged. The colour is chosen
+   recall 0.1-0.2 points lower; the real srv board unchanged. A laser raises the luma
+   too: the height is at most the luma's ridge height over :data:`_LUMA_SHARE` (a
+   JPEG stores the chroma at half resolution: smeared onto the bright side of a colour
+   edge it makes a ridge of one channel with no luma ridge, a blue line along every
+   edge of a blue object against a white wall). The colour is chosen
    once per recording by the stage (:func:`estimate_laser_colour` on 12 spaced frames),
    or per frame with ``colour="auto"``: the contrast in which the stripe is the
    strongest *curve* (step 3) on every 1/48-th row and column; the lightness only when
@@ -715,6 +719,13 @@ def brightness_coefficient(
 (_OK, _NO_BAND, _TWO_BLOBS, _TOO_WEAK, _TOO_WIDE, _AT_BORDER, _ISOLATED, _SECOND,
  _OUTSIDE) = range(9)
 _JIT = {"nogil": True, "cache": True}
+#: A laser adds light: its luma (Rec. 601) rises by at least this fraction of its
+#: channel's rise (a candidate's height is at most the luma's two-sided rise over this).
+#: The laser's own share is 0.24-0.29 for a real blue or violet laser on a Bayer sensor
+#: (its green and red spill), 0.37 / 0.37 / 0.69 for the simulator's red / blue / green;
+#: a JPEG's chroma smeared onto the bright side of a colour edge is a coloured ridge
+#: with no luma ridge (the blue cell's block against the white wall: blue +26, luma +2).
+_LUMA_SHARE = 0.25
 #: Half-height of the first window read around a peak (rows); wider stripes are read again
 #: within the full window (from ``max_width_px``).
 _H_SMALL = 8
@@ -1260,6 +1271,27 @@ def _rise_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
 
 
 @njit(inline="always")
+def _luma_px(img, r, c):  # noqa: ANN001, ANN202
+    """Rec. 601 luma of RGB pixel (r, c), float32 (a JPEG's full-resolution component)."""
+    return (np.float32(0.299) * np.float32(img[r, c, 0])
+            + np.float32(0.587) * np.float32(img[r, c, 1])
+            + np.float32(0.114) * np.float32(img[r, c, 2]))
+
+
+@njit(inline="always")
+def _luma_rise_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
+    """Two-sided ridge height of the luma at (r, c), across the line (as :func:`_rise_at`)."""
+    y0 = _luma_px(img, r, c)
+    if along_u:
+        b1 = max(_luma_px(img, r, c - a1), _luma_px(img, r, c + a1))
+        b2 = max(_luma_px(img, r, c - a2), _luma_px(img, r, c + a2))
+    else:
+        b1 = max(_luma_px(img, r - a1, c), _luma_px(img, r + a1, c))
+        b2 = max(_luma_px(img, r - a2, c), _luma_px(img, r + a2, c))
+    return y0 - min(b1, b2)
+
+
+@njit(inline="always")
 def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     """The laser's height at (r, c) from its channel's rise xk: ``min(xk, xk - max(rise
     of the other two channels))`` (a laser adds light, mostly of its colour: its channel
@@ -1269,7 +1301,10 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     while the others still rise: there it must rise more than half of theirs. Where
     both others fall (an edge's ringing, a dark rim: a laser raises every channel a
     little), zero; where one falls, its fall is taken off (a laser only adds light: a
-    channel that falls is the surface's colour changing)."""
+    channel that falls is the surface's colour changing). And at most the luma's
+    two-sided rise over :data:`_LUMA_SHARE`: a laser's light raises the luma too, while
+    a JPEG's chroma, stored at half resolution and smeared onto the bright side of a
+    colour edge, makes a ridge of one channel without a luma ridge."""
     i1 = 1 if k == 0 else 0
     i2 = 1 if k == 2 else 2
     r1 = _rise_at(img, r, c, i1, a1, a2, along_u)
@@ -1281,9 +1316,10 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     if m < -np.float32(_FALL):  # both other channels fall: an edge's ringing, not light
         return np.float32(0.0)
     f = min(r1, r2)
-    if f < np.float32(0.0):  # one falls: the surface's colour changes; a laser only adds
-        return min(x, x - m) + f
-    return min(x, x - m)
+    # one falls: the surface's colour changes; a laser only adds
+    h = min(x, x - m) + f if f < np.float32(0.0) else min(x, x - m)
+    # and its luma rises too (a JPEG's chroma fringe at a colour edge does not)
+    return min(h, _luma_rise_at(img, r, c, a1, a2, along_u) / np.float32(_LUMA_SHARE))
 
 
 @njit(inline="always")
@@ -1991,7 +2027,8 @@ def _weak_at(img, r, c, k, a1, a2, along_u, sat, thr):  # noqa: ANN001, ANN202
     channels' larger rise (halved where the laser's channel saturates), zero where both
     other channels fall (:func:`_laser_at` with the weaker colour test), and zero where
     it is less than :data:`_WEAK_STEP` of the channel's step across the pixel (a JPEG's
-    ringing beside an edge: a small overshoot of every channel on the bright side)."""
+    ringing beside an edge: a small overshoot of every channel on the bright side);
+    at most the luma's rise over :data:`_LUMA_SHARE`, as :func:`_laser_at`."""
     ch = 0 if img.shape[2] == 1 else k
     x = _rise_at(img, r, c, ch, a1, a2, along_u)
     if x < np.float32(_WEAK_STEP) * _step_at(img, r, c, ch, a1, a2, along_u):
@@ -2008,7 +2045,8 @@ def _weak_at(img, r, c, k, a1, a2, along_u, sat, thr):  # noqa: ANN001, ANN202
         m = np.float32(0.5) * m
     if m < -np.float32(_FALL):
         return np.float32(0.0)
-    return min(x, x - np.float32(_WEAK_OTHERS) * m)
+    return min(min(x, x - np.float32(_WEAK_OTHERS) * m),
+               _luma_rise_at(img, r, c, a1, a2, along_u) / np.float32(_LUMA_SHARE))
 
 
 @njit(**_JIT)

@@ -50,8 +50,11 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    a step edge or a gradient of the room light.
 3. The stripe is a connected curve. Per line the two strongest candidates at least 7 px
    apart are kept; each is linked to the nearest candidate of the previous lines (up to
-   3 lines back) within ``link_px`` px per line; per line the candidate on the longest
-   curve (then the strongest) wins if that curve spans ``min_run`` lines. Rejections are
+   3 lines back) within ``link_px`` px per line; per line the candidate on the strongest
+   curve (its summed height; then the longest) wins if that curve spans ``min_run``
+   lines (by length, a long faint curve took the stripe's lines: the blue cell's block,
+   an edge's faint ridge over 122 lines against the stripe's two pieces of 82 and 84
+   lines three times as high, broken where it fades for 4 lines). Rejections are
    counted: ``isolated`` (candidates on shorter curves: glints, texture, dots),
    ``second_line`` (candidates on another long curve in a line that kept the stripe,
    and every line of a curve that loses in more of its lines than it wins: a
@@ -2144,12 +2147,13 @@ def _link(m1, p1, m2, p2, sep, link_px, gap, min_run, ambiguous):  # noqa: ANN00
 
     Candidate j of line i links to the nearest candidate of the closest earlier line
     (at most ``gap`` lines back) within ``link_px`` per line of distance. Per line, the
-    candidate on the longest curve (then the strongest) wins when that curve spans at
-    least ``min_run`` lines; a curve that loses in more of its lines than it wins is a
-    second line (a reflection) in all of them. With ``ambiguous``, a line whose two
-    candidates lie on comparable long curves (neither ``_DOMINANT`` times the other's
-    height, nearly as long and as strong) is rejected as ``two_blobs`` (the axis probe
-    passes False: two parallel lines still say which way they run). Returns the
+    candidate on the strongest curve (its candidates' summed height; then the longest)
+    wins when that curve spans at least ``min_run`` lines; a curve that loses in more of
+    its lines than it wins is a second line (a reflection) in all of them. With
+    ``ambiguous``, a line whose two candidates lie on comparable long curves (neither
+    ``_DOMINANT`` times the other's height, nearly as long and as strong) is rejected as
+    ``two_blobs`` (the axis probe passes False: two parallel lines still say which way
+    they run). Returns the
     winner's row (-1: none), the line's status (_OK, _TOO_WEAK: no candidate,
     _ISOLATED: only candidates on short curves, _SECOND, _TWO_BLOBS), the winner's
     curve length, the number of dropped candidates by reason (second line: on another
@@ -2221,10 +2225,11 @@ def _link(m1, p1, m2, p2, sep, link_px, gap, min_run, ambiguous):  # noqa: ANN00
                         vn, vb = val[node], val[2 * i + bs]
                         # a candidate _DOMINANT times the other's height wins (the
                         # stripe over an object's lit rim that joins it at the
-                        # silhouette into a longer curve); else the longer curve
+                        # silhouette into a longer curve); else the stronger curve
+                        # (summed height), then the longer
                         if vn > _DOMINANT * vb or (not vb > _DOMINANT * vn and (
-                                size[rt] > size[rb] or (size[rt] == size[rb]
-                                                        and strength[rt] > strength[rb]))):
+                                strength[rt] > strength[rb] or (strength[rt] == strength[rb]
+                                                                and size[rt] > size[rb]))):
                             bs = s
         best[i] = bs
         if bs >= 0:

@@ -1,11 +1,12 @@
-"""The ridge detector against clutter of the laser's colour (robo3d.stripes, step 1): a
-JPEG's chroma fringe along a colour edge is no stripe (it has no luma ridge)."""
+"""The ridge detector against clutter of the laser's colour (robo3d.stripes, steps 1 and 3):
+a JPEG's chroma fringe along a colour edge is no stripe (it has no luma ridge), and in a
+line claimed by two long curves the stronger one wins, not the longer."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from robo3d.stripes import StripeOptions, extract_stripe_centres
+from robo3d.stripes import _OK, _SECOND, StripeOptions, _link, extract_stripe_centres
 
 H, W = 120, 240
 BLUE_LASER = np.array([0.10, 0.38, 1.0])  # the simulator's blue laser on an RGB sensor
@@ -50,3 +51,26 @@ def test_a_chroma_fringe_along_a_colour_edge_is_not_a_stripe():
     np.testing.assert_array_equal(sc.line, sp.line)
     np.testing.assert_allclose(sc.v, sp.v, atol=0.02)
 
+
+def _two_curves(n: int = 150) -> tuple[np.ndarray, ...]:
+    """Per line the two candidates of :func:`robo3d.stripes._link`: a faint curve at row
+    50 over all ``n`` lines (height 12), and the stripe at row 80 over lines 50-149
+    (height 22: under twice the faint one's, so no line is decided by height alone)."""
+    m1 = np.full(n, 12, np.int16)
+    p1 = np.full(n, 50, np.int32)
+    m2 = np.full(n, 8, np.int16)
+    p2 = np.full(n, -(10 ** 6), np.int32)
+    s = slice(50, n)
+    m1[s], p1[s], m2[s], p2[s] = 22, 80, 12, 50
+    return m1, p1, m2, p2
+
+
+def test_the_stronger_of_two_long_curves_wins_their_lines():
+    m1, p1, m2, p2 = _two_curves()
+    win, status, run, n_second, _, _ = _link(m1, p1, m2, p2, 7, 3.0, 3, 8, True)
+    # the stripe (100 lines x 22) beats the faint curve (150 lines x 12) where both are
+    assert np.all(win[50:] == 80) and np.all(status[50:] == _OK)
+    assert np.all(run[50:] == 100)
+    # the faint curve lost more lines than it won: a second line, in all of them
+    assert np.all(status[:50] == _SECOND) and np.all(win[:50] == -1)
+    assert n_second == 100

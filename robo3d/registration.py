@@ -230,7 +230,7 @@ class AlignOptions(Options):
     degenerate_ratio: float = 200.0
     pair_degenerate_ratio: float = 10.0
     robot_start: bool = True
-    robot_start_margin: float = 0.05
+    robot_start_margin: float = 0.03
     views_only_max_rim_rms_px: float = 1.0
     seed: int = 0
     threads: int = 1

@@ -1295,7 +1295,7 @@ def _luma_rise_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
 
 
 @njit(inline="always")
-def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
+def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat, floor):  # noqa: ANN001, ANN202
     """The laser's height at (r, c) from its channel's rise xk: ``min(xk, xk - max(rise
     of the other two channels))`` (a laser adds light, mostly of its colour: its channel
     rises, and more than the others; a thin white thing rises in all three, a grey joint
@@ -1307,7 +1307,9 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     channel that falls is the surface's colour changing). And at most the luma's
     two-sided rise over :data:`_LUMA_SHARE`: a laser's light raises the luma too, while
     a JPEG's chroma, stored at half resolution and smeared onto the bright side of a
-    colour edge, makes a ridge of one channel without a luma ridge."""
+    colour edge, makes a ridge of one channel without a luma ridge. A height not above
+    ``floor`` (the line's second candidate, which the caller keeps it only above) is
+    returned without the luma's cap."""
     i1 = 1 if k == 0 else 0
     i2 = 1 if k == 2 else 2
     r1 = _rise_at(img, r, c, i1, a1, a2, along_u)
@@ -1321,6 +1323,8 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat):  # noqa: ANN001, ANN202
     f = min(r1, r2)
     # one falls: the surface's colour changes; a laser only adds
     h = min(x, x - m) + f if f < np.float32(0.0) else min(x, x - m)
+    if not h > floor:  # the caller's candidate to beat: rejected in any case
+        return h
     # and its luma rises too (a JPEG's chroma fringe at a colour edge does not)
     return min(h, _luma_rise_at(img, r, c, a1, a2, along_u) / np.float32(_LUMA_SHARE))
 
@@ -1411,7 +1415,7 @@ def _ridge_scan_cols(img, k, two, ring, a1, a2, sep, thr, sat, lo, hi):  # noqa:
                 if not xc > m2[c]:
                     continue
                 if laser:
-                    xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat)
+                    xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat, m2[c])
                     if not xc > m2[c]:
                         continue
                 m1[c], p1[c], m2[c], p2[c] = _keep_two(xc, rc, m1[c], p1[c], m2[c], p2[c], sep)
@@ -1461,7 +1465,7 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat, lo, hi):  # noq
                     continue
                 c = i + a2
                 if laser:
-                    xc = _laser_at(img, r, c, k, a1, a2, True, xc, sat)
+                    xc = _laser_at(img, r, c, k, a1, a2, True, xc, sat, v2)
                     if not xc > v2:
                         continue
                 v1, c1, v2, c2 = _keep_two(xc, c, v1, c1, v2, c2, sep)
@@ -1586,9 +1590,9 @@ def _lines8(img, arr, stride, k, lines, rows, a1, a2, sep, thr, sat, lo, hi,
                 continue
             if laser:
                 if along_u:
-                    xc = _laser_at(img, ln, c, k, a1, a2, True, xc, sat)
+                    xc = _laser_at(img, ln, c, k, a1, a2, True, xc, sat, v2)
                 else:
-                    xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat)
+                    xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat, v2)
                 if not xc > v2:
                     continue
             v1, c1, v2, c2 = _keep_two(xc, c, v1, c1, v2, c2, sep)
@@ -1673,7 +1677,7 @@ def _ridge_scan_cols8(img, k, a1, a2, sep, thr, sat, lo, hi):  # noqa: ANN001, A
             if abs(rc - p1[c]) <= sep and not xc > m1[c]:
                 continue
             if laser:
-                xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat)
+                xc = _laser_at(img, rc, c, k, a1, a2, False, xc, sat, m2[c])
                 if not xc > m2[c]:
                     continue
             m1[c], p1[c], m2[c], p2[c] = _keep_two(xc, rc, m1[c], p1[c], m2[c], p2[c], sep)
@@ -1871,9 +1875,9 @@ def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u, lo, hi):  # noqa:
                 c = i + a2
                 if laser:
                     if along_u:
-                        xc = _laser_at(img, ln, c, k, a1, a2, True, xc, sat)
+                        xc = _laser_at(img, ln, c, k, a1, a2, True, xc, sat, v2)
                     else:
-                        xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat)
+                        xc = _laser_at(img, c, ln, k, a1, a2, False, xc, sat, v2)
                     if not xc > v2:
                         continue
                 v1, c1, v2, c2 = _keep_two(xc, c, v1, c1, v2, c2, sep)

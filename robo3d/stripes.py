@@ -163,7 +163,7 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    sheet in a box), in the colour vote, the axis probe and the scan alike; the heights
    still read the pixels beyond it. Lines that miss the region are counted
    ``outside_roi``. In a line, a candidate on a long curve that is more than twice as
-   high as the other wins even where the other lies on a longer curve: an object's lit
+   high as the other wins even where the other lies on a stronger curve: an object's lit
    rim meets the stripe at the silhouette and the two link into one long curve (the
    simulated orange vase). What the region cannot remove: an object's lit rim or edge
    of the laser's colour inside the sheet's band in frames where the sheet misses the
@@ -736,7 +736,7 @@ _H_SMALL = 8
 #: this fraction of the peak height (a saturated or broad top's middle).
 _TOP_FRACTION = 0.05
 #: In a line, a candidate on a long curve this many times the other's height wins even
-#: where the other lies on a longer curve.
+#: where the other lies on a stronger (summed height) curve.
 _DOMINANT = 2.0
 #: Both other channels falling by more than this (in the image's units) is no laser
 #: light: the candidate's height is zero.

@@ -1274,24 +1274,22 @@ def _rise_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
 
 
 @njit(inline="always")
-def _luma_px(img, r, c):  # noqa: ANN001, ANN202
-    """Rec. 601 luma of RGB pixel (r, c), float32 (a JPEG's full-resolution component)."""
-    return (np.float32(0.299) * np.float32(img[r, c, 0])
-            + np.float32(0.587) * np.float32(img[r, c, 1])
-            + np.float32(0.114) * np.float32(img[r, c, 2]))
-
-
-@njit(inline="always")
 def _luma_rise_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
-    """Two-sided ridge height of the luma at (r, c), across the line (as :func:`_rise_at`)."""
-    y0 = _luma_px(img, r, c)
+    """Two-sided ridge height of the Rec. 601 luma (:func:`_contrast_at`'s ``_LUMA``, a
+    JPEG's full-resolution component) of RGB pixel (r, c), across the line (as
+    :func:`_rise_at`), float32."""
+    y0 = _contrast_at(img, r, c, _LUMA, 3, False)
     if along_u:
-        b1 = max(_luma_px(img, r, c - a1), _luma_px(img, r, c + a1))
-        b2 = max(_luma_px(img, r, c - a2), _luma_px(img, r, c + a2))
+        b1 = max(_contrast_at(img, r, c - a1, _LUMA, 3, False),
+                 _contrast_at(img, r, c + a1, _LUMA, 3, False))
+        b2 = max(_contrast_at(img, r, c - a2, _LUMA, 3, False),
+                 _contrast_at(img, r, c + a2, _LUMA, 3, False))
     else:
-        b1 = max(_luma_px(img, r - a1, c), _luma_px(img, r + a1, c))
-        b2 = max(_luma_px(img, r - a2, c), _luma_px(img, r + a2, c))
-    return y0 - min(b1, b2)
+        b1 = max(_contrast_at(img, r - a1, c, _LUMA, 3, False),
+                 _contrast_at(img, r + a1, c, _LUMA, 3, False))
+        b2 = max(_contrast_at(img, r - a2, c, _LUMA, 3, False),
+                 _contrast_at(img, r + a2, c, _LUMA, 3, False))
+    return np.float32(y0 - min(b1, b2))
 
 
 @njit(inline="always")

@@ -593,7 +593,18 @@ def _full_scale(dtype: np.dtype) -> float:
 
 
 def _subtract_background(image: np.ndarray, background: np.ndarray | None) -> np.ndarray:
-    """``max(image - background, 0)`` as float32 (or the image itself when no background)."""
+    """``max(image - background, 0)`` (or the image itself when no background), in the
+    image's own type when that is an integer type (the difference of two frames lies
+    between 0 and the image, rounded when the background is a float mean).
+
+    Why its own type: the detector reads the saturation level and the fast 8-bit kernels
+    off the image's type. Handed as float32 (full scale 1.0), a laser-off-subtracted
+    8-bit frame counted every pixel above 0.98 as saturated, where the colour test takes
+    only half of the other channels' rise: a thin white line that was not in the
+    laser-off frame (a cable moved, a glint) passed as the stripe where the stripe was
+    occluded (``tests/test_stripes_background.py``). The saturation test on the
+    difference is conservative: a channel clipped at 255 over a background of 100 reads
+    155, not saturated, so only its rise above the others counts."""
     if background is None:
         return image
     background = _check_image(np.asarray(background), "background")
@@ -602,6 +613,8 @@ def _subtract_background(image: np.ndarray, background: np.ndarray | None) -> np
                          f"{background.shape}")
     diff = image.astype(np.float32) - background.astype(np.float32)
     np.maximum(diff, 0.0, out=diff)
+    if np.issubdtype(image.dtype, np.integer):
+        return np.rint(diff).astype(image.dtype)
     return diff
 
 

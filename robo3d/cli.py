@@ -67,6 +67,9 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
                    help="with --demo: only the demo recordings not yet in DIR")
     p.add_argument("--no-views", action="store_true", help="laser sweeps only")
     p.add_argument("--no-laser", action="store_true", help="views only (a photo set)")
+    p.add_argument("--laser-off", action="store_true",
+                   help="also a laser-off frame at each laser frame's pose, on "
+                        "/camera/laser_off (for stripes.laser_off_topic)")
     p.add_argument("--encoding", choices=("protobuf", "json"), default="protobuf",
                    help="message encoding (default %(default)s)")
     p.add_argument("--threads", type=int, default=1,
@@ -214,6 +217,8 @@ def _run_simulate(args: argparse.Namespace) -> int:
         overrides["views"] = 0
     if args.no_laser:
         overrides["sweeps"] = 0
+    if args.laser_off:
+        overrides["laser_off"] = True
     if args.object_mesh:
         overrides["object_mesh"] = args.object_mesh
     if args.mesh_unit:

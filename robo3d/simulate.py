@@ -66,6 +66,7 @@ Choices
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import json
 import logging
@@ -150,6 +151,8 @@ IMAGE_POSES = "ground_truth/image_poses.json"
 
 _VIEW_TOPIC = "/camera/image"
 _LASER_TOPIC = "/camera/laser_image"
+#: Topic of the laser-off frames (``SimulationParams.laser_off``).
+LASER_OFF_TOPIC = "/camera/laser_off"
 _CAL_TOPIC = "/camera/calibration"
 
 
@@ -226,6 +229,10 @@ class SimulationParams:
         (:func:`load_object_mesh`).
     mesh_unit : str
         Unit of ``object_mesh``'s coordinates (:data:`MESH_UNITS`).
+    laser_off : bool
+        After each laser frame, a laser-off frame on :data:`LASER_OFF_TOPIC`, 1 ms later
+        and at the same pose (a strobed laser or a robot that holds still for the pair),
+        with its own sensor noise: what ``stripes.laser_off_topic`` subtracts.
     """
 
     seed: int = 0
@@ -284,6 +291,7 @@ class SimulationParams:
     clock_lag_ms: float = 0.0
     object_mesh: str | None = None
     mesh_unit: str = "m"
+    laser_off: bool = False
 
     @classmethod
     def cell(cls, laser: str | tuple[float, float, float] = "red",
@@ -393,7 +401,7 @@ CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
                                    jpeg_quality=80, view_read_noise_dn=2.0,
                                    laser_read_noise_dn=2.0, gain_dn_per_electron=0.25,
                                    vignetting=0.25)
-_NEW_FIELDS = frozenset({"vignetting", "robot_error", "drift_mm", "drift_deg",
+_NEW_FIELDS = frozenset({"laser_off", "vignetting", "robot_error", "drift_mm", "drift_deg",
                          "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
                          "object_mesh", "mesh_unit"})
 _LEGACY_APPEARANCE = frozenset(LEGACY_FIELDS)
@@ -695,6 +703,10 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     else:
         mesh = object_mesh(object_name, p.mesh_voxel, p.mesh_faces)
     scene = SimScene(mesh, p.appearance, threads=threads)
+    off_scene = None
+    if p.laser_off:  # the same scene and room light, the laser dark
+        off_scene = copy.copy(scene)
+        off_scene.appearance = dataclasses.replace(p.appearance, laser_peak_dn=0.0)
     camera = default_camera(p.width, p.height)
     t_flange_camera = default_hand_eye()
     t_camera_laser = default_laser_mount(p.baseline, p.crossing)
@@ -864,11 +876,30 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                                    p.gain_dn_per_electron, p.laser_read_noise_dn, fast_noise)
                 w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
                               p.jpeg_quality)
+                if p.laser_off:
+                    w.write_image(LASER_OFF_TOPIC, stamp + 1_000_000, camera.frame_id,
+                                  _laser_off_frame(off_scene, camera, cam, t_camera_laser,
+                                                   p, vig, (k, j), fast_noise),
+                                  p.laser_encoding, p.jpeg_quality)
     return SimulationResult(path=path, object_name=object_name, n_views=p.views,
                             n_laser_frames=len(laser_frames), frames_per_sweep=frames_per_sweep,
                             sweep_errors=sweep_err, view_errors=view_err,
                             T_flange_camera=t_flange_camera, T_flange_laser=t_flange_laser,
                             size_bytes=path.stat().st_size, seconds=0.0)
+
+
+def _laser_off_frame(off_scene: SimScene, camera: Any, cam: np.ndarray,
+                     t_camera_laser: np.ndarray, p: SimulationParams, vig: np.ndarray | None,
+                     frame: tuple[int, int], fast_noise: bool) -> np.ndarray:
+    """The laser-off companion of laser frame ``frame`` (sweep, index): the laser frame's
+    rendering with the laser dark, the same vignetting, its own noise draw."""
+    signal = render_laser_frame(off_scene, camera, cam, cam @ t_camera_laser)
+    if signal.ndim == 3 and p.laser_encoding == "mono8":
+        signal = signal.mean(axis=2)
+    if vig is not None:
+        signal = signal * (vig if signal.ndim == 2 else vig[..., None])
+    return sensor_noise(signal, np.random.default_rng([p.seed, 12, *frame]),
+                        p.gain_dn_per_electron, p.laser_read_noise_dn, fast_noise)
 
 
 def _legacy_truth(tf_true: list[tuple[int, np.ndarray]], order: np.ndarray, t0: int,

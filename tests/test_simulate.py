@@ -481,6 +481,30 @@ def test_cli_view_supersample(tmp_path):
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_cli_laser_off(tmp_path):
+    """``--laser-off``: beside each laser frame, 1 ms later, a laser-off frame at the same
+    pose: the same picture without the stripe (and its own noise)."""
+    from robo3d.simulate import LASER_OFF_TOPIC
+
+    reader = pytest.importorskip("robo3d.recording.reader")
+    out = tmp_path / "off.mcap"
+    assert main(["simulate", "sphere", str(out), "--no-views", "--sweeps", "1",
+                 "--sweep-frames", "6", "--width", "96", "--height", "72",
+                 "--laser-off"]) == 0
+    on = reader.read_recording(out, roles=("laser",))
+    off = reader.read_recording(out, roles=("laser",),
+                                topics=reader.TopicMap(laser=LASER_OFF_TOPIC))
+    assert json.loads(on.metadata["robo3d.simulation"]["laser_off"]) is True
+    assert len(off.laser_frames) == len(on.laser_frames) == 6
+    lit = 0
+    for a, b in zip(on.laser_frames, off.laser_frames, strict=True):
+        assert b.timestamp_ns - a.timestamp_ns == 1_000_000
+        diff = on.decode(a).astype(float) - off.decode(b).astype(float)
+        assert np.percentile(np.abs(diff), 50) < 2.0  # the same picture ...
+        lit += int(diff.max() > 20)                    # ... less the stripe
+    assert lit >= 3  # the frames whose sheet meets the sphere
+
+
 def test_bad_parameters_are_named():
     with pytest.raises(ValueError, match="unknown object"):
         simulate_recording("x.mcap", "teapot")

@@ -4,7 +4,10 @@ are those of the camera's frames."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from robo3d.stripes import StripeOptions, extract_stripe_centres
 
@@ -44,3 +47,73 @@ def test_a_zero_background_changes_nothing():
     assert len(a.u) > 150
     np.testing.assert_array_equal(a.u, b.u)
     np.testing.assert_array_equal(a.v, b.v)
+
+
+@pytest.fixture(scope="module")
+def off_cell(tmp_path_factory):
+    """A small room-lit cell (red laser, grey sphere, printed dots on the table) seen by a
+    monochrome camera, with a laser-off frame beside every laser frame
+    (``SimulationParams.laser_off``)."""
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    path = tmp_path_factory.mktemp("laser_off") / "cell.mcap"
+    params = SimulationParams.cell(laser="red", object_color="grey", texture="none",
+                                   markers="dots", small=True, width=320, height=240,
+                                   views=0, sweeps=1, sweep_frames=12,
+                                   laser_encoding="mono8", laser_off=True)
+    simulate_recording(path, "sphere", params=params)
+    return path
+
+
+def _stage(rec: Path, out: Path, laser_off_topic: str | None) -> tuple[dict, np.ndarray]:
+    """The stripes stage with the default config (and ``laser_off_topic``): its report,
+    and per centre its distance to the frame's true stripe (px)."""
+    from scipy.spatial import cKDTree
+
+    from robo3d.config import default_config
+    from robo3d.pipeline import STAGES
+    from robo3d.recording.reader import read_recording
+    from robo3d.simulate import image_poses, stripe_truth, truth_scene
+
+    cfg = default_config()
+    cfg["stripes"]["laser_off_topic"] = laser_off_topic
+    out.mkdir()
+    outputs = {"npz": str(out / "stripes.npz"), "report": str(out / "stripes.json"),
+               "rrd": str(out / "stripes.rrd")}
+    report = STAGES["stripes"]({"recording": str(rec)}, outputs, cfg, "cell", threads=1)
+    r = read_recording(rec, roles=("laser",))
+    scene, poses = truth_scene(r), image_poses(r)
+    with np.load(out / "stripes.npz") as z:
+        u, v, off = z["u"], z["v"], z["offsets"]
+    d = []
+    for i in range(len(off) - 1):
+        det = np.column_stack([u[off[i]:off[i + 1]], v[off[i]:off[i + 1]]])
+        if len(det):
+            truth = stripe_truth(r, i, scene=scene, poses=poses).pixels_uv
+            d.append(cKDTree(truth).query(det)[0] if len(truth) else np.full(len(det), np.inf))
+    return report, np.concatenate(d) if d else np.zeros(0)
+
+
+def test_the_stage_subtracts_the_laser_off_frames_without_taking_their_noise(off_cell,
+                                                                              tmp_path):
+    """``stripes.laser_off_topic``: each laser frame less its laser-off frame. Measured
+    on this cell: without the pedestal of :func:`robo3d.stripes._subtract_background`
+    (the difference clipped at zero) 212 of 1105 centres lay more than 1 px off the true
+    stripe, in the frames where it is short (noise ridges); with it none of 533. Without
+    subtraction 707 of 712 lie on it: a second noisy frame costs the difference
+    sqrt(2) in noise, and the region of interest already keeps the printed dots out."""
+    from robo3d.simulate import LASER_OFF_TOPIC
+
+    report, d_off = _stage(off_cell, tmp_path / "off", LASER_OFF_TOPIC)
+    _, d_plain = _stage(off_cell, tmp_path / "plain", None)
+    assert report["laser_off_frames"] == 12
+    assert len(d_off) > 0.5 * len(d_plain) > 150
+    assert np.mean(d_off <= 1.0) > 0.995, np.sort(d_off)[-10:]
+    assert np.median(d_off) < 0.3
+
+
+def test_a_missing_laser_off_topic_is_a_clear_error(off_cell, tmp_path):
+    from robo3d.errors import Robo3dError
+
+    with pytest.raises(Robo3dError, match=r"cell\.mcap.*laser_off_topic /camera/nothing"):
+        _stage(off_cell, tmp_path / "missing", "/camera/nothing")

@@ -117,3 +117,20 @@ def test_a_missing_laser_off_topic_is_a_clear_error(off_cell, tmp_path):
 
     with pytest.raises(Robo3dError, match=r"cell\.mcap.*laser_off_topic /camera/nothing"):
         _stage(off_cell, tmp_path / "missing", "/camera/nothing")
+
+
+def test_a_laser_off_topic_of_other_images_is_a_clear_error(tmp_path):
+    """A laser-off topic whose images are not the laser frames' (here the views: RGB
+    beside a monochrome laser camera) is named with both shapes, before any work."""
+    from robo3d.errors import StageError
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    path = tmp_path / "views.mcap"
+    params = SimulationParams.cell(laser="red", object_color="grey", texture="none",
+                                   markers="none", small=True, width=96, height=72,
+                                   views=2, sweeps=1, sweep_frames=4,
+                                   laser_encoding="mono8")
+    simulate_recording(path, "sphere", params=params)
+    with pytest.raises(StageError, match=r"views\.mcap: stripes\.laser_off_topic "
+                       r"/camera/image: .* 96 x 72 3 channels uint8, .* 96 x 72 mono uint8"):
+        _stage(path, tmp_path / "out", "/camera/image")

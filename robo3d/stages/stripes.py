@@ -66,7 +66,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     options = options.replace(centre_on=centre_on_for(options.centre_on,
                                                       frames[0].data if frames else None))
     found, decode_s, detect_s = _detect(rec, frames, background, roi, options, n_threads,
-                                        axes)
+                                        axes, inputs["recording"])
     stripes = Stripes.from_frames(found, [m.timestamp_ns for m in frames], poses,
                                   T_camera_laser, cameras, rec.workspace)
     if frames and len(stripes.u) == 0:
@@ -120,7 +120,22 @@ def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
     j = np.clip(np.searchsorted(t_off, t_on), 1, len(t_off)) - 1
     j1 = np.minimum(j + 1, len(t_off) - 1)
     pair = np.where(np.abs(t_off[j1] - t_on) < np.abs(t_on - t_off[j]), j1, j)
+    # a laser-off frame is subtracted pixel by pixel: it must be the laser frames' camera
+    # image (a topic of another camera, or mono beside RGB, is a configuration error)
+    on0, off0 = rec_off.decode(frames[0]), rec_off.decode(off_frames[pair[0]])
+    if on0.shape != off0.shape:
+        raise StageError(f"{path}: stripes.laser_off_topic {topic}: its image at t="
+                         f"{off_frames[pair[0]].timestamp_ns} ns is {_shape(off0)}, the laser "
+                         f"frame it belongs to ({frames[0].topic}, t={frames[0].timestamp_ns} "
+                         f"ns) {_shape(on0)}: laser-off frames must be the same camera's "
+                         "images of the same size")
     return (lambda i: rec_off.decode(off_frames[pair[i]])), len(off_frames)
+
+
+def _shape(image: np.ndarray) -> str:
+    h, w = image.shape[:2]
+    return f"{w} x {h} " + ("mono" if image.ndim == 2 or image.shape[2] == 1 else
+                            f"{image.shape[2]} channels") + f" {image.dtype}"
 
 
 def _sheet_rois(rec, cfg: Mapping[str, Any], cameras: list, poses: np.ndarray,
@@ -214,7 +229,7 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
 
 
 def _detect(rec, frames: list, background: Callable, roi: Callable,
-            options: StripeOptions, n_threads: int, axes: list
+            options: StripeOptions, n_threads: int, axes: list, path: str = "recording"
             ) -> tuple[list, float, float]:
     """Every frame decoded and searched (:func:`robo3d.stripes.extract_stripe_centres`)
     on ``n_threads`` threads, along its axis where ``axes`` gives one: the frames' stripe
@@ -229,8 +244,14 @@ def _detect(rec, frames: list, background: Callable, roi: Callable,
         image = rec.decode(frames[i])
         bg = background(i)
         tb = time.perf_counter()
-        sp = extract_stripe_centres(image, background=bg, roi=roi(i),
-                                    options=by_axis.get(axes[i], options))
+        try:
+            sp = extract_stripe_centres(image, background=bg, roi=roi(i),
+                                        options=by_axis.get(axes[i], options))
+        except ValueError as exc:  # the frame itself (or its laser-off frame): named
+            raise StageError(f"{path}: topic {frames[i].topic}, frame {i} (t="
+                             f"{frames[i].timestamp_ns} ns"
+                             f"{', with its laser-off frame' if bg is not None else ''}): "
+                             f"{exc}") from None
         return sp, tb - ta, time.perf_counter() - tb
 
     progress = Progress("finding stripes", len(frames))

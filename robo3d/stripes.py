@@ -2402,7 +2402,9 @@ def extract_stripe_centres(
     image : (H, W) or (H, W, 3) uint8, uint16 or float
         The laser-lit frame, mono or RGB, any laser colour.
     background : same shape as ``image``, optional
-        Laser-off frame subtracted (clipped at 0) before anything else.
+        Laser-off frame subtracted before anything else: clipped at 0 for the band
+        detector; for the ridge detector lifted by a pedestal instead
+        (:func:`_subtract_background`), in the image's own type.
     roi : (H, W) bool, optional
         Ridge detector: the region where the stripe can be (the laser sheet inside the
         workspace, :func:`robo3d.triangulation.sheet_roi_mask`); candidates are sought
@@ -2434,7 +2436,10 @@ def extract_stripe_centres(
     roi = _check_roi(roi, image.shape)
     full_scale = _full_scale(image.dtype)
     min_peak_abs = 0.04 * full_scale if o.min_peak is None else float(o.min_peak)
-    work = _subtract_background(image, background, pedestal=True)
+    # the ridge detector measures heights against local baselines: the difference keeps
+    # its noise (a pedestal); the band detector's eq. 20 band is relative to the
+    # brightness: the seed's clipped difference
+    work = _subtract_background(image, background, pedestal=o.detector == "ridge")
     img = _as_kernel_image(work)
     if img.dtype == np.float32 and not np.all(np.isfinite(img)):
         raise ValueError("image has non-finite (NaN or inf) pixels")

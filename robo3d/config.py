@@ -38,6 +38,56 @@ def _fill_defaults(cfg: dict[str, Any], schema: dict[str, Any]) -> None:
             _fill_defaults(cfg[key], sub)
 
 
+def _schema_types(schema: dict[str, Any]) -> set[str]:
+    """The JSON types a (sub)schema admits, its ``oneOf``/``anyOf`` alternatives included."""
+    t = schema.get("type")
+    out = {t} if isinstance(t, str) else set(t or ())
+    for alt in (*schema.get("oneOf", ()), *schema.get("anyOf", ())):
+        out |= _schema_types(alt)
+    return out
+
+
+def _is_type(value: Any, t: str) -> bool:
+    return {"number": isinstance(value, (int, float)) and not isinstance(value, bool),
+            "integer": isinstance(value, int) and not isinstance(value, bool),
+            "boolean": isinstance(value, bool), "null": value is None,
+            "array": isinstance(value, list), "object": isinstance(value, dict)}.get(t, False)
+
+
+def _coerce_strings(value: Any, schema: dict[str, Any]) -> Any:
+    """``value`` with the strings that stand for a number, a boolean or null read as such
+    where the schema admits that type (in place for mappings).
+
+    Why: Snakemake reads a nested ``--config`` value (``--config 'fusion={min_weight:
+    0.001}'``) with YAML's base loader, which leaves every scalar a string; the schema
+    then refused ``'0.001'`` as not a number. A string stays a string where the schema
+    admits strings, except YAML's null (``null``, ``~``) where it admits null too."""
+    if isinstance(value, dict):
+        props = schema.get("properties", {})
+        extra = schema.get("additionalProperties")
+        for k, v in value.items():
+            sub = props.get(k, extra if isinstance(extra, dict) else None)
+            if sub is not None:
+                value[k] = _coerce_strings(v, sub)
+        return value
+    if isinstance(value, list) and isinstance(schema.get("items"), dict):
+        return [_coerce_strings(v, schema["items"]) for v in value]
+    if not isinstance(value, str):
+        return value
+    types = _schema_types(schema)
+    if "null" in types and value in ("null", "~", "Null", "NULL"):
+        return None
+    if not types or "string" in types:
+        return value
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError:
+        return value
+    if any(_is_type(parsed, t) for t in types):
+        return _coerce_strings(parsed, schema) if isinstance(parsed, (list, dict)) else parsed
+    return value
+
+
 def validate_config(config: dict[str, Any], schema: dict[str, Any] | None = None) -> dict[str, Any]:
     """Validate a configuration and fill in defaults.
 
@@ -63,7 +113,7 @@ def validate_config(config: dict[str, Any], schema: dict[str, Any] | None = None
     schema = load_schema() if schema is None else schema
     if not isinstance(config, dict):
         raise ConfigError(f"configuration must be a mapping, got {type(config).__name__}")
-    cfg = copy.deepcopy(config)
+    cfg = _coerce_strings(copy.deepcopy(config), schema)
     _fill_defaults(cfg, schema)
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.absolute_path))

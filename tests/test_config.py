@@ -70,3 +70,27 @@ def test_unreadable_config_file(tmp_path):
     bad.write_text("carving: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(bad)
+
+
+def test_snakemake_config_strings_are_read_as_the_schema_types():
+    """Snakemake reads a nested ``--config`` value with YAML's base loader: every scalar a
+    string. Where the schema wants a number, a boolean or null the string is read as one;
+    where it admits a string the string stays; a string that is no such value is still
+    refused by name."""
+    cfg = yaml.safe_load(DEFAULT_CONFIG_PATH.read_text())
+    base = yaml.loader.BaseLoader
+    cfg["fusion"] = yaml.load("{min_weight: 0.001, fill_holes: false, close: none}",
+                              Loader=base)
+    cfg["segmentation"] = yaml.load("{threshold: 40, background_topic: null}", Loader=base)
+    cfg["evaluation"] = yaml.load("{thresholds_mm: [0.1, 0.2]}", Loader=base)
+    cfg["stripes"] = yaml.load("{laser_off_topic: /camera/off, min_peak: 8}", Loader=base)
+    assert cfg["fusion"]["min_weight"] == "0.001"  # what Snakemake hands over
+    c = validate_config(cfg)
+    assert c["fusion"]["min_weight"] == 0.001 and c["fusion"]["fill_holes"] is False
+    assert c["fusion"]["close"] == "none"  # an enum of strings: stays a string
+    assert c["segmentation"]["threshold"] == 40 and c["segmentation"]["background_topic"] is None
+    assert c["evaluation"]["thresholds_mm"] == [0.1, 0.2]
+    assert c["stripes"]["laser_off_topic"] == "/camera/off" and c["stripes"]["min_peak"] == 8
+    cfg["fusion"] = {"min_weight": "a lot"}
+    with pytest.raises(ConfigError, match=r"fusion\.min_weight: 'a lot' is not of type"):
+        validate_config(cfg)

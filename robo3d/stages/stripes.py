@@ -100,14 +100,15 @@ def _sweeps_of(frames: list, cfg: Mapping[str, Any]) -> np.ndarray:
 
 
 def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
-                      ) -> tuple[Callable[[int], np.ndarray | None], int]:
+                      ) -> tuple[Callable[[int, np.ndarray], np.ndarray | None], int]:
     """The laser-off frame of each laser frame (``stripes.laser_off_topic``: read as the
     "laser" role of its own topic, the nearest in time), as a function of the frame's
-    index that decodes it (None without such a topic), and the number of laser-off
-    frames."""
+    index and its decoded image that decodes the laser-off frame and checks that it is
+    that camera's image of the same size (None without such a topic), and the number of
+    laser-off frames."""
     sc = cfg["stripes"]
     if not (sc.get("laser_off_topic") and frames):
-        return (lambda i: None), 0
+        return (lambda i, image: None), 0
     topic = str(sc["laser_off_topic"])
     cfg_off = {**cfg, "topics": {**dict(cfg.get("topics") or {}), "laser": topic}}
     rec_off = open_recording(path, cfg_off, roles=("laser",), require=False)
@@ -120,16 +121,21 @@ def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
     j = np.clip(np.searchsorted(t_off, t_on), 1, len(t_off)) - 1
     j1 = np.minimum(j + 1, len(t_off) - 1)
     pair = np.where(np.abs(t_off[j1] - t_on) < np.abs(t_on - t_off[j]), j1, j)
-    # a laser-off frame is subtracted pixel by pixel: it must be the laser frames' camera
-    # image (a topic of another camera, or mono beside RGB, is a configuration error)
-    on0, off0 = rec_off.decode(frames[0]), rec_off.decode(off_frames[pair[0]])
-    if on0.shape != off0.shape:
-        raise StageError(f"{path}: stripes.laser_off_topic {topic}: its image at t="
-                         f"{off_frames[pair[0]].timestamp_ns} ns is {_shape(off0)}, the laser "
-                         f"frame it belongs to ({frames[0].topic}, t={frames[0].timestamp_ns} "
-                         f"ns) {_shape(on0)}: laser-off frames must be the same camera's "
-                         "images of the same size")
-    return (lambda i: rec_off.decode(off_frames[pair[i]])), len(off_frames)
+
+    def background(i: int, image: np.ndarray) -> np.ndarray:
+        # subtracted pixel by pixel: another camera's topic, or mono beside RGB, is a
+        # configuration error, named before the detector sees it
+        off = off_frames[pair[i]]
+        bg = rec_off.decode(off)
+        if bg.shape != image.shape:
+            raise StageError(f"{path}: stripes.laser_off_topic {topic}: its image at t="
+                             f"{off.timestamp_ns} ns is {_shape(bg)}, the laser frame it "
+                             f"belongs to ({frames[i].topic}, t={frames[i].timestamp_ns} "
+                             f"ns) {_shape(image)}: laser-off frames must be the same "
+                             "camera's images of the same size")
+        return bg
+
+    return background, len(off_frames)
 
 
 def _shape(image: np.ndarray) -> str:
@@ -219,9 +225,10 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     from ..viz import spaced_indices
 
     sample = spaced_indices(len(frames), 12)
+    images = [rec.decode(frames[i]) for i in sample]
     colour, scores = estimate_laser_colour(
-        [rec.decode(frames[i]) for i in sample],
-        backgrounds=[background(i) for i in sample], min_peak=options.min_peak,
+        images, backgrounds=[background(i, im) for i, im in zip(sample, images, strict=True)],
+        min_peak=options.min_peak,
         rois=[roi(int(i)) for i in sample], axes=[axes[int(i)] for i in sample])
     log.info("stripes: laser colour %s (scores: %s)", colour,
              ", ".join(f"{k} {v:.0f}" for k, v in scores.items()))
@@ -242,7 +249,7 @@ def _detect(rec, frames: list, background: Callable, roi: Callable,
     def work(i: int):
         ta = time.perf_counter()
         image = rec.decode(frames[i])
-        bg = background(i)
+        bg = background(i, image)
         tb = time.perf_counter()
         try:
             sp = extract_stripe_centres(image, background=bg, roi=roi(i),

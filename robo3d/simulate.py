@@ -867,19 +867,14 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                                      "image/png")
             else:
                 _, k, j, cam = laser_frames[i]
-                signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
-                if signal.ndim == 3 and p.laser_encoding == "mono8":
-                    signal = signal.mean(axis=2)  # a monochrome camera: no colour filters
-                if vig is not None:
-                    signal = signal * (vig if signal.ndim == 2 else vig[..., None])
-                img = sensor_noise(signal, np.random.default_rng([p.seed, 11, k, j]),
-                                   p.gain_dn_per_electron, p.laser_read_noise_dn, fast_noise)
+                img = _laser_image(scene, camera, cam, t_camera_laser, p, vig,
+                                   np.random.default_rng([p.seed, 11, k, j]), fast_noise)
                 w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
                               p.jpeg_quality)
-                if p.laser_off:
-                    w.write_image(LASER_OFF_TOPIC, stamp + 1_000_000, camera.frame_id,
-                                  _laser_off_frame(off_scene, camera, cam, t_camera_laser,
-                                                   p, vig, (k, j), fast_noise),
+                if p.laser_off:  # the same camera's frame with the laser dark, own noise
+                    off = _laser_image(off_scene, camera, cam, t_camera_laser, p, vig,
+                                       np.random.default_rng([p.seed, 12, k, j]), fast_noise)
+                    w.write_image(LASER_OFF_TOPIC, stamp + 1_000_000, camera.frame_id, off,
                                   p.laser_encoding, p.jpeg_quality)
     return SimulationResult(path=path, object_name=object_name, n_views=p.views,
                             n_laser_frames=len(laser_frames), frames_per_sweep=frames_per_sweep,
@@ -888,18 +883,19 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                             size_bytes=path.stat().st_size, seconds=0.0)
 
 
-def _laser_off_frame(off_scene: SimScene, camera: Any, cam: np.ndarray,
-                     t_camera_laser: np.ndarray, p: SimulationParams, vig: np.ndarray | None,
-                     frame: tuple[int, int], fast_noise: bool) -> np.ndarray:
-    """The laser-off companion of laser frame ``frame`` (sweep, index): the laser frame's
-    rendering with the laser dark, the same vignetting, its own noise draw."""
-    signal = render_laser_frame(off_scene, camera, cam, cam @ t_camera_laser)
+def _laser_image(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: np.ndarray,
+                 p: SimulationParams, vig: np.ndarray | None, rng: np.random.Generator,
+                 fast_noise: bool) -> np.ndarray:
+    """One laser frame as the camera records it: rendered at camera pose ``cam``
+    (``scene``'s laser; dark for a laser-off frame), averaged to grey for a monochrome
+    camera, vignetted, with sensor noise drawn from ``rng``."""
+    signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
     if signal.ndim == 3 and p.laser_encoding == "mono8":
-        signal = signal.mean(axis=2)
+        signal = signal.mean(axis=2)  # a monochrome camera: no colour filters
     if vig is not None:
         signal = signal * (vig if signal.ndim == 2 else vig[..., None])
-    return sensor_noise(signal, np.random.default_rng([p.seed, 12, *frame]),
-                        p.gain_dn_per_electron, p.laser_read_noise_dn, fast_noise)
+    return sensor_noise(signal, rng, p.gain_dn_per_electron, p.laser_read_noise_dn,
+                        fast_noise)
 
 
 def _legacy_truth(tf_true: list[tuple[int, np.ndarray]], order: np.ndarray, t0: int,

@@ -8,9 +8,14 @@ sign, twice as far off as with none."""
 from __future__ import annotations
 
 import dataclasses
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stages_in_process import stage_outputs  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +41,9 @@ def _p95_mm(rec_path, out, offset_s: float) -> float:
     from robo3d.recording.reader import read_recording
 
     cfg = load_config(None, {"timing": {"image_offset_s": offset_s}})
-    out.mkdir()
-    s = {"npz": str(out / "stripes.npz"), "report": str(out / "stripes.json"),
-         "rrd": str(out / "stripes.rrd")}
-    c = {"npz": str(out / "clouds.npz"), "ply": str(out / "clouds.ply"),
-         "report": str(out / "clouds.json"), "rrd": str(out / "clouds.rrd")}
+    (out / "reports").mkdir(parents=True)
+    s = stage_outputs(out, "stripes", npz="stripes.npz")
+    c = stage_outputs(out, "triangulate", npz="clouds.npz", ply="clouds.ply")
     STAGES["stripes"]({"recording": str(rec_path)}, s, cfg, "late", threads=1)
     STAGES["triangulate"]({"recording": str(rec_path), "stripes": s["npz"]}, c, cfg, "late")
     rec = read_recording(rec_path, roles=("laser",))

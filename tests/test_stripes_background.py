@@ -4,10 +4,14 @@ are those of the camera's frames."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stages_in_process import stage_outputs  # noqa: E402
 
 from robo3d.stripes import StripeOptions, extract_stripe_centres
 
@@ -77,9 +81,8 @@ def _stage(rec: Path, out: Path, laser_off_topic: str | None) -> tuple[dict, np.
 
     cfg = default_config()
     cfg["stripes"]["laser_off_topic"] = laser_off_topic
-    out.mkdir()
-    outputs = {"npz": str(out / "stripes.npz"), "report": str(out / "stripes.json"),
-               "rrd": str(out / "stripes.rrd")}
+    (out / "reports").mkdir(parents=True)
+    outputs = stage_outputs(out, "stripes", npz="stripes.npz")
     report = STAGES["stripes"]({"recording": str(rec)}, outputs, cfg, "cell", threads=1)
     r = read_recording(rec, roles=("laser",))
     scene, poses = truth_scene(r), image_poses(r)

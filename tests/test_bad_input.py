@@ -375,8 +375,8 @@ def test_unknown_image_encoding(tmp_path: Path) -> None:
     bag = Bag()
     i = next(k for k, m in enumerate(bag.messages) if m[0] == TOPICS.views)
     topic, msgtype, _, t = bag.messages[i]
-    bag.messages[i] = (topic, msgtype, bag.image(t, _image(0), encoding="yuv422"), t)
-    with pytest.raises(ImageDecodeError, match=r"raw image encoding 'yuv422' is unsupported "
+    bag.messages[i] = (topic, msgtype, bag.image(t, _image(0), encoding="nv21"), t)
+    with pytest.raises(ImageDecodeError, match=r"raw image encoding 'nv21' is unsupported "
                                                r"\(supported: mono8, rgb8, bgr8, mono16") as ei:
         read(bag.write(tmp_path / "enc.mcap"))
     assert ei.value.topic == TOPICS.views and ei.value.time_ns == t

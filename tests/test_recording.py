@@ -491,8 +491,8 @@ def test_image_that_does_not_decode(tmp_path: Path) -> None:
                          roles=("laser",))
     with pytest.raises(ImageDecodeError, match="bytes of data"):
         rec.decode(rec.laser_frames[0])
-    raw.encoding = "yuv422"
-    with pytest.raises(ImageDecodeError, match="'yuv422' is unsupported"):
+    raw.encoding = "32FC1"  # a depth image on the laser topic
+    with pytest.raises(ImageDecodeError, match="'32FC1' is unsupported"):
         read_recording(craft(tmp_path / "y.mcap", [("/camera/laser_image", raw)]),
                        roles=("laser",))
 

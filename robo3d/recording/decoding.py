@@ -16,14 +16,17 @@ What is read
   ``{"sec", "nsec"}``; the protobuf-style ``{"seconds", "nanos"}`` is accepted too):
   ``foxglove.FrameTransforms`` / ``foxglove.FrameTransform`` on the tf topics,
   ``foxglove.CameraCalibration`` on the calibration topic, ``foxglove.CompressedImage``
-  (png/jpeg) and ``foxglove.RawImage`` (mono8, rgb8, bgr8, mono16) on the image topics.
+  (png/jpeg) and ``foxglove.RawImage`` (mono8, rgb8, bgr8, mono16, and what
+  ``images.READ_RAW_ENCODINGS`` adds) on the image topics.
 - ROS 2 messages as a ROS 2 cell records them (``cdr`` with ``ros2msg`` schemas, decoded
   by ``mcap-ros2-support`` from the schema text in the file, no conversion step; the
   message definitions of ``tf2_msgs``, ``geometry_msgs`` and ``sensor_msgs``, ROS 2
   Humble): ``tf2_msgs/msg/TFMessage`` (or ``geometry_msgs/msg/TransformStamped``) on the
   tf topics, ``sensor_msgs/msg/CameraInfo`` on the calibration topic,
-  ``sensor_msgs/msg/Image`` (mono8, rgb8, bgr8, mono16 and the aliases 8UC1, 8UC3,
-  16UC1; big-endian mono16 is byte-swapped) and ``sensor_msgs/msg/CompressedImage``
+  ``sensor_msgs/msg/Image`` (mono8, rgb8, bgr8, mono16, colour with alpha or 16 bits,
+  the four Bayer mosaics in 8 and 16 bits, YUV 4:2:2 and the ``nUCk`` aliases:
+  ``images.READ_RAW_ENCODINGS``; big-endian 16-bit data is byte-swapped) and
+  ``sensor_msgs/msg/CompressedImage``
   (png/jpeg, image_transport's ``"rgb8; jpeg compressed bgr8"`` style formats, and
   ``compressedDepth`` PNGs) on the image topics, and, when asked,
   ``sensor_msgs/msg/JointState``. ROS 1 style names (``sensor_msgs/Image``) are
@@ -74,7 +77,7 @@ from mcap.records import Schema as McapSchema
 from ..camera import CameraModel
 from ..errors import CalibrationError, ImageDecodeError, RecordingError, TransformError
 from .framing import MAX_STAMP, Channel, Scan
-from .images import RAW_ENCODINGS, normalize_encoding
+from .images import READ_RAW_ENCODINGS, normalize_encoding, raw_bytes_per_channel
 from .model import ImageMessage, TopicMap
 
 __all__ = ["QUAT_TOL", "MessageDecoder", "TfSamples", "TopicTimes", "decode_scan",
@@ -406,11 +409,11 @@ class MessageDecoder:
                                data=data, path=self.path, log_time_ns=log_time)
         else:
             enc = normalize_encoding(encoding)
-            if enc not in RAW_ENCODINGS:
+            if enc not in READ_RAW_ENCODINGS:
                 raise ImageDecodeError(f"raw image encoding {encoding!r} is unsupported "
-                                       f"(supported: {', '.join(RAW_ENCODINGS)}, and 8UC1, "
-                                       f"8UC3, 16UC1)", path=self.path, topic=topic,
-                                       time_ns=st)
+                                       f"(supported: {', '.join(READ_RAW_ENCODINGS)}, and "
+                                       f"8UC1, 8UC3, 8UC4, 16UC1, 16UC3, 16UC4)",
+                                       path=self.path, topic=topic, time_ns=st)
             msg = ImageMessage(topic=topic, timestamp_ns=st, frame_id=fid, encoding=enc,
                                data=data, width=int(width), height=int(height),
                                step=int(step), path=self.path, log_time_ns=log_time)
@@ -517,10 +520,10 @@ class MessageDecoder:
             self._add_image(topic, st, log_time, fid, True, fmt, data)
             return st
         enc = str(obj.encoding or "")
-        if int(obj.is_bigendian or 0) and normalize_encoding(enc) == "mono16":
+        if int(obj.is_bigendian or 0) and raw_bytes_per_channel(enc) == 2:
             step = int(obj.step)
             if step % 2 or len(data) % 2:
-                raise ImageDecodeError(f"big-endian mono16 image with odd step {step} or odd "
+                raise ImageDecodeError(f"big-endian {enc} image with odd step {step} or odd "
                                        f"length {len(data)}", path=self.path, topic=topic,
                                        time_ns=st)
             data = np.frombuffer(data, ">u2").astype("<u2").tobytes()

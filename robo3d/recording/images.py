@@ -12,8 +12,23 @@ Encodings
 ``mono8``, ``rgb8``, ``bgr8``, ``mono16``
     Raw (``foxglove.RawImage``): rows of ``step`` bytes (``step >= width * bytes per
     pixel``; padding at the end of rows is honoured and dropped). ``mono16`` is
-    little-endian, as the Foxglove schema specifies. The aliases ``8UC1``, ``8UC3`` (BGR)
-    and ``16UC1`` are accepted on reading.
+    little-endian, as the Foxglove schema specifies. robo3d writes these four.
+
+Read as well (``READ_RAW_ENCODINGS``): what camera drivers in real cells publish as
+``sensor_msgs/msg/Image`` (ROS ``image_encodings``), so that such a recording is read as
+it is, not converted first:
+
+- ``rgba8``, ``bgra8``, ``rgb16``, ``bgr16``, ``rgba16``, ``bgra16``: the alpha channel
+  is dropped, 16-bit colour stays ``uint16``;
+- ``bayer_rggb8``, ``bayer_bggr8``, ``bayer_gbrg8``, ``bayer_grbg8`` and their ``16``
+  forms: the sensor's colour mosaic, demosaiced with OpenCV's edge-aware interpolation
+  (``COLOR_Bayer*2RGB_EA``: it interpolates along edges, not across them, so a laser
+  stripe or an outline is not smeared across the mosaic's colours; the pattern names
+  map to OpenCV's as ``cv_bridge`` maps them: ``rggb`` is OpenCV's ``BayerBG``);
+- ``yuv422`` (UYVY, as ``cv_bridge`` reads it) and ``yuv422_yuy2`` (YUYV): a USB
+  camera's native format, 8-bit RGB after conversion (even widths only);
+- the aliases ``8UC1``, ``8UC3`` (BGR), ``8UC4`` (BGRA), ``16UC1``, ``16UC3`` (BGR) and
+  ``16UC4`` (BGRA).
 
 The decoders take any object with the fields of :class:`EncodedImage` (the reader's
 :class:`~.model.ImageMessage` has them), so this module does not import the model:
@@ -33,6 +48,7 @@ from ..errors import ImageDecodeError
 __all__ = [
     "COMPRESSED_ENCODINGS",
     "RAW_ENCODINGS",
+    "READ_RAW_ENCODINGS",
     "normalize_encoding",
     "encode_image",
     "decode_image",
@@ -45,6 +61,18 @@ __all__ = [
 COMPRESSED_ENCODINGS = ("png", "jpeg")
 #: Raw encodings robo3d reads and writes (``foxglove.RawImage.encoding``).
 RAW_ENCODINGS = ("mono8", "rgb8", "bgr8", "mono16")
+#: OpenCV's demosaicing of each ROS Bayer pattern (``cv_bridge``'s mapping: OpenCV names
+#: the pattern by the second row's second and third pixels).
+_BAYER = {"rggb": cv2.COLOR_BayerBG2RGB_EA, "bggr": cv2.COLOR_BayerRG2RGB_EA,
+          "gbrg": cv2.COLOR_BayerGR2RGB_EA, "grbg": cv2.COLOR_BayerGB2RGB_EA}
+_YUV422 = {"yuv422": cv2.COLOR_YUV2RGB_UYVY, "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2}
+#: Raw encodings read: (channels in the buffer, bytes per channel) of each.
+_RAW_LAYOUT = {"mono8": (1, 1), "rgb8": (3, 1), "bgr8": (3, 1), "mono16": (1, 2),
+               "rgba8": (4, 1), "bgra8": (4, 1), "rgb16": (3, 2), "bgr16": (3, 2),
+               "rgba16": (4, 2), "bgra16": (4, 2), "yuv422": (2, 1), "yuv422_yuy2": (2, 1),
+               **{f"bayer_{p}{b}": (1, b // 8) for p in _BAYER for b in (8, 16)}}
+#: Raw encodings robo3d reads (the written ones and what camera drivers publish).
+READ_RAW_ENCODINGS = tuple(_RAW_LAYOUT)
 
 
 
@@ -67,8 +95,8 @@ class EncodedImage(Protocol):
     path: str
 
 
-_RAW_ALIASES = {"8uc1": "mono8", "8uc3": "bgr8", "16uc1": "mono16"}
-_BYTES_PER_PIXEL = {"mono8": 1, "rgb8": 3, "bgr8": 3, "mono16": 2}
+_RAW_ALIASES = {"8uc1": "mono8", "8uc3": "bgr8", "8uc4": "bgra8", "16uc1": "mono16",
+                "16uc3": "bgr16", "16uc4": "bgra16"}
 
 
 def normalize_encoding(encoding: str) -> str:
@@ -94,7 +122,7 @@ def normalize_encoding(encoding: str) -> str:
         e = e[len("image/"):]
     if e in _RAW_ALIASES:
         return _RAW_ALIASES[e]
-    if e in RAW_ENCODINGS:
+    if e in _RAW_LAYOUT:
         return e
     if e in ("jpg", "jpeg"):
         return "jpeg"
@@ -186,11 +214,21 @@ def _fail(msg: EncodedImage, what: str) -> ImageDecodeError:
                             path=msg.path or None, topic=msg.topic, time_ns=msg.timestamp_ns)
 
 
+def raw_bytes_per_channel(encoding: str) -> int:
+    """Bytes per channel of a raw encoding read (1 or 2; 0 when it is not one): what a
+    big-endian buffer is byte-swapped by."""
+    lay = _RAW_LAYOUT.get(normalize_encoding(encoding))
+    return lay[1] if lay else 0
+
+
 def _decode_raw(msg: EncodedImage, enc: str) -> np.ndarray:
-    bpp = _BYTES_PER_PIXEL[enc]
+    nch, bpc = _RAW_LAYOUT[enc]
+    bpp = nch * bpc
     w, h = int(msg.width), int(msg.height)
     if w <= 0 or h <= 0:
         raise _fail(msg, f"has an invalid size {w}x{h}")
+    if enc in _YUV422 and w % 2:
+        raise _fail(msg, f"has an odd width {w}: {enc} stores two pixels per 4 bytes")
     step = int(msg.step) if msg.step else w * bpp
     if step < w * bpp:
         raise _fail(msg, f"has step {step} bytes, less than width {w} x {bpp} bytes per pixel")
@@ -202,14 +240,23 @@ def _decode_raw(msg: EncodedImage, enc: str) -> np.ndarray:
     if len(buf) < step * h:  # last row unpadded: pad to a whole number of rows
         buf = np.concatenate([buf, np.zeros(step * h - len(buf), np.uint8)])
     rows = buf[: step * h].reshape(h, step)[:, : w * bpp]
-    if enc == "mono16":
-        return np.ascontiguousarray(rows).view("<u2").astype(np.uint16).reshape(h, w)
-    if enc == "mono8":
-        return rows.copy()
-    img = rows.reshape(h, w, 3)
-    if enc == "bgr8":
-        img = img[..., ::-1]
-    return np.ascontiguousarray(img)
+    if bpc == 2:
+        px = np.ascontiguousarray(rows).view("<u2").astype(np.uint16)
+    else:
+        px = np.ascontiguousarray(rows)
+    if nch == 1:
+        px = px.reshape(h, w)
+        if enc.startswith("bayer_"):
+            if h < 2 or w < 2:
+                raise _fail(msg, f"is {w}x{h}: a Bayer mosaic needs at least 2x2 pixels")
+            return cv2.cvtColor(px, _BAYER[enc[6:10]])
+        return px
+    px = px.reshape(h, w, nch)
+    if enc in _YUV422:
+        return cv2.cvtColor(px, _YUV422[enc])
+    if enc.startswith("bgr"):
+        return np.ascontiguousarray(px[..., 2::-1])
+    return np.ascontiguousarray(px[..., :3])
 
 
 def chroma_subsampled(data: bytes) -> bool:
@@ -256,7 +303,8 @@ def decode_image(msg: EncodedImage) -> np.ndarray:
     ----------
     msg : EncodedImage
         An :class:`~.model.ImageMessage`: a compressed (``png``/``jpeg``, or any format
-        OpenCV sniffs from the bytes) or raw (``mono8``, ``rgb8``, ``bgr8``, ``mono16``)
+        OpenCV sniffs from the bytes) or raw (``READ_RAW_ENCODINGS``: ``mono8``,
+        ``rgb8``, ``bgr8``, ``mono16``, colour with alpha or 16 bits, Bayer, YUV 4:2:2)
         image.
 
     Returns
@@ -271,7 +319,7 @@ def decode_image(msg: EncodedImage) -> np.ndarray:
         message names the file, topic and time.
     """
     enc = normalize_encoding(msg.encoding)
-    if enc in _BYTES_PER_PIXEL:
+    if enc in _RAW_LAYOUT:
         return _decode_raw(msg, enc)
     if len(msg.data) == 0:
         raise _fail(msg, "has no data")

@@ -103,7 +103,8 @@ class ImageMessage:
         The message's own ``timestamp`` (not the MCAP log time).
     frame_id : str
     encoding : str
-        ``png``, ``jpeg`` (compressed) or ``mono8``, ``rgb8``, ``bgr8``, ``mono16`` (raw).
+        ``png``, ``jpeg`` (compressed) or a raw encoding (``images.READ_RAW_ENCODINGS``:
+        ``mono8``, ``rgb8``, ``bgr8``, ``mono16``, Bayer, YUV 4:2:2, ...).
     data : bytes
         The compressed bytes, or the raw pixel buffer.
     width, height, step : int

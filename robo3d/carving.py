@@ -110,6 +110,30 @@ CARVING_METHODS = ("octree", "dense")
 
 
 # ---------------------------------------------------------------------- the box
+def hull_box(hull: VoxelGrid, margin: float = 0.05, min_margin_m: float = 0.002
+             ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The bounding box of a visual hull's occupied voxels (their outer faces), grown on
+    every side by ``margin`` times its largest side, at least ``min_margin_m``: a
+    workspace box for a recording without one. None when the hull is empty.
+
+    The hull contains the object wherever the silhouettes do, and its box is more
+    forgiving still (a view whose mask misses a thin part cuts the hull, not the box
+    around the other views' extent). Where no view sees under the object the hull runs
+    down to the carving box's floor, so the box's floor lies at or below the table."""
+    if not np.isfinite(margin) or margin < 0 or not np.isfinite(min_margin_m) or \
+            min_margin_m < 0:
+        raise ValueError(f"margin and min_margin_m must be >= 0, got {margin}, {min_margin_m}")
+    occ = np.asarray(hull.occupancy, dtype=bool)
+    if not occ.any():
+        return None
+    idx = [np.flatnonzero(occ.any(axis=tuple(a for a in range(3) if a != j)))
+           for j in range(3)]
+    lo = hull.origin + hull.voxel_size * (np.array([i[0] for i in idx]) - 0.5)
+    hi = hull.origin + hull.voxel_size * (np.array([i[-1] for i in idx]) + 0.5)
+    grow = max(float(margin) * float((hi - lo).max()), float(min_margin_m))
+    return lo - grow, hi + grow
+
+
 def box_from_silhouettes(
     silhouettes_centroids_uv: np.ndarray | None,
     masks: Sequence[np.ndarray],

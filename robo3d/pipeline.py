@@ -234,6 +234,15 @@ def recording_stages(entry: RecordingEntry) -> set[str]:
     return out
 
 
+def has_workspace_box(entry: RecordingEntry) -> bool:
+    """Whether a recording's metadata gives its workspace box (``robo3d.recording``:
+    ``workspace_min`` and ``workspace_max``). Without one the align stage takes the
+    visual hull's box (``alignment.workspace_from_hull``) and so needs the hull."""
+    recording_stages(entry)  # probes the file once
+    meta = (getattr(entry.summary, "metadata", None) or {}).get("robo3d.recording") or {}
+    return "workspace_min" in meta and "workspace_max" in meta
+
+
 def export_library_path(repo_root: str) -> None:
     """Put the checkout on ``PYTHONPATH`` so that every job imports this robo3d, also in
     ``--use-conda`` environments that install only the dependencies."""
@@ -299,7 +308,7 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
     "carve": ("carving", "topics", "frames", "timing", "rerun", "seed"),
     "stripes": ("stripes", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
     "triangulate": ("triangulation", "topics", "frames", "timing", "rerun", "seed"),
-    "align": ("alignment", "topics", "frames", "timing", "rerun", "seed"),
+    "align": ("alignment", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
     "fuse": ("fusion", "triangulation", "carving", "rerun", "seed"),
     "simplify": ("simplify", "rerun", "seed"),
     "evaluate": ("evaluation", "fusion", "topics", "frames", "timing", "rerun", "seed"),

@@ -40,5 +40,5 @@ def run_up_to_align(rec: Path, res: Path, cfg: Mapping[str, Any], name: str,
                       stage_outputs(res, "triangulate", npz="clouds.npz", ply="clouds.ply"),
                       cfg, name)
     stage_align({"clouds": str(res / "clouds.npz"), "recording": r,
-                 "silhouettes": str(res / "silhouettes.npz")},
+                 "silhouettes": str(res / "silhouettes.npz"), "hull": str(res / "hull.npz")},
                 stage_outputs(res, "align", npz="aligned.npz", ply="aligned.ply"), cfg, name)

@@ -7,6 +7,7 @@ from robo3d.pipeline import (
     code_version,
     export_library_path,
     find_recordings,
+    has_workspace_box,
     machine_memory_mb,
     recording_stages,
     scan_calibrations,
@@ -85,11 +86,14 @@ def get_calibration_recording(wildcards):
 
 
 def get_align_inputs(wildcards):
-    """The sweep clouds, and the silhouettes with their recording when it has views."""
+    """The sweep clouds, and the silhouettes with their recording when it has views (and
+    the hull, whose box is the workspace of a recording without one)."""
     out = {"clouds": f"results/{wildcards.rec}/clouds.npz"}
     if "hull" in recording_stages(RECORDINGS[wildcards.rec]):
         out["silhouettes"] = f"results/{wildcards.rec}/silhouettes.npz"
         out["recording"] = RECORDINGS[wildcards.rec].path
+        if not has_workspace_box(RECORDINGS[wildcards.rec]):
+            out["hull"] = f"results/{wildcards.rec}/hull.npz"
     return out
 
 

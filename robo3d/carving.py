@@ -134,6 +134,33 @@ def hull_box(hull: VoxelGrid, margin: float = 0.05, min_margin_m: float = 0.002
     return lo - grow, hi + grow
 
 
+def table_height(points: np.ndarray, normals: np.ndarray, footprint_min: np.ndarray,
+                 footprint_max: np.ndarray, *, max_tilt_deg: float = 20.0,
+                 bin_m: float = 0.0005, min_points: int = 200) -> float | None:
+    """The height (``z`` in ``base``) of the table an object stands on, from the laser
+    points beside it: those outside the object's footprint (``footprint_min`` ..
+    ``footprint_max`` in ``x``, ``y``), below its top, on a surface facing up or down
+    (normal within ``max_tilt_deg`` of ``z``); the most populated ``bin_m`` slab of
+    their heights, refined to the median of the points within two bins of it. None when
+    fewer than ``min_points`` such points lie in the slab (no table in the laser's view,
+    or a base frame whose ``z`` is not vertical)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    lo, hi = np.asarray(footprint_min, float), np.asarray(footprint_max, float)
+    outside = ~np.all((p[:, :2] >= lo[:2]) & (p[:, :2] <= hi[:2]), axis=1)
+    flat = np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)
+    z = p[outside & flat & (p[:, 2] < hi[2]), 2]
+    if len(z) < min_points:
+        return None
+    k = np.floor((z - z.min()) / bin_m).astype(np.int64)
+    counts = np.bincount(k)
+    top = int(np.argmax(counts))
+    near = np.abs(k - top) <= 2
+    if int(near.sum()) < min_points:
+        return None
+    return float(np.median(z[near]))
+
+
 def box_from_silhouettes(
     silhouettes_centroids_uv: np.ndarray | None,
     masks: Sequence[np.ndarray],

@@ -156,7 +156,7 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     became measured surface, the measured surface's median 33.6 mm from the truth
     (0.24 mm with the recording's box; ``benchmarks/README.md``, stop 40)."""
     from ..artefacts import clouds_workspace
-    from ..carving import VoxelGrid, hull_box
+    from ..carving import VoxelGrid, hull_box, table_height
 
     if clouds_workspace(clouds) is not None:
         return None
@@ -166,17 +166,29 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     if not inputs.get("hull"):
         return {"skipped": "no views: no hull"}
     margin_m = float(cfg["triangulation"]["workspace_margin_m"])
-    box = hull_box(VoxelGrid.load_npz(inputs["hull"]),
-                   margin=float(ac["workspace_from_hull_margin"]), min_margin_m=margin_m)
+    hull = VoxelGrid.load_npz(inputs["hull"])
+    box = hull_box(hull, margin=float(ac["workspace_from_hull_margin"]), min_margin_m=margin_m)
     if box is None:
         return {"skipped": "the hull is empty"}
+    # the floor: where no view sees under the object the hull runs below the table, and
+    # closing the surface from it would add a skirt down there; the table the laser saw
+    # beside the object is the floor, as a recording's box has it (half a millimetre up)
+    bare = hull_box(hull, margin=0.0, min_margin_m=0.0)
+    table = table_height(np.concatenate([c.points_base for c in clouds]),
+                         np.concatenate([c.normals_base for c in clouds]), bare[0], bare[1])
+    floor = "the hull's"
+    if table is not None and box[0][2] < table < 0.5 * (bare[0][2] + bare[1][2]):
+        box = (np.array([box[0][0], box[0][1], table + 0.0005]), box[1])
+        floor = f"the table's (z = {table:.4f} m, from the laser points beside the object)"
     for c in clouds:
         c.report = {**(c.report or {}), "workspace": [box[0].tolist(), box[1].tolist()],
                     "workspace_source": "visual hull", "workspace_margin_m": margin_m}
-    log.info("alignment: the recording has no workspace box; the visual hull's, %s .. %s m, "
-             "takes its place", np.round(box[0], 4).tolist(), np.round(box[1], 4).tolist())
-    return {"box_min": box[0].tolist(), "box_max": box[1].tolist(),
-            "margin": float(ac["workspace_from_hull_margin"]), "min_margin_m": margin_m}
+    log.info("alignment: the recording has no workspace box; the visual hull's, %s .. %s m "
+             "(floor: %s), takes its place", np.round(box[0], 4).tolist(),
+             np.round(box[1], 4).tolist(), floor)
+    return {"box_min": box[0].tolist(), "box_max": box[1].tolist(), "floor": floor,
+            "table_z_m": table, "margin": float(ac["workspace_from_hull_margin"]),
+            "min_margin_m": margin_m}
 
 
 def _crop_to_workspace(clouds: list) -> dict[str, Any]:

@@ -36,7 +36,8 @@ def stage_evaluate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     Accuracy of the fused and final meshes is scored on the surface inside the
     workspace box above ``evaluation.floor_margin_m`` over its floor (below it the mesh
     closes the face resting on the table, which no sensor sees); ``*_whole`` keeps it.
-    Completeness counts the true surface inside the workspace box. With true
+    Completeness counts the true surface inside the workspace box (a recording without
+    one: the box the alignment took from the hull and the table). With true
     silhouettes attached (``ground_truth/silhouettes/NNN.png``), ``evaluation.mask_iou``
     scores each view's mask (:func:`robo3d.evaluate.silhouette_iou`). A missing or
     damaged attachment skips only what needs it (``skipped`` says why). The views the
@@ -162,7 +163,13 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
 
     ev = cfg["evaluation"]
     rec_path = inputs["recording"]
-    region = rec.workspace
+    region, region_source = rec.workspace, "the recording's workspace box"
+    if region is None and inputs.get("aligned"):
+        # no box in the recording: the one the alignment took from the hull and the table
+        from ..artefacts import clouds_workspace
+
+        region = clouds_workspace(load_clouds_npz(inputs["aligned"]))
+        region_source = "the visual hull's box (align.json workspace_from_hull)"
     scored = None
     if region is not None:
         scored = (np.asarray(region[0], dtype=np.float64).copy(),
@@ -170,6 +177,7 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
         scored[0][2] += ev["floor_margin_m"]
     ev_out: dict[str, Any] = {
         "region": None if region is None else [region[0].tolist(), region[1].tolist()],
+        "region_source": None if region is None else region_source,
         "accuracy_region": None if scored is None else [scored[0].tolist(),
                                                         scored[1].tolist()]}
     if inputs.get("hull"):

@@ -191,6 +191,7 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
     out["pairing"] = {role: _pairing(rec, msgs, max_pose_gap_ns) for role, msgs in
                       (("views", rec.views), ("laser", rec.laser_frames)) if msgs}
     out["sweeps"] = _sweeps(rec, sweep_gap_ns)
+    out["workspace"] = _workspace(rec)
     if rec.joint_states is not None:
         js = rec.joint_states
         out["joint_states"] = {"topic": js.topic, "names": js.names,
@@ -209,6 +210,25 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
                                "(type, cols, rows, square): the calibrate rule needs it")
         out["fit"] = False
     return out
+
+
+def _workspace(rec) -> dict[str, Any]:
+    """The workspace box and where the pipeline gets it: the recording's metadata, or,
+    without one, the views' hull standing on the table the laser saw
+    (``alignment.workspace_from_hull``), or nothing (laser frames alone: every laser
+    point is kept, the table and the wall with the object)."""
+    if rec.workspace is not None:
+        return {"box": [rec.workspace[0].tolist(), rec.workspace[1].tolist()],
+                "source": "the recording's metadata"}
+    if rec.views and rec.laser_frames:
+        return {"box": None, "source": "none in the recording: the alignment takes the "
+                "visual hull's box, standing on the table the laser saw "
+                "(alignment.workspace_from_hull)"}
+    if rec.laser_frames:
+        return {"box": None, "source": "none, and no views to take one from: every laser "
+                "point is kept (the table and the wall with the object)"}
+    return {"box": None, "source": "none in the recording (the carve places its box from "
+            "the silhouettes)"}
 
 
 def _role_of(topic: str, topics: TopicMap) -> str | None:
@@ -554,6 +574,12 @@ def format_info(info: Mapping[str, Any]) -> str:
         add("  metadata " + ", ".join(f"{k}={v}" for k, v in md.items()))
     if info.get("attachments"):
         add("  attached " + ", ".join(info["attachments"]))
+    ws = info.get("workspace")
+    if ws:
+        box = ws.get("box")
+        add("  workspace " + (f"{[round(x, 4) for x in box[0]]} .. "
+                              f"{[round(x, 4) for x in box[1]]} m, from " if box else "")
+            + ws["source"])
     if info["topics"]:
         add("")
         add("topics")

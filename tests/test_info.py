@@ -93,6 +93,10 @@ def test_good_bag_is_described_and_fit(good: Path, capsys: pytest.CaptureFixture
     rc, out = _cli("info", str(good), *ROS_ARGS, capsys=capsys)
     assert rc == 0 and out.rstrip().endswith("fit for the pipeline")
     assert "transform tree (recorded names in brackets)" in out and "base (base_link)" in out
+    # a bag has no workspace box: where the pipeline takes one from
+    assert info["workspace"]["box"] is None
+    assert "alignment takes the visual hull's box" in info["workspace"]["source"]
+    assert "  workspace none in the recording: the alignment takes" in format_info(info)
     rc, out = _cli("info", str(good), *ROS_ARGS, "--json", capsys=capsys)
     assert rc == 0 and json.loads(out)["pairing"]["laser"]["worst_offset_ms"] == 5.0
     assert format_info(info) in _cli("info", str(good), *ROS_ARGS, capsys=capsys)[1]
@@ -301,3 +305,16 @@ def test_run_summary_table_reads_the_metrics(tmp_path):
     for want in ("20000", "75.0 %", "0.012 / 0.071 mm", "0.011 / 0.049 mm", "61 s"):
         assert want in row, (want, row)
     assert "results in" in text
+
+
+def test_workspace_box_of_a_recording_and_of_a_laser_only_bag(tmp_path: Path) -> None:
+    """Where the pipeline's workspace box comes from: the recording's metadata (a demo),
+    or, for a bag of laser frames alone, nowhere (every laser point is kept)."""
+    demo = Path(__file__).resolve().parents[1] / "recordings" / "vase.mcap"
+    ws = inspect_recording(demo)["workspace"]
+    assert ws["source"] == "the recording's metadata" and len(ws["box"]) == 2
+    bag = Bag()
+    bag.messages = [m for m in bag.messages if m[0] != TOPICS.views]
+    info = _info(bag.write(tmp_path / "laser_only.mcap"))
+    assert info["workspace"]["box"] is None
+    assert "no views to take one from" in info["workspace"]["source"]

@@ -746,7 +746,8 @@ def fuse_tsdf(
         Weight of a hit falls as ``floor + (1 - floor) exp(-(d / sigma)^2)`` with its
         distance ``d`` to the nearest measured point of its triangle (0 disables).
     max_voxels : int
-        Largest grid allowed (memory: about 10 bytes per voxel).
+        Largest grid allowed (memory: about 10 bytes per voxel). A larger one is fused at
+        a coarser voxel that fits (``report["voxel_coarsened_from"]``, a warning).
     threads : int
         Ray-casting and nearest-neighbour threads (results do not depend on it).
     return_attributes : bool
@@ -772,7 +773,7 @@ def fuse_tsdf(
     Raises
     ------
     StageError
-        With no usable point, or a grid larger than ``max_voxels``.
+        With no usable point.
 
     References
     ----------
@@ -801,7 +802,28 @@ def fuse_tsdf(
                                   voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m))
     trunc = trunc_voxels * voxel_size
     allp = np.concatenate(P)
-    origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc, max_voxels)
+    origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc)
+    n_vox = int(np.prod(shape))
+    if n_vox > max_voxels:
+        # a scene larger than the grid allows at this voxel (a loose hull from few views,
+        # the laser's line far across the table): a coarser voxel, said so, not a failure
+        fine, n = voxel_size, n_vox
+        for _ in range(8):  # the margin grows with the voxel: a few steps settle it
+            voxel_size *= (1.02 * n / max_voxels) ** (1.0 / 3.0)
+            trunc = trunc_voxels * voxel_size
+            origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc)
+            n = int(np.prod(shape))
+            if n <= max_voxels:
+                break
+        else:  # pragma: no cover - a grid whose margin alone exceeds the limit
+            raise StageError(f"TSDF grid {shape} has {n} voxels > max_voxels {max_voxels}; "
+                             "use a larger voxel_size")
+        report.update(voxel_size=float(voxel_size), voxel_coarsened_from=float(fine),
+                      voxel_coarsened_why=f"the grid at {fine * 1e3:.3f} mm would have had "
+                      f"{n_vox} voxels, more than max_voxels {max_voxels}")
+        log.warning("TSDF fusion: the points and the hull span a grid of %d voxels at "
+                    "%.3f mm, more than %d: fused at %.3f mm instead", n_vox, fine * 1e3,
+                    max_voxels, voxel_size * 1e3)
     report.update(trunc=float(trunc), grid_shape=list(shape), grid_origin=origin.tolist())
     clock["setup"] = time.perf_counter() - t_start
     acc, scans = _integrate_scans(P, N, O, Cf, G, origin, shape, shift, voxel_size, o, threads,
@@ -924,8 +946,8 @@ def _tsdf_inputs(points, normals, sensor_origins, confidences, grids, o: FuseOpt
     return P, N, O, Cf, G, n_total
 
 
-def _tsdf_grid(allp: np.ndarray, hull: Any, voxel_size: float, trunc: float,
-               max_voxels: int) -> tuple[np.ndarray, tuple[int, int, int], np.ndarray]:
+def _tsdf_grid(allp: np.ndarray, hull: Any, voxel_size: float, trunc: float
+               ) -> tuple[np.ndarray, tuple[int, int, int], np.ndarray]:
     """The fusion grid around the points and the hull: (origin, shape, the centre of
     their box, about which the rays are cast in float32)."""
     lo, hi = allp.min(axis=0), allp.max(axis=0)
@@ -939,10 +961,6 @@ def _tsdf_grid(allp: np.ndarray, hull: Any, voxel_size: float, trunc: float,
     origin = lo - margin
     shape = tuple(int(x) for x in np.ceil((hi + margin - origin) / voxel_size).astype(np.int64)
                   + 1)
-    n_vox = int(np.prod(shape))
-    if n_vox > max_voxels:
-        raise StageError(f"TSDF grid {shape} has {n_vox} voxels > max_voxels {max_voxels}; "
-                         "use a larger voxel_size")
     shift = 0.5 * (lo + hi)  # float32 ray casting in a frame centred on the object
     return origin, shape, shift
 

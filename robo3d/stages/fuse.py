@@ -55,7 +55,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 [c.sensor_origin_base for c in clouds], options=opts,
                 confidences=[c.confidence for c in clouds], grids=[c.grid() for c in clouds],
                 hull=crop, workspace=clouds_workspace(clouds), carve_only=table,
-                threads=stage_threads(threads), return_attributes=True)
+                max_voxels=int(fc["max_voxels"]), threads=stage_threads(threads),
+                return_attributes=True)
             source = "laser (TSDF)" + {
                 "hull": ", holes closed from the hull",
                 "free_space": ", holes near measurements closed, far ones left open",

@@ -308,10 +308,15 @@ def test_run_summary_table_reads_the_metrics(tmp_path):
 
 
 def test_workspace_box_of_a_recording_and_of_a_laser_only_bag(tmp_path: Path) -> None:
-    """Where the pipeline's workspace box comes from: the recording's metadata (a demo),
-    or, for a bag of laser frames alone, nowhere (every laser point is kept)."""
-    demo = Path(__file__).resolve().parents[1] / "recordings" / "vase.mcap"
-    ws = inspect_recording(demo)["workspace"]
+    """Where the pipeline's workspace box comes from: the recording's metadata (a
+    simulated scan has one), or, for a bag of laser frames alone, nowhere (every laser
+    point is kept)."""
+    from robo3d.simulate import simulate_recording
+
+    sim = tmp_path / "sphere.mcap"
+    simulate_recording(sim, "sphere", seed=1, width=160, height=120, views=4, sweeps=1,
+                       sweep_frames=4)
+    ws = inspect_recording(sim)["workspace"]
     assert ws["source"] == "the recording's metadata" and len(ws["box"]) == 2
     bag = Bag()
     bag.messages = [m for m in bag.messages if m[0] != TOPICS.views]

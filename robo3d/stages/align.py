@@ -172,14 +172,13 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
         return {"skipped": "the hull is empty"}
     # the floor: where no view sees under the object the hull runs below the table, and
     # closing the surface from it would add a skirt down there; the table the laser saw
-    # beside the object is the floor, as a recording's box has it (half a millimetre up)
-    bare = hull_box(hull, margin=0.0, min_margin_m=0.0)
+    # beside the box is the floor, as a recording's box has it (half a millimetre up)
     table = table_height(np.concatenate([c.points_base for c in clouds]),
-                         np.concatenate([c.normals_base for c in clouds]), bare[0], bare[1])
+                         np.concatenate([c.normals_base for c in clouds]), box[0], box[1])
     floor = "the hull's"
-    if table is not None and box[0][2] < table < 0.5 * (bare[0][2] + bare[1][2]):
+    if table is not None and box[0][2] < table < 0.5 * (box[0][2] + box[1][2]):
         box = (np.array([box[0][0], box[0][1], table + 0.0005]), box[1])
-        floor = f"the table's (z = {table:.4f} m, from the laser points beside the object)"
+        floor = f"the table's (z = {table:.4f} m, from the laser points beside the box)"
     for c in clouds:
         c.report = {**(c.report or {}), "workspace": [box[0].tolist(), box[1].tolist()],
                     "workspace_source": "visual hull", "workspace_margin_m": margin_m}

@@ -156,19 +156,18 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
     before and after the alignment, accuracy and completeness of the fused, final and
     measured meshes, and the sweeps' pose errors (``metrics["skipped"]["poses"]`` when
     ``ground_truth/tf.json`` is missing or cannot be used)."""
-    from ..artefacts import load_clouds_npz
+    from ..artefacts import clouds_workspace, load_clouds_npz
     from ..evaluate import cloud_accuracy, completeness, mesh_accuracy, volume_iou
     from ..grid import VoxelGrid
     from ..meshio import read_mesh
 
     ev = cfg["evaluation"]
     rec_path = inputs["recording"]
+    ali = load_clouds_npz(inputs["aligned"]) if inputs.get("aligned") else None
     region, region_source = rec.workspace, "the recording's workspace box"
-    if region is None and inputs.get("aligned"):
+    if region is None and ali is not None:
         # no box in the recording: the one the alignment took from the hull and the table
-        from ..artefacts import clouds_workspace
-
-        region = clouds_workspace(load_clouds_npz(inputs["aligned"]))
+        region = clouds_workspace(ali)
         region_source = "the visual hull's box (align.json workspace_from_hull)"
     scored = None
     if region is not None:
@@ -184,9 +183,8 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
         g = VoxelGrid.load_npz(inputs["hull"])
         ev_out["hull_volume_iou"] = volume_iou(g.occupancy, g.origin, g.voxel_size, truth,
                                                region=region)
-    if inputs.get("clouds"):
+    if inputs.get("clouds") and ali is not None:
         raw = _raw_clouds(inputs["clouds"])
-        ali = load_clouds_npz(inputs["aligned"])
         ev_out["clouds"] = cloud_accuracy(np.concatenate([c.points_base for c in raw]), truth)
         ev_out["aligned"] = cloud_accuracy(np.concatenate([c.points_base for c in ali]),
                                            truth)

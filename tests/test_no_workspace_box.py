@@ -12,36 +12,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap_copy import copy_recording
 from stages_in_process import run_up_to_align
 
 
 def _without_box(src: Path, dst: Path) -> Path:
     """The recording with its metadata's workspace box removed (everything else kept,
-    the ground truth too), written with mcap's own writer."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
-
-    with open(src, "rb") as f, open(dst, "wb") as g:
-        r = make_reader(f)
-        w = Writer(g)
-        w.start()
-        sids: dict[int, int] = {}
-        cids: dict[int, int] = {}
-        for sch, ch, m in r.iter_messages(log_time_order=False):
-            if sch.id not in sids:
-                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
-            if ch.id not in cids:
-                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id])
-            w.add_message(cids[ch.id], log_time=m.log_time, data=m.data,
-                          publish_time=m.publish_time)
-        for md in r.iter_metadata():
-            w.add_metadata(md.name, {k: v for k, v in md.metadata.items()
-                                     if not k.startswith("workspace_")})
-        for a in r.iter_attachments():
-            w.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
-                             media_type=a.media_type, data=a.data)
-        w.finish()
-    return dst
+    the ground truth too)."""
+    return copy_recording(src, dst, metadata=lambda name, md: {
+        k: v for k, v in md.items() if not k.startswith("workspace_")})
 
 
 @pytest.fixture(scope="module")

@@ -349,24 +349,10 @@ def _stages(rec_path: Path, cfg: dict, out: Path) -> dict[str, Any]:
 
 def _without_metadata(native: Path, out: Path) -> Path:
     """The native recording without its metadata records (a ROS bag carries no workspace
-    box: both then place the carving box from the silhouettes)."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
+    box: both then place the carving box from the silhouettes) nor its attachments."""
+    from mcap_copy import copy_recording
 
-    with open(native, "rb") as f, open(out, "wb") as g:
-        w = Writer(g)
-        w.start()
-        sids: dict[int, int] = {}
-        cids: dict[int, int] = {}
-        for sch, ch, m in make_reader(f).iter_messages(log_time_order=False):
-            if sch.id not in sids:
-                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
-            if ch.id not in cids:
-                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id])
-            w.add_message(cids[ch.id], log_time=m.log_time, data=m.data,
-                          publish_time=m.publish_time)
-        w.finish()
-    return out
+    return copy_recording(native, out, metadata=None, attachments=False)
 
 
 def test_bag_reconstructs_as_the_native_recording(native: Path, bag: Path,

@@ -1,0 +1,44 @@
+"""A recording copied record by record with mcap's own reader and writer (not robo3d's),
+its metadata and attachments kept, changed or left out: recordings as other writers
+make them (a ROS bag carries neither box nor ground truth)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+
+def copy_recording(src: Path, dst: Path, *,
+                   metadata: Callable[[str, dict[str, str]], dict[str, str] | None] | None
+                   = lambda name, md: md,
+                   attachments: bool = True) -> Path:
+    """Copy ``src`` to ``dst``: every channel and message; each metadata record as
+    ``metadata(name, record)`` returns it (None leaves it out; ``metadata=None`` leaves
+    all out); the attachments when ``attachments``."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        r = make_reader(f)
+        w = Writer(g)
+        w.start()
+        sids: dict[int, int] = {}
+        cids: dict[int, int] = {}
+        for sch, ch, m in r.iter_messages(log_time_order=False):
+            if sch.id not in sids:
+                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
+            if ch.id not in cids:
+                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id])
+            w.add_message(cids[ch.id], log_time=m.log_time, data=m.data,
+                          publish_time=m.publish_time)
+        if metadata is not None:
+            for md in r.iter_metadata():
+                kept = metadata(md.name, dict(md.metadata))
+                if kept is not None:
+                    w.add_metadata(md.name, kept)
+        if attachments:
+            for a in r.iter_attachments():
+                w.add_attachment(create_time=a.create_time, log_time=a.log_time,
+                                 name=a.name, media_type=a.media_type, data=a.data)
+        w.finish()
+    return dst

@@ -1312,24 +1312,49 @@ class _ViewField:
     T_camera_base: np.ndarray
 
 
+#: :func:`_view_fields` computes each view's fields in the mask's bounding box grown by
+#: this many pixels: the rim residuals read them within ``2 search_px + 2`` px of the mask
+#: border (the gate, then the edge search along the outward normal), the blur reaches 3
+#: px more; outside it the signed distance is set to this margin (a lower bound).
+_FIELD_MARGIN_PX = 32
+
+
 def _view_fields(views: SilhouetteViews, cell_px: int, blur_px: float) -> list[_ViewField]:
+    """Per view: the mask's signed distance, the cell of the nearest border pixel and the
+    blurred grey image, each computed in the mask's bounding box grown by
+    :data:`_FIELD_MARGIN_PX` only (exact there: every mask pixel, and every background
+    pixel nearest to one, lies in it; a 1280 x 960 view's three distance transforms
+    took 0.18 s over the whole image); the same values as over the whole image where
+    the residuals read them."""
     from scipy import ndimage
 
     out = []
     for im, m, cam, T in zip(views.images, views.masks, views.cameras, views.T_base_camera,
                              strict=True):
-        d_out = ndimage.distance_transform_edt(~m)
-        d_in = ndimage.distance_transform_edt(m)
-        sdf = np.where(m, -(d_in - 0.5), d_out - 0.5).astype(np.float32)
-        border = m ^ ndimage.binary_erosion(m)
+        h, w = m.shape
+        rows, cols = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
+        if len(rows):
+            r0, r1 = max(rows[0] - _FIELD_MARGIN_PX, 0), min(rows[-1] + _FIELD_MARGIN_PX + 1, h)
+            c0, c1 = max(cols[0] - _FIELD_MARGIN_PX, 0), min(cols[-1] + _FIELD_MARGIN_PX + 1, w)
+        else:
+            r0, r1, c0, c1 = 0, h, 0, w
+        mc = m[r0:r1, c0:c1]
+        d_out = ndimage.distance_transform_edt(~mc)
+        d_in = ndimage.distance_transform_edt(mc)
+        sdf = np.full((h, w), _FIELD_MARGIN_PX, dtype=np.float32)
+        sdf[r0:r1, c0:c1] = np.where(mc, -(d_in - 0.5), d_out - 0.5)
+        border = mc ^ ndimage.binary_erosion(mc)
         if not border.any():
             border[0, 0] = True
         _, (bv, bu) = ndimage.distance_transform_edt(~border, return_indices=True)
-        nbu = m.shape[1] // cell_px + 1
-        bucket = ((bv // cell_px) * nbu + bu // cell_px).astype(np.int64)
-        grey = ndimage.gaussian_filter(im, blur_px) if blur_px > 0 else im
-        out.append(_ViewField(sdf, bucket, grey.astype(np.float32), cam,
-                              invert_transform(T)))
+        nbu = w // cell_px + 1
+        bucket = np.zeros((h, w), dtype=np.int64)
+        bucket[r0:r1, c0:c1] = ((bv + r0) // cell_px) * nbu + (bu + c0) // cell_px
+        grey = np.asarray(im, dtype=np.float32)
+        if blur_px > 0:
+            grey = grey.copy()
+            grey[r0:r1, c0:c1] = ndimage.gaussian_filter(grey[r0:r1, c0:c1], blur_px)
+        out.append(_ViewField(sdf, bucket, grey, cam, invert_transform(T)))
     return out
 
 

@@ -685,13 +685,18 @@ def _rescue_with_views(result: AlignmentResult, n_s: int, active: list[int],
     """With an absolute reference a sweep does not need an accepted pair: one whose
     pairs ICP could not settle (sparse profiles cycle between correspondence sets) is
     refined against the views, and those pairs take part with the refinement's robust
-    weights and held directions; only grossly inconsistent pairs stay out. Returns the
-    active sweeps, the pairs and the rescued sweeps' pose-graph reasons."""
+    weights and held directions; only grossly inconsistent pairs stay out. So is one that
+    the pose graph moved beyond the bounds: refined from the robot's pose with the others,
+    its weak directions held there, it is judged by the refinement's own bounds (ICP had
+    turned the top sweep of a near-symmetric bottle 5.1 degrees about its axis, issue
+    11's settings: kept at the robot's 0.46 mm; refined, 0.03 mm). Returns the active
+    sweeps, the pairs and the rescued sweeps' pose-graph reasons."""
     rescued = [s for s in range(n_s) if result.per_sweep[s]["flagged"]
                and result.per_sweep[s]["n_used"] >= _MIN_POINTS
                and result.per_sweep[s]["reason"].startswith(("no accepted pair",
                                                               "not connected",
-                                                              "no other sweep"))]
+                                                              "no other sweep",
+                                                              "correction "))]
     saved = {s: result.per_sweep[s]["reason"] for s in rescued}
     if rescued:
         log.info("refinement: sweeps %s have no accepted pair; refined against the "

@@ -162,6 +162,10 @@ DESCRIBED: dict[str, dict[str, tuple[str, str, str]]] = {
         "end_to_end_s": ("end to end, --cores 2", "s", "simulated"),
     },
 }
+#: objects.py --setting issue: the same figures at issue 11's settings (1280 x 960, 150
+#: frames per sweep, exact views)
+DESCRIBED["objects_issue"] = {k: (what, unit, "simulated, issue 11's settings")
+                              for k, (what, unit, _) in DESCRIBED["objects"].items()}
 
 
 def _get(d: Any, dotted: str) -> Any:

@@ -407,8 +407,8 @@ def _run_view(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- warm-up
 def _add_warm_up(p: argparse.ArgumentParser) -> None:
     p.add_argument("--processes", type=int, default=2,
-                   help="compile the detector and the carver side by side in this many "
-                        "processes (default 2; 1: one after the other)")
+                   help="compile the detector, the carver and the geometry side by side in "
+                        "this many processes (default 2; 1: one after the other)")
 
 
 def _run_warm_up(args: argparse.Namespace) -> int:
@@ -418,7 +418,8 @@ def _run_warm_up(args: argparse.Namespace) -> int:
               "the first time after an install, about a second after)")
     t = compile_kernels(args.processes)
     _log.info("kernels compiled or loaded from the cache in %.1f s (stripe detector %.1f s, "
-              "carver %.1f s)", t["total"], t["stripes"], t["carver"])
+              "carver %.1f s, geometry %.1f s)", t["total"], t["stripes"], t["carver"],
+              t["geometry"])
     return 0
 
 

@@ -7,10 +7,12 @@ on a 2-core AMD EPYC; the carver's: about 6 s) and writes it to the cache
 that start side by side before the cache is written each compile it themselves: a batch
 of N recordings on N cores (or N SLURM jobs) pays the compilation N times over, and on a
 2-core machine the test suite's end-to-end runs (seven stripe jobs at once) paid about
-two minutes for it. ``robo3d warm-up`` compiles them once, the detector and the carver in
-two processes side by side, before such a batch starts (``./run.sh`` does it before the
-demo and before the tests). Nothing it computes is kept; what the kernels compute is the
-same either way.
+two minutes for it. ``robo3d warm-up`` compiles them once, the detector, the carver and
+the geometry (triangulation, silhouette term) in two processes side by side, before such
+a batch starts (``./run.sh`` does it before the demo and before the tests). Nothing it
+computes is kept; what the kernels compute is the same either way. It calls each in the
+ways its stage does (a kernel is compiled once per argument types):
+``tests/test_warmup.py`` checks that the stages' calls then compile nothing.
 
 Only the image types a recording's laser frames decode to (8-bit RGB and mono) are
 compiled; other types (16-bit, float) compile at their first use.
@@ -36,16 +38,32 @@ def tiny_stripe_frame() -> np.ndarray:
 
 
 def _stripes() -> float:
-    """The stripe detector on tiny 8-bit RGB and mono frames, the line both ways."""
-    from .stripes import StripeOptions, extract_stripe_centres
+    """The stripe detector on tiny 8-bit RGB and mono frames, the line both ways, in the
+    ways the stripes stage calls it: the laser's colour estimated, then each frame with
+    that colour fixed, the axis free or fixed by the laser's geometry, with and without
+    the workspace's region of interest, the centre on the laser's channel or the luma.
+    Numba compiles a kernel once per argument types, and these paths pass other types
+    (the region's spans) or reach other kernels: warmed with the defaults only, the
+    stage compiled 12 more on its first monochrome cell recording (36 s of its first
+    frame on 2 cores)."""
+    from .stripes import StripeOptions, estimate_laser_colour, extract_stripe_centres
 
     t0 = time.perf_counter()
     mono = tiny_stripe_frame()
     rgb = np.stack([mono, np.full_like(mono, 10), np.full_like(mono, 10)], axis=-1)
-    opts = StripeOptions(min_peak=5.0)
-    for img in (rgb, mono):
-        extract_stripe_centres(img, options=opts)
-        extract_stripe_centres(np.ascontiguousarray(np.swapaxes(img, 0, 1)), options=opts)
+    for img, colour in ((rgb, "red"), (mono, "lightness")):
+        for im in (img, np.ascontiguousarray(np.swapaxes(img, 0, 1))):
+            roi = np.zeros(im.shape[:2], dtype=bool)
+            roi[2:-2, 2:-2] = True
+            estimate_laser_colour([im], min_peak=5.0)
+            estimate_laser_colour([im], min_peak=5.0, rois=[roi], axes=["columns"])
+            for col in ("auto", colour):
+                for axis in ("auto", "columns", "rows"):
+                    for centre_on in (("laser", "luma") if im.ndim == 3 else ("laser",)):
+                        opts = StripeOptions(min_peak=5.0, colour=col, axis=axis,
+                                             centre_on=centre_on)
+                        for r in (None, roi):
+                            extract_stripe_centres(im, options=opts, roi=r)
     return time.perf_counter() - t0
 
 
@@ -55,8 +73,31 @@ def _carver() -> float:
     return warm_up()
 
 
+def _geometry() -> float:
+    """The triangulation's ray-sheet kernel and the silhouette term's first pass
+    (:func:`robo3d.registration._rim_residuals`) on a few points of a tiny view, as the
+    triangulate and align stages call them."""
+    from .registration import _RIM, _RIM_CELL_PX, SilhouetteViews, _rim_residuals, _view_fields
+    from .sim.rig import default_camera, default_laser_mount, look_at
+    from .triangulation import triangulate_pixels
+
+    t0 = time.perf_counter()
+    cam = default_camera(64, 48)
+    triangulate_pixels(np.array([[30.5, 20.25], [31.5, 20.5]]), cam, default_laser_mount())
+    mask = np.zeros((48, 64), dtype=bool)
+    mask[12:36, 16:48] = True
+    T = look_at(np.array([0.0, 0.0, 0.3]), np.zeros(3))
+    views = SilhouetteViews([np.where(mask, 180.0, 30.0)], [mask], [cam], T[None])
+    field = _view_fields(views, _RIM_CELL_PX, 0.7)[0]
+    x = np.array([[0.01, 0.0, 0.0], [0.0, 0.01, 0.0]])
+    _rim_residuals(field, x, np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+                   np.zeros(2, dtype=np.int64), **_RIM)
+    return time.perf_counter() - t0
+
+
 def compile_kernels(processes: int = 2) -> dict[str, float]:
-    """Compile (or load from the cache) the detector's and the carver's kernels.
+    """Compile (or load from the cache) the detector's, the carver's and the geometry's
+    (triangulation, silhouette term) kernels.
 
     Parameters
     ----------
@@ -66,10 +107,11 @@ def compile_kernels(processes: int = 2) -> dict[str, float]:
     Returns
     -------
     dict
-        Seconds each part took (``stripes``, ``carver``) and in all (``total``).
+        Seconds each part took (``stripes``, ``carver``, ``geometry``) and in all
+        (``total``).
     """
     t0 = time.perf_counter()
-    parts = {"stripes": _stripes, "carver": _carver}
+    parts = {"stripes": _stripes, "carver": _carver, "geometry": _geometry}
     if processes <= 1:
         out = {name: fn() for name, fn in parts.items()}
     else:

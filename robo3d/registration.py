@@ -699,8 +699,8 @@ def _rescue_with_views(result: AlignmentResult, n_s: int, active: list[int],
                                                               "correction "))]
     saved = {s: result.per_sweep[s]["reason"] for s in rescued}
     if rescued:
-        log.info("refinement: sweeps %s have no accepted pair; refined against the "
-                 "silhouettes", rescued)
+        log.info("refinement: sweeps %s were flagged by the pose graph (%s); refined "
+                 "against the silhouettes", rescued, "; ".join(saved[s] for s in rescued))
         for s in rescued:
             result.per_sweep[s].update(flagged=False, reason="")
         active = sorted(active + rescued)

@@ -123,13 +123,10 @@ def hull_box(hull: VoxelGrid, margin: float = 0.05, min_margin_m: float = 0.002
     if not np.isfinite(margin) or margin < 0 or not np.isfinite(min_margin_m) or \
             min_margin_m < 0:
         raise ValueError(f"margin and min_margin_m must be >= 0, got {margin}, {min_margin_m}")
-    occ = np.asarray(hull.occupancy, dtype=bool)
-    if not occ.any():
+    bounds = hull.occupied_bounds
+    if bounds is None:
         return None
-    idx = [np.flatnonzero(occ.any(axis=tuple(a for a in range(3) if a != j)))
-           for j in range(3)]
-    lo = hull.origin + hull.voxel_size * (np.array([i[0] for i in idx]) - 0.5)
-    hi = hull.origin + hull.voxel_size * (np.array([i[-1] for i in idx]) + 0.5)
+    lo, hi = bounds
     grow = max(float(margin) * float((hi - lo).max()), float(min_margin_m))
     return lo - grow, hi + grow
 

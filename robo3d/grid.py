@@ -109,6 +109,19 @@ class VoxelGrid:
         return lo, hi
 
     @property
+    def occupied_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Outer faces of the occupied voxels: ``(min (3,), max (3,))``, metres; None
+        when no voxel is occupied."""
+        occ = np.asarray(self.occupancy, dtype=bool)
+        if not occ.any():
+            return None
+        idx = [np.flatnonzero(occ.any(axis=tuple(a for a in range(3) if a != j)))
+               for j in range(3)]
+        half = 0.5 * self.voxel_size
+        return (self.index_to_points(np.array([i[0] for i in idx])) - half,
+                self.index_to_points(np.array([i[-1] for i in idx])) + half)
+
+    @property
     def centre(self) -> np.ndarray:
         """Centre of the grid, (3,) metres."""
         lo, hi = self.bounds

@@ -195,10 +195,7 @@ def _hull_report(grid: VoxelGrid, vertices: np.ndarray, faces: np.ndarray, camer
     if res.get("warning"):
         log.warning("%s", res["warning"])
     box_min, box_max, box_report = box
-    occ_ijk = np.argwhere(grid.occupancy)
-    half = 0.5 * grid.voxel_size  # outer faces of the occupied voxels
-    bbox = (grid.index_to_points(occ_ijk.min(axis=0)) - half,
-            grid.index_to_points(occ_ijk.max(axis=0)) + half)
+    bbox = grid.occupied_bounds  # not None: an empty hull ends the stage before this
     return {"box": {"min": np.asarray(box_min).tolist(), "max": np.asarray(box_max).tolist(),
                     **box_report},
             "method": method, "grid_shape": list(grid.occupancy.shape),

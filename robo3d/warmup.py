@@ -23,6 +23,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
+from itertools import product
 
 import numpy as np
 
@@ -57,13 +58,11 @@ def _stripes() -> float:
             roi[2:-2, 2:-2] = True
             estimate_laser_colour([im], min_peak=5.0)
             estimate_laser_colour([im], min_peak=5.0, rois=[roi], axes=["columns"])
-            for col in ("auto", colour):
-                for axis in ("auto", "columns", "rows"):
-                    for centre_on in (("laser", "luma") if im.ndim == 3 else ("laser",)):
-                        opts = StripeOptions(min_peak=5.0, colour=col, axis=axis,
-                                             centre_on=centre_on)
-                        for r in (None, roi):
-                            extract_stripe_centres(im, options=opts, roi=r)
+            centres = ("laser", "luma") if im.ndim == 3 else ("laser",)
+            for col, axis, centre_on, r in product(("auto", colour), ("auto", "columns", "rows"),
+                                                   centres, (None, roi)):
+                extract_stripe_centres(im, roi=r, options=StripeOptions(
+                    min_peak=5.0, colour=col, axis=axis, centre_on=centre_on))
     return time.perf_counter() - t0
 
 

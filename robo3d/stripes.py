@@ -2504,7 +2504,9 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     Only where the frame's noise sets the threshold (``2 noise_k sigma > min_peak``: a
     cheap monochrome sensor, a dark object, a blue laser on brown). The average of
     ``taps`` pixels along the stripe keeps a straight stripe's height and divides the
-    noise by ``sqrt(taps)``, so the threshold falls by that much; the curves must be
+    noise by ``sqrt(taps)``, so the threshold falls by that much (the mean is taken at
+    three slopes across the lines, and the largest kept per pixel:
+    :func:`_faint_kernels`); the curves must be
     twice ``min_run`` long (a texture's short bright gaps, a marker's, are longer in the
     averaged frame too). Along the first search's axis (the stage fixes it from the
     laser's geometry); its result replaces the first when it keeps more than
@@ -2524,8 +2526,13 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     import cv2
 
     g = 1.0 / np.sqrt(taps)
-    ksize = (taps, 1) if sp.axis == "columns" else (1, taps)  # along the stripe
-    smooth = cv2.blur(img[:, :, 0], ksize, borderType=cv2.BORDER_REPLICATE)
+    # the mean along the stripe at three slopes across the lines (-0.5, 0, 0.5 px per
+    # px), the largest of the three per pixel: a stripe up to 45 degrees off the lines,
+    # or bent, meets one of them within a quarter pixel per pixel
+    smooth = None
+    for kernel in _faint_kernels(taps, sp.axis == "columns"):
+        m = cv2.filter2D(img[:, :, 0], -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        smooth = m if smooth is None else np.maximum(smooth, m)
     smooth = np.ascontiguousarray(smooth.reshape(img.shape))
     # the threshold from the frame's own noise (the smoothed frame's differences along
     # the smoothing are correlated: its own estimate would be too low for rows)
@@ -2538,6 +2545,25 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     sp2.confidence = sp2.confidence * g
     sp2.faint = True
     return sp2
+
+
+def _faint_kernels(taps: int, along_u: bool) -> list[np.ndarray]:
+    """:func:`_faint_stripe`'s means of ``taps`` pixels along lines of slope -0.5, 0 and
+    0.5 across the search lines (bilinear between pixels), as ``cv2.filter2D`` kernels:
+    along ``u`` (one centre per column) or, transposed, along ``v``."""
+    half = taps // 2
+    out = []
+    for slope in (-0.5, 0.0, 0.5):
+        k = np.zeros((2 * half + 1, taps), np.float32)
+        for i, du in enumerate(range(-half, half + 1)):
+            dv = slope * du
+            lo = int(np.floor(dv))
+            frac = dv - lo
+            k[half + lo, i] += (1.0 - frac) / taps
+            if frac > 0:
+                k[half + lo + 1, i] += frac / taps
+        out.append(k if along_u else np.ascontiguousarray(k.T))
+    return out
 
 
 #: :func:`_drop_wide` tests a frame's widths only when it has this many centres (the

@@ -1,0 +1,71 @@
+"""A faint stripe in a noisy monochrome frame (module docstring of robo3d.stripes, step 9):
+where the frame's noise sets the threshold, the frame is searched again averaged along the
+stripe; noise alone still gives no stripe, and a clean frame is searched once, as before."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robo3d.stripes import StripeOptions, extract_stripe_centres
+
+SIGMA = 4.0  # DN: a cheap monochrome sensor (random scene 243's frames: 4.2)
+
+
+def _frame(height: float, seed: int, slope: float = 0.08, curve: float = 0.0,
+           noise: float = SIGMA) -> np.ndarray:
+    """A dark scene (30 DN) with a Gaussian stripe (sigma 1.2 px) ``height`` DN high along
+    ``v = 200 + slope (u - 320) + curve (u - 320)^2`` and white noise."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:480, 0:640].astype(np.float64)
+    centre = 200.0 + slope * (xx - 320.0) + curve * (xx - 320.0) ** 2
+    img = 30.0 + height * np.exp(-0.5 * ((yy - centre) / 1.2) ** 2)
+    img += rng.normal(0.0, noise, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _true_v(u: np.ndarray, slope: float = 0.08, curve: float = 0.0) -> np.ndarray:
+    return 200.0 + slope * (u - 320.0) + curve * (u - 320.0) ** 2
+
+
+@pytest.mark.parametrize("slope, curve", [(0.08, 0.0), (0.6, 0.0), (0.0, 0.0008)])
+def test_a_stripe_under_the_noise_threshold_is_found(slope, curve):
+    """A stripe 20 DN high (5 sigma; the threshold is 6 sigma = 25 DN): straight and
+    nearly along the rows, at 31 degrees, and bent (its slope 0 to +-0.5). Measured: 99 %
+    of its columns found in each case, none without the second search (at 45 degrees,
+    the three slopes' worst case, 65 %)."""
+    on = StripeOptions(axis="columns")
+    off = on.replace(faint_taps=0)
+    found_on = found_off = 0
+    errs = []
+    for seed in range(3):
+        img = _frame(20.0, seed, slope, curve)
+        sp_off = extract_stripe_centres(img, options=off)
+        sp = extract_stripe_centres(img, options=on)
+        found_off += int(np.sum(np.abs(sp_off.v - _true_v(sp_off.u, slope, curve)) < 1.0))
+        good = np.abs(sp.v - _true_v(sp.u, slope, curve)) < 1.0
+        found_on += int(good.sum())
+        errs.append(sp.v[good] - _true_v(sp.u[good], slope, curve))
+        assert sp.faint
+        assert good.mean() > 0.98, f"seed {seed}: {np.count_nonzero(~good)} centres off"
+    errs = np.concatenate(errs)
+    assert found_off < 0.05 * 3 * 640  # without the second search: nearly nothing
+    assert found_on > 0.95 * 3 * 640
+    assert abs(np.median(errs)) < 0.1 and np.percentile(np.abs(errs), 95) < 0.6
+
+
+def test_noise_alone_gives_no_stripe():
+    """The same noise without a stripe: at most a few short pieces, in no frame a curve
+    the smoothed search would keep in place of nothing."""
+    for seed in range(5):
+        sp = extract_stripe_centres(_frame(0.0, seed), options=StripeOptions(axis="columns"))
+        assert len(sp) < 20 and not sp.faint
+
+
+def test_a_clean_frame_is_searched_once():
+    """Below the noise threshold's reach (6 sigma <= min_peak) the result is the first
+    search's, centre for centre."""
+    img = _frame(16.0, 0, noise=1.0)
+    a = extract_stripe_centres(img, options=StripeOptions(axis="columns"))
+    b = extract_stripe_centres(img, options=StripeOptions(axis="columns", faint_taps=0))
+    assert not a.faint and np.array_equal(a.v, b.v) and np.array_equal(a.u, b.u)

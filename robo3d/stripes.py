@@ -181,13 +181,14 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    a dark object, a blue laser on brown) the frame is searched again averaged over
    ``faint_taps`` pixels along its lines (a matched filter along the stripe: a straight
    stripe keeps its height, the noise falls by ``sqrt(faint_taps)``, and so does the
-   threshold), with curves at least twice ``min_run`` long, along the first search's
-   axis; its centres on texture (their 7 x 7 neighbourhood's standard deviation over
-   6 sigma: a faint stripe adds about 3) are counted ``textured``; that result replaces
-   the first when it keeps 1.25 times its centres, its
-   confidence scaled by ``1 / sqrt(faint_taps)`` and ``StripePoints.faint`` set
-   (:func:`_faint_stripe`; the stage reports ``frames_faint_stripe``). RGB frames are
-   not searched so: their colour tests decide there.
+   threshold; the mean at three slopes, the largest per pixel), with curves at least
+   twice ``min_run`` long, along the first search's axis. Its centres in the lines the
+   first search left without one are added, confidence scaled by
+   ``1 / sqrt(faint_taps)`` and counted in ``StripePoints.n_faint``, except those on
+   texture (their 7 x 7 neighbourhood's standard deviation over 6 sigma: a faint stripe
+   adds about 3; counted ``textured``) (:func:`_faint_stripe`; the stage reports
+   ``faint_points`` and ``frames_with_faint_points``). RGB frames are not searched so:
+   their colour tests decide there.
 
 Cost: one pass over the image reads the laser's channel (or the lightness) of each row
 once, into a ring of 13 rows (one centre per column) or a row buffer (per row: no
@@ -423,9 +424,10 @@ class StripePoints:
     colour : str
         The contrast the stripe was found in (:data:`CONTRASTS`: a laser colour or
         ``"lightness"``), or ``""`` when not known.
-    faint : bool
-        Found in the frame averaged along the stripe (a faint stripe in a noisy mono
-        frame: module docstring, step 9).
+    n_faint : int
+        Centres found in the frame averaged along the stripe, in lines the first search
+        left without one (a faint stripe in a noisy mono frame: module docstring, step
+        9); the rejection counts are the first search's (and ``textured``).
     """
 
     u: np.ndarray
@@ -441,7 +443,7 @@ class StripePoints:
     angle_deg: float = float("nan")
     colour: str = ""
     skew_px: np.ndarray | None = None
-    faint: bool = False
+    n_faint: int = 0
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=np.float64).reshape(-1)
@@ -2493,12 +2495,6 @@ def extract_stripe_centres(
     return _extract_band(img, o, min_peak_abs)
 
 
-#: :func:`_faint_stripe`: the smoothed search's result replaces the frame's when it keeps
-#: more than this many times its centres (a smoothed centre averages the surface over
-#: ``faint_taps`` pixels along the stripe: taken only where it finds clearly more)
-_FAINT_GAIN = 1.25
-
-
 def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, Any]
                   ) -> StripePoints:
     """Step 9 of the module docstring: a faint stripe in a noisy mono frame, searched
@@ -2509,15 +2505,14 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     ``taps`` pixels along the stripe keeps a straight stripe's height and divides the
     noise by ``sqrt(taps)``, so the threshold falls by that much (the mean is taken at
     three slopes across the lines, and the largest kept per pixel:
-    :func:`_faint_kernels`); the curves must be
-    twice ``min_run`` long (a texture's short bright gaps, a marker's, are longer in the
-    averaged frame too). Along the first search's axis (the stage fixes it from the
-    laser's geometry); its result replaces the first when it keeps more than
-    :data:`_FAINT_GAIN` times its centres, with its confidence scaled by
-    ``1 / sqrt(taps)`` (its centres average the surface along the stripe) and
-    ``faint`` set. Measured (``benchmarks/README.md``, stop 42): a blue laser on a brown
-    fin seen by a monochrome camera (noise 4.2 DN, threshold 25 DN, the stripe 12-40 DN
-    high), 1.5 % of the true stripe's lines found before, 41 % after."""
+    :func:`_faint_kernels`); the curves must be twice ``min_run`` long. Along the
+    first search's axis (the stage fixes it from the laser's geometry). Its centres in
+    the lines the first search left without a centre are added (the first search's
+    stay: a clear stripe is not averaged), with the confidence scaled by
+    ``1 / sqrt(taps)`` and counted in ``n_faint``; those on texture are not
+    (:data:`_FAINT_MAX_SPREAD`). Measured (``benchmarks/README.md``, stop 42): a blue
+    laser on a brown fin seen by a monochrome camera (noise 4.2 DN, threshold 25 DN, the
+    stripe 12-40 DN high), 1.5 % of the true stripe's lines found before, 41 % after."""
     nch = img.shape[2]
     if _fast8(img, _LIGHTNESS):
         sigma = float(_noise8(img, _LIGHTNESS))
@@ -2547,12 +2542,27 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     # neighbourhood; more is texture (a marker's cells, a print), whose edges the
     # averaged search can take for a stripe
     spread = _local_spread(img[:, :, 0], sp2.u, sp2.v, _FAINT_SPREAD_HALF)
-    sp2 = _subset(sp2, spread <= _FAINT_MAX_SPREAD * sigma, "textured")
-    if not len(sp2) > _FAINT_GAIN * len(sp):
+    textured = spread > _FAINT_MAX_SPREAD * sigma
+    # only the lines the first search left without a centre: its own centres stay
+    add = ~textured & ~np.isin(sp2.line, sp.line)
+    if not add.any():
         return sp
-    sp2.confidence = sp2.confidence * g
-    sp2.faint = True
-    return sp2
+    rejected = dict(sp.rejected)
+    rejected["textured"] += int(np.count_nonzero(textured & ~np.isin(sp2.line, sp.line)))
+    line = np.concatenate([sp.line, sp2.line[add]])
+    order = np.argsort(line, kind="stable")
+
+    def cat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.concatenate([a, b[add]])[order]
+
+    angle = sp.angle_deg if np.isfinite(sp.angle_deg) else sp2.angle_deg
+    return StripePoints(u=cat(sp.u, sp2.u), v=cat(sp.v, sp2.v),
+                        confidence=cat(sp.confidence, sp2.confidence * g),
+                        peak=cat(sp.peak, sp2.peak), width_px=cat(sp.width_px, sp2.width_px),
+                        skew_px=cat(sp.skew_px, sp2.skew_px), line=line[order],
+                        axis=sp.axis, s=sp.s, n_lines=sp.n_lines, rejected=rejected,
+                        colour=sp.colour, angle_deg=angle,
+                        n_faint=int(np.count_nonzero(add)))
 
 
 #: :func:`_faint_stripe`'s texture test: a centre whose (2 h + 1)^2 neighbourhood in the
@@ -2586,7 +2596,7 @@ def _subset(sp: StripePoints, keep: np.ndarray, reason: str) -> StripePoints:
                         peak=sp.peak[keep], width_px=sp.width_px[keep],
                         skew_px=sp.skew_px[keep], line=sp.line[keep],
                         axis=sp.axis, s=sp.s, n_lines=sp.n_lines, rejected=rejected,
-                        colour=sp.colour, angle_deg=sp.angle_deg, faint=sp.faint)
+                        colour=sp.colour, angle_deg=sp.angle_deg, n_faint=sp.n_faint)
 
 
 def _faint_kernels(taps: int, along_u: bool) -> list[np.ndarray]:

@@ -1,6 +1,7 @@
 """A faint stripe in a noisy monochrome frame (module docstring of robo3d.stripes, step 9):
 where the frame's noise sets the threshold, the frame is searched again averaged along the
-stripe; noise alone still gives no stripe, and a clean frame is searched once, as before."""
+stripe, and its centres fill the lines the first search left empty; noise alone still
+gives no stripe, and a clean frame is searched once, as before."""
 
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def test_a_stripe_under_the_noise_threshold_is_found(slope, curve):
         good = np.abs(sp.v - _true_v(sp.u, slope, curve)) < 1.0
         found_on += int(good.sum())
         errs.append(sp.v[good] - _true_v(sp.u[good], slope, curve))
-        assert sp.faint
+        assert sp.n_faint > 0
         assert good.mean() > 0.98, f"seed {seed}: {np.count_nonzero(~good)} centres off"
     errs = np.concatenate(errs)
     assert found_off < 0.05 * 3 * 640  # without the second search: nearly nothing
@@ -59,7 +60,7 @@ def test_noise_alone_gives_no_stripe():
     the smoothed search would keep in place of nothing."""
     for seed in range(5):
         sp = extract_stripe_centres(_frame(0.0, seed), options=StripeOptions(axis="columns"))
-        assert len(sp) < 20 and not sp.faint
+        assert len(sp) < 20 and sp.n_faint < 20
 
 
 def test_a_clean_frame_is_searched_once():
@@ -68,4 +69,24 @@ def test_a_clean_frame_is_searched_once():
     img = _frame(16.0, 0, noise=1.0)
     a = extract_stripe_centres(img, options=StripeOptions(axis="columns"))
     b = extract_stripe_centres(img, options=StripeOptions(axis="columns", faint_taps=0))
-    assert not a.faint and np.array_equal(a.v, b.v) and np.array_equal(a.u, b.u)
+    assert a.n_faint == 0 and np.array_equal(a.v, b.v) and np.array_equal(a.u, b.u)
+
+
+def test_the_faint_part_of_a_stripe_is_added_and_the_clear_part_kept():
+    """A stripe 60 DN high over columns 0-299 and 18 DN beyond (the sheet crosses onto a
+    dark part): the clear part's centres are the first search's, unchanged; the faint
+    part's columns are filled by the averaged search."""
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[0:480, 0:640].astype(np.float64)
+    height = np.where(xx < 300, 60.0, 18.0)
+    img = 30.0 + height * np.exp(-0.5 * ((yy - _true_v(xx)) / 1.2) ** 2)
+    img = np.clip(np.rint(img + rng.normal(0.0, SIGMA, img.shape)), 0, 255).astype(np.uint8)
+    a = extract_stripe_centres(img, options=StripeOptions(axis="columns"))
+    b = extract_stripe_centres(img, options=StripeOptions(axis="columns", faint_taps=0))
+    assert np.all(b.u < 305)  # the first search finds the clear part only
+    clear = np.isin(a.u, b.u)
+    assert np.array_equal(a.v[clear], b.v) and np.array_equal(a.confidence[clear],
+                                                              b.confidence)
+    faint = a.u >= 300
+    assert faint.sum() > 0.95 * 340 and a.n_faint == np.count_nonzero(~clear)
+    assert np.percentile(np.abs(a.v[faint] - _true_v(a.u[faint])), 95) < 0.6

@@ -75,8 +75,10 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          "the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
-    # frames whose stripe was found only in the frame averaged along it (faint, noisy)
-    report["frames_faint_stripe"] = int(sum(bool(getattr(sp, "faint", False)) for sp in found))
+    # centres found only in the frame averaged along the stripe (faint, noisy mono frames)
+    n_faint = [int(getattr(sp, "n_faint", 0)) for sp in found]
+    report["faint_points"] = int(sum(n_faint))
+    report["frames_with_faint_points"] = int(sum(n > 0 for n in n_faint))
     report.update({"threads": n_threads, "decode_seconds_cpu": round(decode_s, 3),
                    "detect_seconds_cpu": round(detect_s, 3),
                    "seconds": round(time.perf_counter() - t0, 3)})

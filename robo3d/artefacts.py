@@ -189,7 +189,7 @@ class Silhouettes:
 #: workspace's), and those that every file has (the others are missing in older files).
 _STRIPES_ARRAYS = ("u", "v", "confidence", "peak", "width_px", "line", "offsets", "axis",
                    "angle_deg", "colour", "s", "n_lines", "rejected", "rejection_reasons",
-                   "stamps_ns", "T_base_camera", "T_camera_laser", "skew_px")
+                   "stamps_ns", "T_base_camera", "T_camera_laser", "skew_px", "faint")
 _STRIPES_REQUIRED = ("u", "v", "confidence", "offsets", "stamps_ns", "T_base_camera")
 
 
@@ -263,6 +263,7 @@ class Stripes:
     rejection_reasons: np.ndarray | None = None
     workspace: tuple[np.ndarray, np.ndarray] | None = None
     skew_px: np.ndarray | None = None
+    faint: np.ndarray | None = None
 
     @classmethod
     def from_frames(cls, found: Sequence[StripePoints], stamps_ns: Sequence[int],
@@ -293,7 +294,8 @@ class Stripes:
                    s=np.array([sp.s for sp in found], dtype=np.float64),
                    n_lines=np.array([sp.n_lines for sp in found], dtype=np.int64),
                    rejected=rejected, rejection_reasons=np.array(REJECTION_REASONS),
-                   workspace=workspace, skew_px=cat("skew_px", np.float32))
+                   workspace=workspace, skew_px=cat("skew_px", np.float32),
+                   faint=cat("faint", np.bool_))
 
     @property
     def counts(self) -> np.ndarray:
@@ -358,6 +360,10 @@ class SweepCloud:
         :attr:`robo3d.stripes.StripePoints.skew_px`): the align stage drops the points
         whose centre was pulled off the stripe (``alignment.max_centre_skew_px``); NaN
         or None when unknown.
+    faint : (N,) bool, optional
+        The point's stripe centre was found only in the frame averaged along the stripe
+        (:attr:`robo3d.stripes.StripePoints.faint`): it is placed by the alignment's
+        corrections but does not drive them; None when unknown (all false).
     """
 
     points_base: np.ndarray
@@ -370,6 +376,7 @@ class SweepCloud:
     line: np.ndarray | None = None
     line_axis: np.ndarray | None = None
     skew_px: np.ndarray | None = None
+    faint: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points_base = np.asarray(self.points_base, dtype=np.float64).reshape(-1, 3)
@@ -386,9 +393,12 @@ class SweepCloud:
             self.line_axis = np.asarray(self.line_axis, dtype=np.uint8).reshape(-1)
         if self.skew_px is not None:
             self.skew_px = np.asarray(self.skew_px, dtype=np.float32).reshape(-1)
+        if self.faint is not None:
+            self.faint = np.asarray(self.faint, dtype=np.bool_).reshape(-1)
         for name in ("normals_base", "sensor_origin_base", "frame_index", "confidence",
                      *(("line", "line_axis") if self.line is not None else ()),
-                     *(("skew_px",) if self.skew_px is not None else ())):
+                     *(("skew_px",) if self.skew_px is not None else ()),
+                     *(("faint",) if self.faint is not None else ())):
             if len(getattr(self, name)) != n:
                 raise ValueError(f"SweepCloud.{name} must have {n} rows like points_base, "
                                  f"got {len(getattr(self, name))}")
@@ -419,6 +429,8 @@ class SweepCloud:
                 self.line, self.line_axis = self.line[keep], self.line_axis[keep]
             if self.skew_px is not None:
                 self.skew_px = self.skew_px[keep]
+            if self.faint is not None:
+                self.faint = self.faint[keep]
             self.report = {**(self.report or {}), f"dropped_{reason}": n}
         return n
 
@@ -465,6 +477,8 @@ def save_clouds_npz(path: str | os.PathLike[str], clouds: Sequence[SweepCloud], 
         arrays["line_axis"] = _cat("line_axis", (0,), np.uint8)
     if clouds and all(c.skew_px is not None for c in clouds):
         arrays["skew_px"] = _cat("skew_px", (0,), np.float32)
+    if clouds and all(c.faint is not None for c in clouds):
+        arrays["faint"] = _cat("faint", (0,), np.bool_)
     if corrections is not None:
         corr = np.asarray(corrections, dtype=np.float64)
         if corr.shape != (len(clouds), 4, 4):
@@ -557,5 +571,6 @@ def load_clouds_npz(path: str | os.PathLike[str]) -> list[SweepCloud]:
             report=reports[i],
             line=d["line"][sel] if "line" in d else None,
             line_axis=d["line_axis"][sel] if "line" in d else None,
-            skew_px=d["skew_px"][sel] if "skew_px" in d else None))
+            skew_px=d["skew_px"][sel] if "skew_px" in d else None,
+            faint=d["faint"][sel] if "faint" in d else None))
     return out

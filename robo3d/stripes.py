@@ -184,7 +184,7 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    threshold; the mean at three slopes, the largest per pixel), with curves at least
    twice ``min_run`` long, along the first search's axis. Its centres in the lines the
    first search left without one are added, confidence scaled by
-   ``1 / sqrt(faint_taps)`` and counted in ``StripePoints.n_faint``, except those on
+   ``1 / sqrt(faint_taps)`` and flagged (``StripePoints.faint``), except those on
    texture (their 7 x 7 neighbourhood's standard deviation over 6 sigma: a faint stripe
    adds about 3; counted ``textured``) (:func:`_faint_stripe`; the stage reports
    ``faint_points`` and ``frames_with_faint_points``). RGB frames are not searched so:
@@ -424,10 +424,11 @@ class StripePoints:
     colour : str
         The contrast the stripe was found in (:data:`CONTRASTS`: a laser colour or
         ``"lightness"``), or ``""`` when not known.
-    n_faint : int
-        Centres found in the frame averaged along the stripe, in lines the first search
-        left without one (a faint stripe in a noisy mono frame: module docstring, step
-        9); the rejection counts are the first search's (and ``textured``).
+    faint : (N,) bool
+        The centre was found in the frame averaged along the stripe, in a line the first
+        search left without one (a faint stripe in a noisy mono frame: module docstring,
+        step 9); the rejection counts are the first search's (and ``textured``). All
+        false when not given.
     """
 
     u: np.ndarray
@@ -443,7 +444,7 @@ class StripePoints:
     angle_deg: float = float("nan")
     colour: str = ""
     skew_px: np.ndarray | None = None
-    n_faint: int = 0
+    faint: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=np.float64).reshape(-1)
@@ -470,6 +471,10 @@ class StripePoints:
         self.peak = _vec(self.peak, np.nan, "peak")
         self.width_px = _vec(self.width_px, np.nan, "width_px")
         self.skew_px = _vec(self.skew_px, np.nan, "skew_px")
+        self.faint = (np.zeros(n, np.bool_) if self.faint is None
+                      else np.asarray(self.faint, dtype=np.bool_).reshape(-1))
+        if self.faint.size != n:
+            raise ValueError(f"faint must have {n} entries like u, got {self.faint.size}")
         if self.line is None:
             along = self.u if self.axis == "columns" else self.v
             self.line = np.rint(along).astype(np.int64) if n else np.zeros(0, np.int64)
@@ -2509,7 +2514,7 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     first search's axis (the stage fixes it from the laser's geometry). Its centres in
     the lines the first search left without a centre are added (the first search's
     stay: a clear stripe is not averaged), with the confidence scaled by
-    ``1 / sqrt(taps)`` and counted in ``n_faint``; those on texture are not
+    ``1 / sqrt(taps)`` and flagged ``faint``; those on texture are not
     (:data:`_FAINT_MAX_SPREAD`). Measured (``benchmarks/README.md``, stop 42): a blue
     laser on a brown fin seen by a monochrome camera (noise 4.2 DN, threshold 25 DN, the
     stripe 12-40 DN high), 1.5 % of the true stripe's lines found before, 41 % after."""
@@ -2562,7 +2567,7 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
                         skew_px=cat(sp.skew_px, sp2.skew_px), line=line[order],
                         axis=sp.axis, s=sp.s, n_lines=sp.n_lines, rejected=rejected,
                         colour=sp.colour, angle_deg=angle,
-                        n_faint=int(np.count_nonzero(add)))
+                        faint=np.concatenate([sp.faint, np.ones(int(add.sum()), bool)])[order])
 
 
 #: :func:`_faint_stripe`'s texture test: a centre whose (2 h + 1)^2 neighbourhood in the
@@ -2596,7 +2601,7 @@ def _subset(sp: StripePoints, keep: np.ndarray, reason: str) -> StripePoints:
                         peak=sp.peak[keep], width_px=sp.width_px[keep],
                         skew_px=sp.skew_px[keep], line=sp.line[keep],
                         axis=sp.axis, s=sp.s, n_lines=sp.n_lines, rejected=rejected,
-                        colour=sp.colour, angle_deg=sp.angle_deg, n_faint=sp.n_faint)
+                        colour=sp.colour, angle_deg=sp.angle_deg, faint=sp.faint[keep])
 
 
 def _faint_kernels(taps: int, along_u: bool) -> list[np.ndarray]:

@@ -1042,7 +1042,7 @@ def _check_sweep_inputs(F: int, T_base_camera: np.ndarray, T_camera_laser: np.nd
 def _sweep_pixels(stripes: Sequence[StripePoints]):
     """The stripe centres of a sweep's frames, concatenated: counts per frame (F,),
     frame position (N,), pixels (N, 2), image line (N,), confidence (N,), each frame's
-    search axis (F,: 0 columns, 1 rows) and the centres' skew (N,)."""
+    search axis (F,: 0 columns, 1 rows), the centres' skew (N,) and faint flags (N,)."""
     counts = np.array([len(s) for s in stripes], dtype=np.int64)
     frame_pos = np.repeat(np.arange(len(stripes)), counts)
     any_pixel = bool(counts.sum())
@@ -1052,7 +1052,9 @@ def _sweep_pixels(stripes: Sequence[StripePoints]):
     conf = np.concatenate([s.confidence for s in stripes]) if any_pixel else np.zeros(0)
     frame_axis = np.array([0 if s.axis == "columns" else 1 for s in stripes])
     skew = np.concatenate([s.skew_px for s in stripes]) if any_pixel else np.zeros(0)
-    return counts, frame_pos, uv, line, conf, frame_axis, skew
+    faint = (np.concatenate([s.faint for s in stripes]) if any_pixel
+             else np.zeros(0, np.bool_))
+    return counts, frame_pos, uv, line, conf, frame_axis, skew, faint
 
 
 def _sweep_normals(P: np.ndarray, O: np.ndarray, fpos: np.ndarray, line: np.ndarray,
@@ -1129,7 +1131,7 @@ def triangulate_sweep(
         raise StageError(f"sweep {sweep}: no laser frame to triangulate")
     tb, tl, fidx, box = _check_sweep_inputs(F, T_base_camera, T_camera_laser, frame_indices,
                                             workspace, options)
-    counts, frame_pos, uv, line, conf, frame_axis, skew = _sweep_pixels(stripes)
+    counts, frame_pos, uv, line, conf, frame_axis, skew, faint = _sweep_pixels(stripes)
 
     # all frames at once: per-point plane and pose
     n_f, d_f = _planes(tl)
@@ -1197,4 +1199,5 @@ def triangulate_sweep(
         line=line[keep],
         line_axis=frame_axis[fpos],
         skew_px=skew[keep],
+        faint=faint[keep],
     )

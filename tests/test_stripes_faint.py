@@ -47,7 +47,7 @@ def test_a_stripe_under_the_noise_threshold_is_found(slope, curve):
         good = np.abs(sp.v - _true_v(sp.u, slope, curve)) < 1.0
         found_on += int(good.sum())
         errs.append(sp.v[good] - _true_v(sp.u[good], slope, curve))
-        assert sp.n_faint > 0
+        assert sp.faint.any()
         assert good.mean() > 0.98, f"seed {seed}: {np.count_nonzero(~good)} centres off"
     errs = np.concatenate(errs)
     assert found_off < 0.05 * 3 * 640  # without the second search: nearly nothing
@@ -60,7 +60,7 @@ def test_noise_alone_gives_no_stripe():
     the smoothed search would keep in place of nothing."""
     for seed in range(5):
         sp = extract_stripe_centres(_frame(0.0, seed), options=StripeOptions(axis="columns"))
-        assert len(sp) < 20 and sp.n_faint < 20
+        assert len(sp) < 20 and sp.faint.sum() < 20
 
 
 def test_a_clean_frame_is_searched_once():
@@ -69,7 +69,7 @@ def test_a_clean_frame_is_searched_once():
     img = _frame(16.0, 0, noise=1.0)
     a = extract_stripe_centres(img, options=StripeOptions(axis="columns"))
     b = extract_stripe_centres(img, options=StripeOptions(axis="columns", faint_taps=0))
-    assert a.n_faint == 0 and np.array_equal(a.v, b.v) and np.array_equal(a.u, b.u)
+    assert not a.faint.any() and np.array_equal(a.v, b.v) and np.array_equal(a.u, b.u)
 
 
 def test_the_faint_part_of_a_stripe_is_added_and_the_clear_part_kept():
@@ -88,5 +88,30 @@ def test_the_faint_part_of_a_stripe_is_added_and_the_clear_part_kept():
     assert np.array_equal(a.v[clear], b.v) and np.array_equal(a.confidence[clear],
                                                               b.confidence)
     faint = a.u >= 300
-    assert faint.sum() > 0.95 * 340 and a.n_faint == np.count_nonzero(~clear)
+    assert faint.sum() > 0.95 * 340 and np.array_equal(a.faint, ~clear)
     assert np.percentile(np.abs(a.v[faint] - _true_v(a.u[faint])), 95) < 0.6
+
+
+def test_faint_points_are_carried_to_the_clouds_and_do_not_drive_the_alignment(tmp_path):
+    """The flag survives the clouds file; the align stage registers a sweep without its
+    faint points unless they are most of its points in the box."""
+    from robo3d.artefacts import SweepCloud, load_clouds_npz, save_clouds_npz
+    from robo3d.stages.align import _without_faint
+
+    def cloud(n_faint: int, n: int = 10) -> SweepCloud:
+        z = np.zeros((n, 3))
+        return SweepCloud(points_base=np.random.default_rng(n_faint).random((n, 3)),
+                          normals_base=z + [0, 0, 1], frame_index=np.arange(n),
+                          confidence=np.ones(n), sweep=0, sensor_origin_base=z,
+                          faint=np.arange(n) < n_faint)
+
+    clouds = [cloud(3), cloud(8)]
+    save_clouds_npz(tmp_path / "c.npz", clouds)
+    back = load_clouds_npz(tmp_path / "c.npz")
+    assert [list(c.faint) for c in back] == [list(c.faint) for c in clouds]
+    in_box = [np.ones(10, bool), np.ones(10, bool)]
+    reg = _without_faint(back, in_box)
+    assert list(reg[0]) == [False] * 3 + [True] * 7  # a minority: left out
+    assert reg[1].all()  # most of the sweep: kept, it has little else
+    back[0].drop(np.arange(10) < 2, "test")
+    assert list(back[0].faint) == [True] + [False] * 7

@@ -76,7 +76,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
     # centres found only in the frame averaged along the stripe (faint, noisy mono frames)
-    n_faint = [int(getattr(sp, "n_faint", 0)) for sp in found]
+    n_faint = [int(np.count_nonzero(sp.faint)) for sp in found]
     report["faint_points"] = int(sum(n_faint))
     report["frames_with_faint_points"] = int(sum(n > 0 for n in n_faint))
     report.update({"threads": n_threads, "decode_seconds_cpu": round(decode_s, 3),

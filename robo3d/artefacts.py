@@ -362,8 +362,7 @@ class SweepCloud:
         or None when unknown.
     faint : (N,) bool, optional
         The point's stripe centre was found only in the frame averaged along the stripe
-        (:attr:`robo3d.stripes.StripePoints.faint`): it is placed by the alignment's
-        corrections but does not drive them; None when unknown (all false).
+        (:attr:`robo3d.stripes.StripePoints.faint`); None when unknown (all false).
     """
 
     points_base: np.ndarray

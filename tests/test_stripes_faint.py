@@ -92,11 +92,9 @@ def test_the_faint_part_of_a_stripe_is_added_and_the_clear_part_kept():
     assert np.percentile(np.abs(a.v[faint] - _true_v(a.u[faint])), 95) < 0.6
 
 
-def test_faint_points_are_carried_to_the_clouds_and_do_not_drive_the_alignment(tmp_path):
-    """The flag survives the clouds file; the align stage registers a sweep without its
-    faint points unless they are most of its points in the box."""
+def test_faint_points_are_carried_to_the_clouds(tmp_path):
+    """The flag survives the clouds file and the clouds' point drops."""
     from robo3d.artefacts import SweepCloud, load_clouds_npz, save_clouds_npz
-    from robo3d.stages.align import _without_faint
 
     def cloud(n_faint: int, n: int = 10) -> SweepCloud:
         z = np.zeros((n, 3))
@@ -109,9 +107,5 @@ def test_faint_points_are_carried_to_the_clouds_and_do_not_drive_the_alignment(t
     save_clouds_npz(tmp_path / "c.npz", clouds)
     back = load_clouds_npz(tmp_path / "c.npz")
     assert [list(c.faint) for c in back] == [list(c.faint) for c in clouds]
-    in_box = [np.ones(10, bool), np.ones(10, bool)]
-    reg = _without_faint(back, in_box)
-    assert list(reg[0]) == [False] * 3 + [True] * 7  # a minority: left out
-    assert reg[1].all()  # most of the sweep: kept, it has little else
     back[0].drop(np.arange(10) < 2, "test")
     assert list(back[0].faint) == [True] + [False] * 7

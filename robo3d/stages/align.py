@@ -51,8 +51,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         # (artefacts.table_points) does: it is rigid with the object, and without it
         # bracket/4 of the objects benchmark (a flat plate on the table) went from 0.136
         # to 0.262 mm (thin_wall/7 from 0.289 to 0.230; stop 35)
-        in_box = in_clouds_workspace(clouds)
-        reg = _without_faint(clouds, in_box)
+        reg = in_clouds_workspace(clouds)
         sub = [(c.points_base[m], c.normals_base[m], c.sensor_origin_base[m],
                 c.frame_index[m]) for c, m in zip(clouds, reg, strict=True)]
         opts = AlignOptions.from_config(ac, seed=cfg["seed"], threads=stage_threads(threads))
@@ -62,10 +61,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         align_report = {"workspace_from_hull": hull_ws,
                         "method": result.method, "gauge": result.gauge,
                         "points_in_margin_not_registered": int(sum(
-                            len(m) - int(m.sum()) for m in in_box)),
-                        "faint_points_not_registered": int(sum(
-                            int(b.sum()) - int(m.sum())
-                            for b, m in zip(in_box, reg, strict=True))),
+                            len(m) - int(m.sum()) for m in reg)),
                         "reference": result.reference, "pairs": result.pairs,
                         "per_sweep": result.per_sweep, "refinement": result.refinement,
                         "n_views_used": 0 if views is None else len(views.cameras)}
@@ -220,22 +216,6 @@ def _crop_to_workspace(clouds: list) -> dict[str, Any]:
                  "(the table below its floor, mostly): dropped", n)
     return {"box_min": lo.tolist(), "box_max": hi.tolist(), "dropped": int(n),
             "per_sweep": per_sweep}
-
-
-def _without_faint(clouds: list, in_box: list) -> list:
-    """The points that drive the corrections: those in the box, less the centres found
-    only in the frame averaged along a faint stripe (stripes module, step 9; less
-    certain, and on random scene 324 they moved the sweeps: aligned median 0.079 ->
-    0.209 mm when they drove them), unless they are most of their sweep's points in the
-    box (random scene 243: a blue laser on a brown fin, nearly all its stripe faint)."""
-    out = []
-    for c, m in zip(clouds, in_box, strict=True):
-        if c.faint is None or not c.faint.any():
-            out.append(m)
-            continue
-        own = m & ~c.faint
-        out.append(own if 2 * int(own.sum()) >= int(m.sum()) else m)
-    return out
 
 
 def _drop_skewed(clouds: list, ac: Mapping[str, Any]) -> tuple[dict[str, Any], np.ndarray]:

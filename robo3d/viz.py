@@ -66,6 +66,8 @@ MASK_CLASS = 1
 #: The colours that mean something everywhere in the view.
 MASK_RGBA = (40, 230, 120, 255)
 STRIPE_RGB = (0, 255, 255)
+#: Stripe centres found only by the faint search (:mod:`robo3d.stripes`, step 9): orange.
+FAINT_STRIPE_RGB = (255, 140, 0)
 
 
 def recording_id(rec_name: str) -> str:

@@ -331,11 +331,14 @@ def _log_rerun(path: str, rec_name: str, frames: list, cameras: list, poses: np.
                found: list, report: dict, max_images: int, sweep_of: np.ndarray) -> None:
     """The laser camera (``base/stripes/camera``) on a few evenly spaced frames that hold a
     stripe, each with its image (brightened for the screen: laser frames are dim) and its
-    stripe pixels over it, along the ``time``, ``frame`` and ``sweep`` timelines; the
+    stripe pixels over it (the faint search's in :data:`robo3d.viz.FAINT_STRIPE_RGB`),
+    along the ``time``, ``frame`` and ``sweep`` timelines; the
     stripe points of every frame as a scalar (``metrics/stripes/points``); the report."""
     import cv2
 
     from ..viz import (
+        FAINT_STRIPE_RGB,
+        STRIPE_RGB,
         display_gain,
         display_image,
         log_camera,
@@ -361,7 +364,10 @@ def _log_rerun(path: str, rec_name: str, frames: list, cameras: list, poses: np.
             if shown.ndim == 3:  # the decoder's RGB; the encoder takes BGR
                 shown = shown[..., ::-1]
             ok, jpeg = cv2.imencode(".jpg", shown, [cv2.IMWRITE_JPEG_QUALITY, 90])
+            # the faint search's centres (stripes module, step 9) in their own colour
+            colors = np.where(sp.faint[:, None], np.array(FAINT_STRIPE_RGB, np.uint8),
+                              np.array(STRIPE_RGB, np.uint8))
             log_camera(rr_stream, "base/stripes/camera", cameras[i], poses[i],
                        encoded=(jpeg.tobytes(), "image/jpeg") if ok else None,
-                       points_uv=sp.pixels_uv, static=False)
+                       points_uv=sp.pixels_uv, static=False, points_color=colors)
         log_report(rr_stream, "reports/stripes", {**report, "display_gain": round(gain, 2)})

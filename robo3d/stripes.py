@@ -569,8 +569,9 @@ class StripeOptions(Options):
         trade-off: ``benchmarks/results/front_end.json`` notes).
     faint_taps : int
         Ridge detector, mono frames whose noise sets the threshold: the frame is searched
-        again averaged over this many pixels along the stripe, for a faint stripe
-        (module docstring, step 9); 0 or 1: not.
+        again averaged over this many pixels along the stripe (odd; an even count is
+        taken as the next odd one), for a faint stripe (module docstring, step 9); 0 or
+        1: not.
     tail_fraction : float
         Soft threshold of the centre of gravity, relative to the peak height (not in the
         config).
@@ -2528,6 +2529,7 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
         return sp
     import cv2
 
+    taps = 2 * (taps // 2) + 1  # centred on the pixel: an even count is the next odd one
     g = 1.0 / np.sqrt(taps)
     # the mean along the stripe at three slopes across the lines (-0.5, 0, 0.5 px per
     # px), the largest of the three per pixel: a stripe up to 45 degrees off the lines,

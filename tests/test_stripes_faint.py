@@ -109,3 +109,11 @@ def test_faint_points_are_carried_to_the_clouds(tmp_path):
     assert [list(c.faint) for c in back] == [list(c.faint) for c in clouds]
     back[0].drop(np.arange(10) < 2, "test")
     assert list(back[0].faint) == [True] + [False] * 7
+
+
+@pytest.mark.parametrize("taps", [2, 4, 7])
+def test_any_count_of_taps_is_searched(taps):
+    """An even count is taken as the next odd one (the mean is centred on the pixel)."""
+    sp = extract_stripe_centres(_frame(20.0, 0), options=StripeOptions(axis="columns",
+                                                                        faint_taps=taps))
+    assert np.mean(np.abs(sp.v - _true_v(sp.u)) < 1.0) > 0.95 and len(sp) > 500

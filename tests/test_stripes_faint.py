@@ -117,3 +117,14 @@ def test_any_count_of_taps_is_searched(taps):
     sp = extract_stripe_centres(_frame(20.0, 0), options=StripeOptions(axis="columns",
                                                                         faint_taps=taps))
     assert np.mean(np.abs(sp.v - _true_v(sp.u)) < 1.0) > 0.95 and len(sp) > 500
+
+
+def test_a_faint_stripe_down_the_image_is_found_along_the_rows():
+    """The same 31-degree stripe transposed (59 degrees from the rows), one centre per
+    row: the mean runs along the columns then (measured: 635 of 640 rows, 99.5 % within
+    1 px; none without the second search)."""
+    img = np.ascontiguousarray(_frame(20.0, 0, slope=0.6).T)
+    sp = extract_stripe_centres(img, options=StripeOptions(axis="rows"))
+    off = extract_stripe_centres(img, options=StripeOptions(axis="rows", faint_taps=0))
+    assert len(off) < 20
+    assert len(sp) > 600 and np.mean(np.abs(sp.u - _true_v(sp.v, 0.6)) < 1.0) > 0.98

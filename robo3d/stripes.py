@@ -176,19 +176,22 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    beat the stripe (the figures: ``benchmarks/README.md``, "Notes moved from
    robo3d/stripes.py").
 
-9. A faint stripe in a noisy mono frame (``faint_taps``, 5 by default): where the
-   frame's noise sets the threshold (``6 sigma > min_peak``: a cheap monochrome sensor,
-   a dark object, a blue laser on brown) the frame is searched again averaged over
-   ``faint_taps`` pixels along its lines (a matched filter along the stripe: a straight
-   stripe keeps its height, the noise falls by ``sqrt(faint_taps)``, and so does the
-   threshold; the mean at three slopes, the largest per pixel), with curves at least
-   twice ``min_run`` long, along the first search's axis. Its centres in the lines the
-   first search left without one are added, confidence scaled by
+9. A faint stripe in a noisy frame (``faint_taps``, 5 by default): where the frame's
+   noise sets the threshold well above ``min_peak`` (``6 sigma > 1.5 min_peak``, sigma
+   of the laser's channel or the mono frame, interpolated within the integer levels: a
+   cheap sensor, a dark object, a laser the object barely reflects) the frame is
+   searched again averaged over ``faint_taps`` pixels along its lines (a matched filter
+   along the stripe: a straight stripe keeps its height, the noise falls by
+   ``sqrt(faint_taps)``, and so does the threshold; the mean at three slopes, the largest
+   per pixel and channel: an RGB frame's other channels at least as high as at the
+   stripe's slope, so its colour test is not loosened), with curves at least twice
+   ``min_run`` long, along the first search's axis and in its colour. Its centres in
+   the lines the first search left without one are added, confidence scaled by
    ``1 / sqrt(faint_taps)`` and flagged (``StripePoints.faint``), except those on
    texture (their 7 x 7 neighbourhood's standard deviation over 6 sigma: a faint stripe
    adds about 3; counted ``textured``) (:func:`_faint_stripe`; the stage reports
-   ``faint_points`` and ``frames_with_faint_points``). RGB frames are not searched so:
-   their colour tests decide there.
+   ``faint_points`` and ``frames_with_faint_points``). Not for the lightness of an RGB
+   frame (a white laser).
 
 Cost: one pass over the image reads the laser's channel (or the lightness) of each row
 once, into a ring of 13 rows (one centre per column) or a row buffer (per row: no
@@ -426,7 +429,7 @@ class StripePoints:
         ``"lightness"``), or ``""`` when not known.
     faint : (N,) bool
         The centre was found in the frame averaged along the stripe, in a line the first
-        search left without one (a faint stripe in a noisy mono frame: module docstring,
+        search left without one (a faint stripe in a noisy frame: module docstring,
         step 9); the rejection counts are the first search's (and ``textured``). All
         false when not given.
     """
@@ -568,10 +571,10 @@ class StripeOptions(Options):
         fades (hysteresis, module docstring step 3b). Off by default (the measured
         trade-off: ``benchmarks/results/front_end.json`` notes).
     faint_taps : int
-        Ridge detector, mono frames whose noise sets the threshold: the frame is searched
-        again averaged over this many pixels along the stripe (odd; an even count is
-        taken as the next odd one), for a faint stripe (module docstring, step 9); 0 or
-        1: not.
+        Ridge detector, frames whose noise sets the threshold (mono, or the laser's
+        channel): the frame is searched again averaged over this many pixels along the
+        stripe (odd; an even count is taken as the next odd one), for a faint stripe
+        (module docstring, step 9); 0 or 1: not.
     tail_fraction : float
         Soft threshold of the centre of gravity, relative to the peak height (not in the
         config).
@@ -2495,7 +2498,7 @@ def extract_stripe_centres(
                   min_run=int(o.min_run), link_px=float(o.link_px), roi=roi,
                   centre_on=o.centre_on, follow=bool(o.follow))
         sp = _extract_ridge(img, axis=o.axis, **kw)
-        if nch == 1 and o.faint_taps > 1:
+        if o.faint_taps > 1:
             sp = _faint_stripe(img, sp, int(o.faint_taps), kw)
         return _drop_wide(sp, float(o.max_width_rel))
     return _extract_band(img, o, min_peak_abs)
@@ -2503,29 +2506,39 @@ def extract_stripe_centres(
 
 def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, Any]
                   ) -> StripePoints:
-    """Step 9 of the module docstring: a faint stripe in a noisy mono frame, searched
-    again in the frame averaged over ``taps`` pixels along its lines' direction.
+    """Step 9 of the module docstring: a faint stripe in a noisy frame, searched again in
+    the frame averaged over ``taps`` pixels along its lines' direction.
 
-    Only where the frame's noise sets the threshold (``2 noise_k sigma > min_peak``: a
-    cheap monochrome sensor, a dark object, a blue laser on brown). The average of
-    ``taps`` pixels along the stripe keeps a straight stripe's height and divides the
-    noise by ``sqrt(taps)``, so the threshold falls by that much (the mean is taken at
-    three slopes across the lines, and the largest kept per pixel:
+    Only where the frame's noise sets the threshold well above ``min_peak`` (``2 noise_k
+    sigma > _FAINT_GAIN min_peak``, sigma of the mono frame or of the laser's channel:
+    a cheap sensor, a dark object, a blue laser on brown). The average of ``taps``
+    pixels along the stripe keeps a straight stripe's height and divides the noise by
+    ``sqrt(taps)``, so the threshold falls by that much (the mean is taken at three
+    slopes across the lines, and the largest kept per pixel and channel:
     :func:`_faint_kernels`); the curves must be twice ``min_run`` long. Along the
-    first search's axis (the stage fixes it from the laser's geometry). Its centres in
+    first search's axis (the stage fixes it from the laser's geometry), in its colour
+    (the colour tests apply to the averaged channels). Its centres in
     the lines the first search left without a centre are added (the first search's
     stay: a clear stripe is not averaged), with the confidence scaled by
     ``1 / sqrt(taps)`` and flagged ``faint``; those on texture are not
-    (:data:`_FAINT_MAX_SPREAD`). Measured (``benchmarks/README.md``, stop 42): a blue
-    laser on a brown fin seen by a monochrome camera (noise 4.2 DN, threshold 25 DN, the
-    stripe 12-40 DN high), 1.5 % of the true stripe's lines found before, 41 % after."""
+    (:data:`_FAINT_MAX_SPREAD`). Measured (``benchmarks/README.md``, stops 42 and 43): a
+    blue laser on a brown fin seen by a monochrome camera (noise 4.2 DN, threshold 25
+    DN, the stripe 12-40 DN high), 1.5 % of the true stripe's lines found before, 41 %
+    after; a red laser on a black torus in PNG colour frames (the stripe 7-24 DN), 29 %
+    -> 53 % of its one-pixel bins."""
     nch = img.shape[2]
-    if _fast8(img, _LIGHTNESS):
-        sigma = float(_noise8(img, _LIGHTNESS))
+    if nch == 1:
+        k, ch = _LIGHTNESS, 0
+    elif sp.colour in CONTRASTS[:3]:
+        k = ch = CONTRASTS.index(sp.colour)
+    else:  # the lightness of an RGB frame (a white laser): not searched so
+        return sp
+    if _fast8(img, k):
+        sigma = float(_noise8(img, k))
     else:
-        sigma = float(_noise_contrast(img, _LIGHTNESS, False))
+        sigma = float(_noise_contrast(img, k, False))
     noise_k, min_peak = float(kw["noise_k"]), float(kw["min_peak"])
-    if not 2.0 * noise_k * sigma > min_peak or nch != 1:
+    if not 2.0 * noise_k * _smooth_sigma(img[:, :, ch]) > _FAINT_GAIN * min_peak:
         return sp
     import cv2
 
@@ -2534,9 +2547,13 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     # the mean along the stripe at three slopes across the lines (-0.5, 0, 0.5 px per
     # px), the largest of the three per pixel: a stripe up to 45 degrees off the lines,
     # or bent, meets one of them within a quarter pixel per pixel
+    # (an RGB frame's channels each take their own largest mean: the laser's channel
+    # its stripe's slope, the others at least as much as at that slope, so that the
+    # colour test, the laser's channel rising more than the others, is not loosened)
     smooth = None
     for kernel in _faint_kernels(taps, sp.axis == "columns"):
-        m = cv2.filter2D(img[:, :, 0], -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        m = cv2.filter2D(img[:, :, 0] if nch == 1 else img, -1, kernel,
+                         borderType=cv2.BORDER_REPLICATE)
         smooth = m if smooth is None else np.maximum(smooth, m)
     smooth = np.ascontiguousarray(smooth.reshape(img.shape))
     # the threshold from the frame's own noise (the smoothed frame's differences along
@@ -2544,11 +2561,11 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     thr = max(min_peak, 2.0 * noise_k * sigma * g)
     sp2 = _extract_ridge_axis(smooth, axis=sp.axis, **{
         **kw, "min_peak": thr, "noise_k": 0.0, "min_run": 2 * int(kw["min_run"]),
-        "follow": False})
+        "follow": False, "colour": sp.colour if nch == 3 else kw["colour"]})
     # a stripe faint enough to need this adds about 3 sigma at most to the spread of its
     # neighbourhood; more is texture (a marker's cells, a print), whose edges the
     # averaged search can take for a stripe
-    spread = _local_spread(img[:, :, 0], sp2.u, sp2.v, _FAINT_SPREAD_HALF)
+    spread = _local_spread(img[:, :, ch], sp2.u, sp2.v, _FAINT_SPREAD_HALF)
     textured = spread > _FAINT_MAX_SPREAD * sigma
     # only the lines the first search left without a centre: its own centres stay
     add = ~textured & ~np.isin(sp2.line, sp.line)
@@ -2572,6 +2589,12 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
                         faint=np.concatenate([sp.faint, np.ones(int(add.sum()), bool)])[order])
 
 
+#: :func:`_faint_stripe` runs only where the frame's noise sets a threshold this many
+#: times ``min_peak`` or more: there the average lowers it by a third or more. Below, it
+#: gains little and costs much: the ambient-lit speed frames (1280 x 960 RGB, noise 1.0-1.6
+#: grey levels, threshold 6.3-9.4) took 1.3 -> 2.9 ms per frame for 0.3 centres more.
+_FAINT_GAIN = 1.5
+
 #: :func:`_faint_stripe`'s texture test: a centre whose (2 h + 1)^2 neighbourhood in the
 #: frame (h = 3) spreads more than this many noise sigmas (its standard deviation) lies
 #: on texture. Measured on random scenes 142 and 243 (markers, a checker print): 89 % of
@@ -2579,6 +2602,31 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
 #: within 1.5 px of it.
 _FAINT_MAX_SPREAD = 6.0
 _FAINT_SPREAD_HALF = 3
+
+
+def _smooth_sigma(channel: np.ndarray) -> float:
+    """The noise sigma of a 2-D image as :func:`_noise8` samples it (the median absolute
+    difference of vertically adjacent pixels on a 64 x 64 grid), the median of integer
+    differences interpolated within its bin (grouped data): the detector's own estimate
+    jumps between 1.05 and 2.1 grey levels where the true sigma is about 1.5, and
+    :func:`_faint_stripe`'s gate must not follow that jump."""
+    h, w = channel.shape
+    if h < 2 or w == 0:
+        return 0.0
+    n_r, n_c = min(h - 1, 64), min(w, 64)
+    r = ((h - 1) * (np.arange(n_r) + 0.5) / n_r).astype(np.int64)
+    c = (w * (np.arange(n_c) + 0.5) / n_c).astype(np.int64)
+    d = np.abs(channel[r + 1][:, c].astype(np.float64) - channel[r][:, c]).ravel()
+    if not np.issubdtype(channel.dtype, np.integer):
+        return float(1.4826 * np.median(d) / np.sqrt(2.0))
+    counts = np.bincount(d.astype(np.int64))
+    cum = np.cumsum(counts)
+    half = d.size / 2.0
+    v = int(np.searchsorted(cum, half, side="right"))  # the bin holding the median
+    below = cum[v - 1] if v > 0 else 0
+    lo, width = (0.0, 0.5) if v == 0 else (v - 0.5, 1.0)
+    med = lo + (half - below) / max(counts[v], 1) * width
+    return float(1.4826 * med / np.sqrt(2.0))
 
 
 def _local_spread(img: np.ndarray, u: np.ndarray, v: np.ndarray, half: int) -> np.ndarray:

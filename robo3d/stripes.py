@@ -2572,11 +2572,12 @@ def _faint_stripe(img: np.ndarray, sp: StripePoints, taps: int, kw: dict[str, An
     spread = _local_spread(img[:, :, ch], sp2.u, sp2.v, _FAINT_SPREAD_HALF)
     textured = spread > _FAINT_MAX_SPREAD * sigma
     # only the lines the first search left without a centre: its own centres stay
-    add = ~textured & ~np.isin(sp2.line, sp.line)
+    empty_line = ~np.isin(sp2.line, sp.line)
+    add = ~textured & empty_line
     if not add.any():
         return sp
     rejected = dict(sp.rejected)
-    rejected["textured"] += int(np.count_nonzero(textured & ~np.isin(sp2.line, sp.line)))
+    rejected["textured"] += int(np.count_nonzero(textured & empty_line))
     line = np.concatenate([sp.line, sp2.line[add]])
     order = np.argsort(line, kind="stable")
 
@@ -2621,12 +2622,10 @@ def _smooth_sigma(channel: np.ndarray) -> float:
     h, w = channel.shape
     if h < 2 or w == 0:
         return 0.0
-    n_r, n_c = min(h - 1, 64), min(w, 64)
-    r = ((h - 1) * (np.arange(n_r) + 0.5) / n_r).astype(np.int64)
-    c = (w * (np.arange(n_c) + 0.5) / n_c).astype(np.int64)
+    r, c = _noise_grid.py_func(h, w)  # the detector's samples (64 of each: no kernel)
     d = np.abs(channel[np.ix_(r + 1, c)].astype(np.float64) - channel[np.ix_(r, c)]).ravel()
     if not np.issubdtype(channel.dtype, np.integer):
-        return float(1.4826 * np.median(d) / np.sqrt(2.0))
+        return float(_mad_sigma.py_func(d))
     counts = np.bincount(d.astype(np.int64))
     cum = np.cumsum(counts)
     half = d.size / 2.0

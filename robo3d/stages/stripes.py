@@ -75,7 +75,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          "the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
-    # centres found only in the frame averaged along the stripe (faint, noisy mono frames)
+    # centres found only in the frame averaged along the stripe (faint, noisy frames)
     n_faint = [int(np.count_nonzero(sp.faint)) for sp in found]
     report["faint_points"] = int(sum(n_faint))
     report["frames_with_faint_points"] = int(sum(n > 0 for n in n_faint))

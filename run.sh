@@ -103,8 +103,9 @@ case "$cmd" in
   test)
     # two workers (the machine the suite is sized for has 2 cores), one file at a time each,
     # handed out longest first (tests/conftest.py; xdist's own reorder by test count off);
-    # the kernels compiled once first, not by each of the end-to-end tests' jobs at once
-    .venv/bin/robo3d warm-up
+    # the kernels compiled once first, not by each of the end-to-end tests' jobs at once;
+    # the 16-bit and float frames' too, which the stripe tests use, on the second core
+    .venv/bin/robo3d warm-up --all-types
     exec .venv/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder "$@"
     ;;
   *)

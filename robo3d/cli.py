@@ -409,6 +409,9 @@ def _add_warm_up(p: argparse.ArgumentParser) -> None:
     p.add_argument("--processes", type=int, default=2,
                    help="compile the detector, the carver and the geometry side by side in "
                         "this many processes (default 2; 1: one after the other)")
+    p.add_argument("--all-types", action="store_true",
+                   help="also the detector on 16-bit and float frames and with its other "
+                        "methods (band, gaussian): the test suite's stripe tests use them")
 
 
 def _run_warm_up(args: argparse.Namespace) -> int:
@@ -416,9 +419,10 @@ def _run_warm_up(args: argparse.Namespace) -> int:
 
     _log.info("compiling the numba kernels, or loading them from the cache (tens of seconds "
               "the first time after an install, about a second after)")
-    t = compile_kernels(args.processes)
-    _log.info("kernels compiled or loaded from the cache in %.1f s (stripe detector %.1f s, "
-              "carver %.1f s, geometry %.1f s)", t["total"], t["stripes"], t["carver"],
+    t = compile_kernels(args.processes, all_types=args.all_types)
+    other = (f", other image types {t['stripes_other']:.1f} s" if "stripes_other" in t else "")
+    _log.info("kernels compiled or loaded from the cache in %.1f s (stripe detector %.1f s%s, "
+              "carver %.1f s, geometry %.1f s)", t["total"], t["stripes"], other, t["carver"],
               t["geometry"])
     return 0
 

@@ -15,7 +15,11 @@ ways its stage does (a kernel is compiled once per argument types):
 ``tests/test_warmup.py`` checks that the stages' calls then compile nothing.
 
 Only the image types a recording's laser frames decode to (8-bit RGB and mono) are
-compiled; other types (16-bit, float) compile at their first use.
+compiled by default; other types (16-bit, float) and the other detector and centre
+methods compile at their first use, or with ``robo3d warm-up --all-types`` (about 75 s of
+CPU more, in a process of its own beside the 8-bit detector's: ``./run.sh test`` uses it,
+as the stripe tests call every type; on the idle second core it added nothing to the
+warm-up's 95 s and took 77 s off the suite's, measured on a 2-core Intel Xeon, stop 44).
 """
 
 from __future__ import annotations
@@ -66,6 +70,38 @@ def _stripes() -> float:
     return time.perf_counter() - t0
 
 
+def _stripes_other_types() -> float:
+    """The detector on the frames the default warm-up leaves out: 16-bit and float, mono
+    and RGB, and 8-bit with the band detector or the Gaussian centre, each the line both
+    ways and the axis free or fixed; and a colour curve followed where it fades
+    (``follow``)."""
+    from .stripes import StripeOptions, extract_stripe_centres
+
+    t0 = time.perf_counter()
+    u8 = tiny_stripe_frame()
+    rgb8 = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
+    images = [(u8.astype(np.float32) / 255.0, 0.04), (u8.astype(np.uint16) * 257, 10.0 * 257),
+              (rgb8.astype(np.float32) / 255.0, 0.02), (rgb8.astype(np.uint16) * 257, 5.0 * 257),
+              (rgb8, 5.0), (np.repeat(u8[..., None], 3, axis=2), 5.0), (u8, 5.0)]
+    for img, min_peak in images:
+        eight = img.dtype == np.uint8
+        for detector, method in product(("ridge", "band"), ("cog", "gaussian")):
+            if eight and detector == "ridge" and method == "cog":
+                continue  # the default warm-up's (_stripes)
+            for im, axis in product((img, np.ascontiguousarray(np.swapaxes(img, 0, 1))),
+                                    ("auto", "columns", "rows")):
+                extract_stripe_centres(im, options=StripeOptions(
+                    detector=detector, method=method, axis=axis, min_peak=min_peak))
+    fade = rgb8.copy()  # the stripe's colour lost from column 40 on: a curve to follow
+    fade[:, 40:, 1] = fade[:, 40:, 2] = fade[:, 40:, 0]
+    for (img, min_peak), axis in product(((fade, 5.0), (fade.astype(np.uint16) * 257,
+                                          5.0 * 257)), ("columns", "rows")):
+        im = img if axis == "columns" else np.ascontiguousarray(np.swapaxes(img, 0, 1))
+        extract_stripe_centres(im, options=StripeOptions(
+            colour="red", axis=axis, centre_on="laser", follow=True, min_peak=min_peak))
+    return time.perf_counter() - t0
+
+
 def _carver() -> float:
     from .octree import warm_up
 
@@ -94,7 +130,7 @@ def _geometry() -> float:
     return time.perf_counter() - t0
 
 
-def compile_kernels(processes: int = 2) -> dict[str, float]:
+def compile_kernels(processes: int = 2, all_types: bool = False) -> dict[str, float]:
     """Compile (or load from the cache) the detector's, the carver's and the geometry's
     (triangulation, silhouette term) kernels.
 
@@ -102,15 +138,21 @@ def compile_kernels(processes: int = 2) -> dict[str, float]:
     ----------
     processes : int
         Side by side in this many processes (1: one after the other, in this one).
+    all_types : bool
+        Also the detector on 16-bit and float frames and with its other methods
+        (``stripes_other``), second, beside the 8-bit detector.
 
     Returns
     -------
     dict
-        Seconds each part took (``stripes``, ``carver``, ``geometry``) and in all
-        (``total``).
+        Seconds each part took (``stripes``, ``carver``, ``geometry``, and
+        ``stripes_other`` when asked) and in all (``total``).
     """
     t0 = time.perf_counter()
     parts = {"stripes": _stripes, "carver": _carver, "geometry": _geometry}
+    if all_types:  # second in line: the longest after the 8-bit detector
+        parts = {"stripes": _stripes, "stripes_other": _stripes_other_types,
+                 "carver": _carver, "geometry": _geometry}
     if processes <= 1:
         out = {name: fn() for name, fn in parts.items()}
     else:

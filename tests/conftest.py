@@ -18,8 +18,10 @@ it off (e.g. to time the suite without it).
 
 Under pytest-xdist (``./run.sh test`` runs two workers, one test file per worker at a
 time) both cores are the tests' own, so there is no warm-up process here: ``./run.sh
-test`` runs ``robo3d warm-up`` before pytest (the 8-bit kernels, which the end-to-end
-tests' many jobs would otherwise each compile at once); instead the longest files
+test`` runs ``robo3d warm-up --all-types`` before pytest (the 8-bit kernels, which the
+end-to-end tests' many jobs would otherwise each compile at once, and on the second core
+the 16-bit and float frames' and the other methods', which the stripe tests would
+compile one after another); instead the longest files
 (the end-to-end workflow runs, minutes each) are handed out first, so that they run
 beside the many short files instead of after them.
 """
@@ -32,42 +34,16 @@ import sys
 
 import pytest
 
-#: What the background process runs: the public entry points on tiny images of each type
-#: and both line directions, so that each kernel is compiled with the types the tests
-#: give it. Least niceness priority: it only uses a core the tests leave idle.
+#: What the background process runs: :mod:`robo3d.warmup`'s parts, the image types and
+#: methods the later tests use first (``robo3d warm-up --all-types``), the 8-bit frames
+#: that the first tests compile themselves last. Least niceness priority: it only uses a
+#: core the tests leave idle.
 WARM_UP = r"""
 import os
 os.nice(10)
-import numpy as np
-from robo3d.stripes import StripeOptions, extract_stripe_centres
-from robo3d.warmup import tiny_stripe_frame
-
-u8 = tiny_stripe_frame()
-images = [
-    (u8.astype(np.float32) / 255.0, 0.04),
-    (u8.astype(np.uint16) * 257, 10.0 * 257),
-    (np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1), 5.0),
-    (np.repeat(u8[..., None], 3, axis=2), 5.0),
-    (u8, 5.0),
-]
-for img, min_peak in images:
-    for detector in ("ridge", "band"):
-        for axis in ("auto", "columns", "rows"):
-            for method in ("cog", "gaussian"):
-                opts = StripeOptions(detector=detector, axis=axis, method=method,
-                                     min_peak=min_peak)
-                try:
-                    extract_stripe_centres(img, options=opts)
-                    extract_stripe_centres(img.T.copy() if img.ndim == 2 else
-                                           np.ascontiguousarray(img.transpose(1, 0, 2)),
-                                           options=opts)
-                except Exception:
-                    pass  # a combination the detector refuses: nothing to compile
-try:
-    from robo3d.octree import warm_up
-    warm_up()
-except Exception:
-    pass
+from robo3d import warmup
+warmup._stripes_other_types()
+warmup.compile_kernels(1)
 """
 
 #: Test modules that call the stripe detector with image types the first tests do not.

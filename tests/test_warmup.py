@@ -71,6 +71,29 @@ def test_the_stages_calls_need_no_compilation_after_the_warm_up():
     assert {k: v for k, v in after.items() if v != before.get(k)} == {}
 
 
+def test_all_types_covers_deeper_and_float_frames_and_the_other_methods():
+    """``--all-types`` (``./run.sh test`` uses it): 16-bit and float frames, the band
+    detector, the Gaussian centre and a followed curve then compile nothing new."""
+    from robo3d import stripes
+    from robo3d.warmup import compile_kernels, tiny_stripe_frame
+
+    t = compile_kernels(processes=1, all_types=True)
+    assert t["stripes_other"] > 0
+    before = _signatures()
+    u8 = np.kron(tiny_stripe_frame(), np.ones((3, 3), np.uint8))
+    rgb = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
+    calls = [(u8.astype(np.float64) / 255.0, dict(method="gaussian", min_peak=0.04)),
+             (u8.astype(np.uint16) * 257, dict(detector="band", min_peak=2570.0)),
+             (rgb.astype(np.float32) / 255.0, dict(axis="columns", min_peak=0.02)),
+             (np.ascontiguousarray(np.swapaxes(rgb, 0, 1)).astype(np.uint16) * 257,
+              dict(colour="red", axis="rows", centre_on="laser", follow=True,
+                   min_peak=1285.0))]
+    for img, kw in calls:
+        assert len(stripes.extract_stripe_centres(img, options=stripes.StripeOptions(**kw)))
+    after = _signatures()
+    assert {k: v for k, v in after.items() if v != before.get(k)} == {}
+
+
 def test_warm_up_command(caplog):
     caplog.set_level("INFO")
     assert main(["warm-up", "--processes", "1"]) == 0

@@ -710,6 +710,10 @@ def _rescue_with_views(result: AlignmentResult, n_s: int, active: list[int],
     return active, pairs, saved
 
 
+#: the views hold the refinement's gauge with at least this many contour residuals
+_MIN_RIM_GAUGE = 30
+
+
 def _keep_all(result: AlignmentResult, n_s: int, why: str | None = None) -> None:
     """Every sweep flagged (before the refinement, or by its guards): all stay at the
     robot's poses."""
@@ -796,14 +800,24 @@ def _refine_guarded(result: AlignmentResult, pts, nrms, origins, profiles, silho
         if silhouettes is not None:
             ref, starts = _refine_two_starts(pts, nrms, origins, pairs, silhouettes, kw, o)
             if ref.gauge != "silhouettes":  # too few contour points: no absolute reference
+                n_rim = int(ref.silhouettes.get("n_rim") or 0)
                 ref = None
                 if saved:  # the rescued sweeps go back to the pose graph's verdict
-                    for s_, why in saved.items():
-                        result.per_sweep[s_].update(flagged=True, reason=why)
+                    for s_, why in saved.items():  # (and the views' on them, if any)
+                        then = result.per_sweep[s_].get("reason") or ""
+                        result.per_sweep[s_].update(flagged=True, reason=why + (
+                            f"; against the views: {then}" if then else ""))
                     active = [s_ for s_ in pg[0] if s_ in active]
                     pairs, saved = pg[1], {}
                     if not active:
-                        _keep_all(result, n_s)
+                        # not "flagged before the refinement": it ran, and what the
+                        # views confirmed was too little to hold the gauge alone
+                        why = (f"refined against the views, the sweeps left had "
+                               f"{n_rim} silhouette contour residuals (fewer than "
+                               f"{_MIN_RIM_GAUGE}: no absolute reference) and no "
+                               f"accepted pair: every sweep kept at the robot's pose")
+                        log.warning("refinement: %s", why)
+                        _keep_all(result, n_s, why)
                         return
                     kw["active"] = active
                 log.warning("refinement: too few silhouette residuals; the sweeps' priors "
@@ -2229,7 +2243,7 @@ def _refinement_result(rot, trans, converged: bool, it: int, rim_stats, degen, i
            "rms_px": float(np.sqrt(np.mean(all_rim**2))) if len(all_rim) else None,
            "median_px": float(np.median(all_rim)) if len(all_rim) else None,
            "sigma_px": float(sigma_s) if len(all_rim) else None}
-    gauge = ("silhouettes" if len(all_rim) >= 30 else
+    gauge = ("silhouettes" if len(all_rim) >= _MIN_RIM_GAUGE else
              f"fixed sweeps {fixed}" if fixed else "prior")
     for s in range(n_s):
         if s not in act:

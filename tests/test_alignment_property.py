@@ -330,3 +330,35 @@ def test_one_sweep_stays_at_the_robot_pose_when_the_views_do_not_confirm_it():
         seed=1, views_only_max_rim_rms_px=5.0), **kw)
     assert not loose.per_sweep[0]["flagged"]
     assert 1.0 < loose.per_sweep[0]["rim_rms_px"] < 5.0
+
+
+def test_sweeps_without_a_pair_and_too_few_contour_residuals_say_why(monkeypatch):
+    """No pair of sweeps overlaps (a sparse scan) and their refinement against the views
+    finds too few contour residuals to hold the gauge (the bracket's flat faces): every
+    sweep stays at the robot's pose, and the report says that the refinement ran and
+    why it was not used, not that every sweep was flagged before it (random scene 290,
+    stop 44, where the views' own verdicts on two of its sweeps were lost too: they now
+    follow the pose graph's reason)."""
+    import robo3d.registration as reg
+
+    sweeps, views = _scan("bracket", 2, 8, 30, 1)
+    pts, nrm = [s[0] for s in sweeps], [s[1] for s in sweeps]
+    kw = dict(origins=[s[2] for s in sweeps], profiles=[s[3] for s in sweeps])
+    real = reg._register_pairs
+
+    def apart(*a, **k):  # as if the sweeps did not overlap
+        pairs, _ = real(*a, **k)
+        for p in pairs:
+            p.update(accepted=False, used=False, reason="overlap 0.002 < min_overlap 0.05")
+        return pairs, {}
+
+    monkeypatch.setattr(reg, "_register_pairs", apart)
+    res = align_sweeps(pts, nrm, options=AlignOptions(seed=1), silhouettes=views, **kw)
+    before = [_rms_mm(s[0], s[4]) for s in sweeps]
+    after = [_rms_mm(res.apply(k, s[0], s[2])[0], s[4]) for k, s in enumerate(sweeps)]
+    assert after == pytest.approx(before)  # the robot's poses
+    assert all(p["flagged"] and p["reason"].startswith("no accepted pair")
+               for p in res.per_sweep), res.per_sweep
+    why = res.refinement["skipped"]
+    assert "refined against the views" in why and "contour residuals" in why, why
+    assert "had 24 silhouette contour residuals (fewer than 30" in why, why

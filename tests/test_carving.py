@@ -844,6 +844,19 @@ def test_stage_carve_with_laser_frames_leaves_an_empty_hull_not_an_error(tmp_pat
     assert grid.n_occupied == 0 and "removed every voxel" in str(extra["empty"])
     V, F = read_mesh(out["ply"])
     assert len(V) == 0 and len(F) == 0
+    # the views left out before carving are still named in an empty hull's report and
+    # hull.npz (before, an empty hull listed none: random scene 299, stop 44)
+    ms3 = list(ms)
+    ms3[3] = np.zeros_like(ms[3])
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, ms3, box)
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s",
+                         has_laser=True)
+    assert report["empty"] is True and 3 not in report["views_used"]
+    rows = {r["view"]: r["reasons"] for r in report["views_left_out"]}
+    assert any("empty mask" in r for r in rows[3]), rows
+    assert not set(rows) & set(report["views_used"])  # the others' verdicts too
+    _grid, extra = VoxelGrid.load_npz(out["npz"], return_extra=True)
+    assert "empty mask" in str(extra["views_left_out"])
     # every mask empty: the same
     _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, [np.zeros_like(m) for m in ms], box)
     report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s",

@@ -86,9 +86,13 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
                                                       "failed in this view")
     left_out = sorted(set(left_out) | set(empty))
     used = [i for i in range(n_views) if i not in set(left_out)]
+    left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
+                     for i in left_out]
+    # an empty hull still says which views were left out and flagged, and why
+    views_kw = dict(left_out_rows=left_out_rows, flagged=agreement["flagged"])
     if not used:
         return no_hull(f"no view is left to carve: {n_views} views, all with empty or "
-                       "disagreeing masks")
+                       "disagreeing masks", **views_kw)
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
         box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
@@ -99,10 +103,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     if grid.n_occupied == 0:
         return no_hull("carving removed every voxel: the silhouettes do not agree with the "
                        "cameras' poses (check the calibration, the transform tree and the "
-                       "masks)", grid=grid, views_used=used)
+                       "masks)", grid=grid, views_used=used, **views_kw)
     vertices, faces = hull_to_mesh(grid, smooth_sigma_vox=cc["smooth_sigma_vox"])
-    left_out_rows = [{"view": i, "reasons": agreement["reasons"].get(i, [])}
-                     for i in left_out]
     report = _hull_report(grid, vertices, faces, [cameras[i] for i in used], poses[used],
                           box=(box_min, box_max, box_report), method=opts.method,
                           n_views=n_views, used=used, left_out_rows=left_out_rows,
@@ -125,7 +127,9 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
 def _no_hull(outputs: Mapping[str, str], rec_name: str, sil: Mapping[str, Any], why: str,
              t0: float, grid: VoxelGrid | None = None,
-             views_used: list[int] | None = None) -> dict[str, Any]:
+             views_used: list[int] | None = None,
+             left_out_rows: list[dict[str, Any]] | None = None,
+             flagged: list[int] | None = None) -> dict[str, Any]:
     """A scan with laser frames whose silhouettes carve nothing (objects of the
     background's colours, masks that fail in every view): the laser's measurement does
     not depend on them. An empty hull (``hull.npz`` with no occupied voxel, ``empty``;
@@ -143,11 +147,11 @@ def _no_hull(outputs: Mapping[str, str], rec_name: str, sil: Mapping[str, Any], 
     grid.occupancy[...] = False
     report = {"empty": True, "reason": why, "occupied_voxels": 0, "volume_m3": 0.0,
               "n_views": int(len(sil["masks"])), "views_used": views_used or [],
-              "views_left_out": [], "views_flagged": [],
+              "views_left_out": left_out_rows or [], "views_flagged": flagged or [],
               "mesh": {"vertices": 0, "faces": 0, "volume_m3": 0.0},
               "seconds": round(time.perf_counter() - t0, 3)}
     grid.save_npz(outputs["npz"], views_used=np.array(views_used or [], dtype=np.int64),
-                  views_left_out=[], empty=why)
+                  views_left_out=left_out_rows or [], empty=why)
     write_mesh(outputs["ply"], np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     with rerun_log(outputs["rrd"], rec_name) as rr_stream:
         log_report(rr_stream, "reports/carve", report)

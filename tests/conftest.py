@@ -65,11 +65,13 @@ def pytest_collection_finish(session: pytest.Session) -> None:
                              stderr=subprocess.DEVNULL)
 
 
-#: The files that take longest, longest first (seconds on a 2-core AMD EPYC, stop 33:
-#: workflow 220+, slurm 160, simplify 67, resume 66, stripes 63); the others follow in
-#: collection order.
-_LONGEST_FIRST = ("test_workflow.py", "test_slurm.py", "test_simplify.py", "test_resume.py",
-                  "test_stripes.py", "test_fusion.py", "test_alignment_property.py")
+#: The files that take longest, longest first (seconds on a 2-core Intel Xeon, stop 44,
+#: the two first side by side: workflow 160 + 35, slurm 188, the failed silhouettes 42,
+#: resume 36, then simplify); the others follow in collection order. The stripe tests
+#: were here while they compiled their kernels (``robo3d warm-up --all-types`` now does).
+_LONGEST_FIRST = ("test_workflow.py", "test_slurm.py", "test_workflow_failed_silhouettes.py",
+                  "test_resume.py", "test_simplify.py", "test_fusion.py",
+                  "test_alignment_property.py")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

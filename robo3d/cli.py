@@ -420,7 +420,8 @@ def _run_warm_up(args: argparse.Namespace) -> int:
     _log.info("compiling the numba kernels, or loading them from the cache (tens of seconds "
               "the first time after an install, about a second after)")
     t = compile_kernels(args.processes, all_types=args.all_types)
-    other = (f", other image types {t['stripes_other']:.1f} s" if "stripes_other" in t else "")
+    other = (f", 16-bit and float frames {t['stripes_deep']:.1f} s, other methods "
+             f"{t['stripes_methods']:.1f} s" if "stripes_deep" in t else "")
     _log.info("kernels compiled or loaded from the cache in %.1f s (stripe detector %.1f s%s, "
               "carver %.1f s, geometry %.1f s)", t["total"], t["stripes"], other, t["carver"],
               t["geometry"])

@@ -16,10 +16,11 @@ ways its stage does (a kernel is compiled once per argument types):
 
 Only the image types a recording's laser frames decode to (8-bit RGB and mono) are
 compiled by default; other types (16-bit, float) and the other detector and centre
-methods compile at their first use, or with ``robo3d warm-up --all-types`` (about 75 s of
-CPU more, in a process of its own beside the 8-bit detector's: ``./run.sh test`` uses it,
-as the stripe tests call every type; on the idle second core it added nothing to the
-warm-up's 95 s and took 77 s off the suite's, measured on a 2-core Intel Xeon, stop 44).
+methods compile at their first use, or with ``robo3d warm-up --all-types`` (about 100 s
+of CPU more: the 16-bit and float frames beside the 8-bit detector, the other methods
+after it; ``./run.sh test`` uses it, as the stripe tests call every type. Measured on a
+2-core Intel Xeon with a cold cache, stop 44: 95 s without it, 99 s with it, and the
+stripe tests no longer spend 77 s compiling).
 """
 
 from __future__ import annotations
@@ -70,36 +71,51 @@ def _stripes() -> float:
     return time.perf_counter() - t0
 
 
-def _stripes_other_types() -> float:
-    """The detector on the frames the default warm-up leaves out: 16-bit and float, mono
-    and RGB, and 8-bit with the band detector or the Gaussian centre, each the line both
+def _other_frames(deep: bool) -> list[tuple[np.ndarray, float]]:
+    """The frames the default warm-up leaves out, with their ``min_peak``: 16-bit and
+    float, mono and RGB (``deep``), or 8-bit RGB, grey RGB and mono (for the other
+    methods)."""
+    u8 = tiny_stripe_frame()
+    rgb8 = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
+    if deep:
+        return [(u8.astype(np.float32) / 255.0, 0.04), (u8.astype(np.uint16) * 257, 2570.0),
+                (rgb8.astype(np.float32) / 255.0, 0.02), (rgb8.astype(np.uint16) * 257, 1285.0)]
+    return [(rgb8, 5.0), (np.repeat(u8[..., None], 3, axis=2), 5.0), (u8, 5.0)]
+
+
+def _stripes_other(deep: bool) -> float:
+    """The detector on the frames of :func:`_other_frames` with each detector and centre
+    method (on 8-bit frames all but the default's, :func:`_stripes`), each the line both
     ways and the axis free or fixed; and a colour curve followed where it fades
-    (``follow``)."""
+    (``follow``) in 8 bits or 16."""
     from .stripes import StripeOptions, extract_stripe_centres
 
     t0 = time.perf_counter()
-    u8 = tiny_stripe_frame()
-    rgb8 = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
-    images = [(u8.astype(np.float32) / 255.0, 0.04), (u8.astype(np.uint16) * 257, 10.0 * 257),
-              (rgb8.astype(np.float32) / 255.0, 0.02), (rgb8.astype(np.uint16) * 257, 5.0 * 257),
-              (rgb8, 5.0), (np.repeat(u8[..., None], 3, axis=2), 5.0), (u8, 5.0)]
-    for img, min_peak in images:
-        eight = img.dtype == np.uint8
+    for img, min_peak in _other_frames(deep):
         for detector, method in product(("ridge", "band"), ("cog", "gaussian")):
-            if eight and detector == "ridge" and method == "cog":
+            if not deep and detector == "ridge" and method == "cog":
                 continue  # the default warm-up's (_stripes)
             for im, axis in product((img, np.ascontiguousarray(np.swapaxes(img, 0, 1))),
                                     ("auto", "columns", "rows")):
                 extract_stripe_centres(im, options=StripeOptions(
                     detector=detector, method=method, axis=axis, min_peak=min_peak))
-    fade = rgb8.copy()  # the stripe's colour lost from column 40 on: a curve to follow
-    fade[:, 40:, 1] = fade[:, 40:, 2] = fade[:, 40:, 0]
-    for (img, min_peak), axis in product(((fade, 5.0), (fade.astype(np.uint16) * 257,
-                                          5.0 * 257)), ("columns", "rows")):
+    u8 = tiny_stripe_frame()
+    fade = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
+    fade[:, 40:, 1] = fade[:, 40:, 2] = fade[:, 40:, 0]  # its colour lost from column 40
+    img, min_peak = (fade.astype(np.uint16) * 257, 1285.0) if deep else (fade, 5.0)
+    for axis in ("columns", "rows"):
         im = img if axis == "columns" else np.ascontiguousarray(np.swapaxes(img, 0, 1))
         extract_stripe_centres(im, options=StripeOptions(
             colour="red", axis=axis, centre_on="laser", follow=True, min_peak=min_peak))
     return time.perf_counter() - t0
+
+
+def _stripes_deep() -> float:
+    return _stripes_other(True)
+
+
+def _stripes_methods() -> float:
+    return _stripes_other(False)
 
 
 def _carver() -> float:
@@ -139,20 +155,25 @@ def compile_kernels(processes: int = 2, all_types: bool = False) -> dict[str, fl
     processes : int
         Side by side in this many processes (1: one after the other, in this one).
     all_types : bool
-        Also the detector on 16-bit and float frames and with its other methods
-        (``stripes_other``), second, beside the 8-bit detector.
+        Also the detector on 16-bit and float frames (``stripes_deep``) and with its
+        other methods (``stripes_methods``), beside the 8-bit detector.
 
     Returns
     -------
     dict
         Seconds each part took (``stripes``, ``carver``, ``geometry``, and
-        ``stripes_other`` when asked) and in all (``total``).
+        ``stripes_deep``, ``stripes_methods`` when asked) and in all (``total``).
     """
     t0 = time.perf_counter()
     parts = {"stripes": _stripes, "carver": _carver, "geometry": _geometry}
-    if all_types:  # second in line: the longest after the 8-bit detector
-        parts = {"stripes": _stripes, "stripes_other": _stripes_other_types,
-                 "carver": _carver, "geometry": _geometry}
+    if all_types:
+        # in this order two processes share it evenly: the 8-bit detector (82 s of a cold
+        # cache on a 2-core Intel Xeon) and then its other methods (21 s, reusing its
+        # kernels) in one, the 16-bit and float frames (about 90 s) and then the rest in
+        # the other
+        parts = {"stripes": _stripes, "stripes_deep": _stripes_deep,
+                 "stripes_methods": _stripes_methods, "carver": _carver,
+                 "geometry": _geometry}
     if processes <= 1:
         out = {name: fn() for name, fn in parts.items()}
     else:

@@ -42,7 +42,8 @@ WARM_UP = r"""
 import os
 os.nice(10)
 from robo3d import warmup
-warmup._stripes_other_types()
+warmup._stripes_deep()
+warmup._stripes_methods()
 warmup.compile_kernels(1)
 """
 

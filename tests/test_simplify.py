@@ -336,6 +336,14 @@ def test_inferred_surface_has_its_own_looser_bound():
     # a bound tighter than the measured one is not used; None is the measured one
     assert opts.replace(inferred_tolerance_m=0.1e-3).inferred_bound_m == 0.2e-3
     assert opts.replace(inferred_tolerance_m=None).inferred_bound_m == 0.2e-3
+    # ... and never tighter than half the hull's voxel, the hull's own resolution
+    assert opts.replace(hull_voxel_m=0.8e-3).inferred_bound_m == 0.5e-3
+    assert opts.replace(hull_voxel_m=3.6e-3).inferred_bound_m == pytest.approx(1.8e-3)
+    assert opts.replace(hull_voxel_m=3.6e-3,
+                        inferred_tolerance_m=None).inferred_bound_m == 0.2e-3
+    _, f2, r2 = simplify_mesh(v, f, options=opts.replace(hull_voxel_m=3e-3), inferred=inferred)
+    assert r2["inferred_error_m"] == pytest.approx(1.5e-3)
+    assert r2["hausdorff_measured_max_m"] <= 0.2e-3 and r2["hausdorff_inferred_max_m"] <= 1.5e-3
     with pytest.raises(ValueError, match="one flag per vertex"):
         simplify_mesh(v, f, options=opts, inferred=inferred[:-1])
 
@@ -370,3 +378,28 @@ def test_search_check_is_the_reported_measure():
     for side in ("a_to_b", "b_to_a"):  # what simplify_mesh reports from the search's check
         for k in ("max", "mean", "rms"):
             assert stats[side][k] == pytest.approx(hd[side][k], rel=1e-5, abs=1e-9)
+
+
+def test_places_on_faces_larger_than_the_lock_radius_keep_their_nearest_faces():
+    """Faces larger than the lock radius (10 x the bound: 2 mm): each place beyond the
+    bound keeps its nearest faces all the same. Before, a hull of 3.6 mm voxels (the real
+    DTU scan 24) kept 1 face per place, failed at the same places in every lock round and
+    ended its halving at 63,000 faces instead of 20,000 (stop 44)."""
+    import open3d as o3d
+
+    from robo3d.simplify import _LOCK_MIN_FACES, _locked_faces
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.1, resolution=20)  # 3 cm faces
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
+    places = v[[5, 200]]
+    keep = _locked_faces(v, f, places, radius=2e-3)
+    assert _LOCK_MIN_FACES <= keep.sum() <= 2 * _LOCK_MIN_FACES
+    centres = v[f].mean(axis=1)
+    for p in places:  # the faces kept are the ones nearest to each place
+        d = np.linalg.norm(centres - p, axis=1)
+        assert keep[np.argsort(d)[:_LOCK_MIN_FACES]].all()
+    # small faces: the radius decides, as before
+    fine = o3d.geometry.TriangleMesh.create_sphere(radius=0.02, resolution=200)
+    vf, ff = np.asarray(fine.vertices), np.asarray(fine.triangles).astype(np.int64)
+    near = np.linalg.norm(vf[ff].mean(axis=1) - vf[5], axis=1) < 2e-3
+    np.testing.assert_array_equal(_locked_faces(vf, ff, vf[[5]], radius=2e-3), near)

@@ -8,6 +8,8 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from ..atomic import write_json
 from .common import log, stage_threads, summary
 from .fuse import source_colors
@@ -21,7 +23,8 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ``simplify.max_error_m``; the Hausdorff distance to the fused mesh must stay within
     ``simplify.hausdorff_tolerance_m`` (more faces are kept until it does), and the
     inferred surface (the fused mesh's ``source``: hull, filled) within
-    ``simplify.inferred_tolerance_m``. Writes
+    ``simplify.inferred_tolerance_m``, or half the hull's voxel (``hull``: hull.npz) where
+    that is more. Writes
     ``ply`` and, when given, ``stl`` / ``obj`` outputs. ``threads``: the job's, for the
     distance checks (the result does not depend on it)."""
     from ..fusion import MEASURED, source_area_fractions
@@ -31,7 +34,12 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
 
     t0 = time.perf_counter()
     sc = cfg["simplify"]
-    opts = SimplifyOptions.from_config(sc, seed=cfg["seed"], threads=stage_threads(threads))
+    hull_voxel = None
+    if inputs.get("hull"):  # the inferred surface is known no better than its voxel
+        with np.load(inputs["hull"]) as z:
+            hull_voxel = float(z["voxel_size"])
+    opts = SimplifyOptions.from_config(sc, seed=cfg["seed"], threads=stage_threads(threads),
+                                       hull_voxel_m=hull_voxel)
     V, F = read_mesh(inputs["fused"])
     attrs_in = read_vertex_attributes(inputs["fused"])
     V0 = V

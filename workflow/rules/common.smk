@@ -108,6 +108,14 @@ def get_fuse_inputs(wildcards):
     return out
 
 
+def get_simplify_inputs(wildcards):
+    """The fused mesh, and the hull (its voxel bounds the inferred surface's error)."""
+    out = {"fused": f"results/{wildcards.rec}/fused.ply"}
+    if "hull" in recording_stages(RECORDINGS[wildcards.rec]):
+        out["hull"] = f"results/{wildcards.rec}/hull.npz"
+    return out
+
+
 def get_evaluate_inputs(wildcards):
     """The recording and every result it supports."""
     stages = recording_stages(RECORDINGS[wildcards.rec])

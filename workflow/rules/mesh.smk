@@ -52,7 +52,7 @@ rule fuse:
 
 rule simplify:
     input:
-        fused="results/{rec}/fused.ply",
+        unpack(get_simplify_inputs),
     output:
         ply="results/{rec}/mesh.ply",
         # simplify.export: the same mesh as STL and/or OBJ too

@@ -20,7 +20,8 @@ step within it and that one follows (bisection on a log scale, each trial decima
 kept step). Told which vertices are inferred (hull-closed or hole-filled: no sensor saw
 that surface, and the hull it came from is known to its voxel, about a millimetre), the
 check holds the inferred faces to their own, looser bound (``inferred_tolerance_m``,
-0.5 mm): on a simulated cup scanned with three sweeps (87 % of its area inferred) the
+0.5 mm, or half the hull's voxel where that is more: :attr:`SimplifyOptions.inferred_bound_m`):
+on a simulated cup scanned with three sweeps (87 % of its area inferred) the
 0.2 mm bound everywhere kept 831 places at the fused resolution and 46,552 faces, the
 inferred bound 212 and 25,940 (``benchmarks/README.md``, stop 29). The reported Hausdorff
 distance of the result is measured the same way with more samples

@@ -749,10 +749,12 @@ def _unconfirmed_by_views(ref: RefinementResult, active: list[int],
             worst, worst_rms = s, rms
     if worst < 0:
         return -1, ""
-    what = ("no contour residual" if not np.isfinite(worst_rms) else
-            f"contour residuals of {worst_rms:.2f} px RMS")
-    return worst, (f"refined against the views alone, with {what} (more than "
-                   f"{o.views_only_max_rim_rms_px} px): the views do not confirm the pose")
+    what = ("no contour residual: nothing of it lies on the views' outlines"
+            if not np.isfinite(worst_rms) else
+            f"contour residuals of {worst_rms:.2f} px RMS (more than "
+            f"{o.views_only_max_rim_rms_px} px)")
+    return worst, (f"refined against the views alone, with {what}: the views do not "
+                   f"confirm the pose")
 
 
 def _worst_refined(pts, origins, ref: RefinementResult, active: list[int],

@@ -28,6 +28,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from itertools import product
 
 import numpy as np
@@ -43,6 +44,11 @@ def tiny_stripe_frame() -> np.ndarray:
                    255).astype(np.uint8)
 
 
+def _red_frame(mono: np.ndarray) -> np.ndarray:
+    """``mono`` as the red channel of an RGB frame on a dark grey scene (a red laser)."""
+    return np.stack([mono, np.full_like(mono, 10), np.full_like(mono, 10)], axis=-1)
+
+
 def _stripes() -> float:
     """The stripe detector on tiny 8-bit RGB and mono frames, the line both ways, in the
     ways the stripes stage calls it: the laser's colour estimated, then each frame with
@@ -56,7 +62,7 @@ def _stripes() -> float:
 
     t0 = time.perf_counter()
     mono = tiny_stripe_frame()
-    rgb = np.stack([mono, np.full_like(mono, 10), np.full_like(mono, 10)], axis=-1)
+    rgb = _red_frame(mono)
     for img, colour in ((rgb, "red"), (mono, "lightness")):
         for im in (img, np.ascontiguousarray(np.swapaxes(img, 0, 1))):
             roi = np.zeros(im.shape[:2], dtype=bool)
@@ -76,7 +82,7 @@ def _other_frames(deep: bool) -> list[tuple[np.ndarray, float]]:
     float, mono and RGB (``deep``), or 8-bit RGB, grey RGB and mono (for the other
     methods)."""
     u8 = tiny_stripe_frame()
-    rgb8 = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
+    rgb8 = _red_frame(u8)
     if deep:
         return [(u8.astype(np.float32) / 255.0, 0.04), (u8.astype(np.uint16) * 257, 2570.0),
                 (rgb8.astype(np.float32) / 255.0, 0.02), (rgb8.astype(np.uint16) * 257, 1285.0)]
@@ -99,8 +105,7 @@ def _stripes_other(deep: bool) -> float:
                                     ("auto", "columns", "rows")):
                 extract_stripe_centres(im, options=StripeOptions(
                     detector=detector, method=method, axis=axis, min_peak=min_peak))
-    u8 = tiny_stripe_frame()
-    fade = np.stack([u8, np.full_like(u8, 10), np.full_like(u8, 10)], axis=-1)
+    fade = _red_frame(tiny_stripe_frame())
     fade[:, 40:, 1] = fade[:, 40:, 2] = fade[:, 40:, 0]  # its colour lost from column 40
     img, min_peak = (fade.astype(np.uint16) * 257, 1285.0) if deep else (fade, 5.0)
     for axis in ("columns", "rows"):
@@ -108,14 +113,6 @@ def _stripes_other(deep: bool) -> float:
         extract_stripe_centres(im, options=StripeOptions(
             colour="red", axis=axis, centre_on="laser", follow=True, min_peak=min_peak))
     return time.perf_counter() - t0
-
-
-def _stripes_deep() -> float:
-    return _stripes_other(True)
-
-
-def _stripes_methods() -> float:
-    return _stripes_other(False)
 
 
 def _carver() -> float:
@@ -171,8 +168,8 @@ def compile_kernels(processes: int = 2, all_types: bool = False) -> dict[str, fl
         # cache on a 2-core Intel Xeon) and then its other methods (21 s, reusing its
         # kernels) in one, the 16-bit and float frames (about 90 s) and then the rest in
         # the other
-        parts = {"stripes": _stripes, "stripes_deep": _stripes_deep,
-                 "stripes_methods": _stripes_methods, "carver": _carver,
+        parts = {"stripes": _stripes, "stripes_deep": partial(_stripes_other, True),
+                 "stripes_methods": partial(_stripes_other, False), "carver": _carver,
                  "geometry": _geometry}
     if processes <= 1:
         out = {name: fn() for name, fn in parts.items()}

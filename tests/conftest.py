@@ -42,8 +42,8 @@ WARM_UP = r"""
 import os
 os.nice(10)
 from robo3d import warmup
-warmup._stripes_deep()
-warmup._stripes_methods()
+warmup._stripes_other(True)
+warmup._stripes_other(False)
 warmup.compile_kernels(1)
 """
 

@@ -8,8 +8,6 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from ..atomic import write_json
 from .common import log, stage_threads, summary
 from .fuse import source_colors
@@ -28,6 +26,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ``ply`` and, when given, ``stl`` / ``obj`` outputs. ``threads``: the job's, for the
     distance checks (the result does not depend on it)."""
     from ..fusion import MEASURED, source_area_fractions
+    from ..grid import VoxelGrid
     from ..meshio import read_mesh, read_vertex_attributes, write_mesh
     from ..simplify import SimplifyOptions, clean_mesh, simplify_mesh, transfer_vertex_attributes
     from ..viz import log_mesh, log_report, rerun_log
@@ -36,8 +35,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     sc = cfg["simplify"]
     hull_voxel = None
     if inputs.get("hull"):  # the inferred surface is known no better than its voxel
-        with np.load(inputs["hull"]) as z:
-            hull_voxel = float(z["voxel_size"])
+        hull_voxel = VoxelGrid.load_npz(inputs["hull"]).voxel_size
     opts = SimplifyOptions.from_config(sc, seed=cfg["seed"], threads=stage_threads(threads),
                                        hull_voxel_m=hull_voxel)
     V, F = read_mesh(inputs["fused"])

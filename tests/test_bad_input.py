@@ -491,12 +491,20 @@ def test_empty_or_all_white_silhouette(tmp_path: Path, bad: np.ndarray, match: s
     with np.load(out["npz"]) as z:
         assert z["qa_flagged"].tolist() == [False, False, True]
         assert not z["masks"][2].any() and z["masks"][0].any()
+    # the views side by side: the same masks and report, the failure in its place
+    out_t = {k: str(tmp_path / f"t.{k}") for k in ("npz", "rrd", "report")}
+    report_t = stage_silhouettes({"recording": str(p)}, out_t, default_config(), "v",
+                                 threads=2)
+    assert ({k: v for k, v in report_t.items() if k != "seconds"}
+            == {k: v for k, v in report.items() if k != "seconds"})
+    with np.load(out["npz"]) as a, np.load(out_t["npz"]) as b:
+        assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
     # two of three: no longer the odd view out
     p2 = _native(tmp_path / "v2.mcap", views=[_object(), bad, bad])
     out2 = {k: str(tmp_path / f"s2.{k}") for k in ("npz", "rrd", "report")}
     with pytest.raises(StageError, match=rf"2 of 3 views could not be segmented .*the first: "
                                          rf"{p2}: topic /camera/image, view 1 .*"):
-        stage_silhouettes({"recording": str(p2)}, out2, default_config(), "v")
+        stage_silhouettes({"recording": str(p2)}, out2, default_config(), "v", threads=2)
     assert not any(Path(f).exists() for f in out2.values())  # nothing half made
     # in a scan with laser frames the laser goes on alone: no view is used, and the
     # report says why (the hull is then empty: test_carving's has_laser cases)

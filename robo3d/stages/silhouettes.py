@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +22,7 @@ from .common import (
     log_image_camera,
     open_recording,
     reader_options,
+    stage_threads,
     summary,
 )
 
@@ -31,7 +33,8 @@ if TYPE_CHECKING:
 # ---------------------------------------------------------------------------- stages
 def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       cfg: Mapping[str, Any], rec_name: str,
-                      has_laser: bool = False) -> dict[str, Any]:
+                      has_laser: bool = False, threads: int | None = None
+                      ) -> dict[str, Any]:
     """Segment every silhouette view (seed §3.2) and keep its camera and pose.
 
     Outputs: ``npz`` (:class:`robo3d.artefacts.Silhouettes`: masks, cameras, poses,
@@ -50,7 +53,8 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     with an empty mask (``silhouettes_failed`` in the report says why), the hull is
     empty and the laser's measurement goes on alone; without laser frames the stage
     fails with an error naming the first. A mask that is merely absurd is flagged, not
-    dropped.
+    dropped. ``threads``: views segmented side by side (the job's; the result does not
+    depend on it).
     """
     from ..silhouettes import SegmentOptions
 
@@ -66,20 +70,29 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                                      inputs.get("calibration"))
     masks, per_view, failed = [], [], []
     progress = Progress("segmenting views", len(views))
-    for i, (msg, cam, T) in enumerate(zip(views, cameras, poses, strict=True)):
+
+    def one(i: int):
         try:
-            mask, row = _segment_one(inputs["recording"], rec, i, msg, cam, T,
-                                     backgrounds[i], ws, options)
+            return _segment_one(inputs["recording"], rec, i, views[i], cameras[i], poses[i],
+                                backgrounds[i], ws, options)
         except StageError as exc:
-            # one view that cannot be segmented (its object in the background's colours)
-            # does not stop the others: an empty mask, flagged, which no stage uses
-            failed.append(str(exc))
-            log.warning("%s; the view is flagged and not used", exc)
-            reason = str(exc).removeprefix(_where(inputs["recording"], i, msg) + ": ")
-            mask, row = np.zeros((cam.height, cam.width), bool), _failed_row(i, msg, reason)
-        masks.append(mask)
-        per_view.append(row)
-        progress(i + 1)
+            return exc
+
+    # the views side by side (OpenCV and most of numpy release the GIL): the stage ran on
+    # one core while the job held one, ahead of the stripes that wanted two
+    with ThreadPoolExecutor(max_workers=stage_threads(threads)) as pool:
+        for i, out in enumerate(pool.map(one, range(len(views)))):
+            msg, cam = views[i], cameras[i]
+            if isinstance(out, StageError):
+                # one view that cannot be segmented (its object in the background's
+                # colours) does not stop the others: an empty mask, flagged, unused
+                failed.append(str(out))
+                log.warning("%s; the view is flagged and not used", out)
+                reason = str(out).removeprefix(_where(inputs["recording"], i, msg) + ": ")
+                out = np.zeros((cam.height, cam.width), bool), _failed_row(i, msg, reason)
+            masks.append(out[0])
+            per_view.append(out[1])
+            progress(i + 1)
     given_up = None
     if views and len(failed) > len(views) // 2:
         what = (f"{len(failed)} of {len(views)} views could not be segmented (at most half "

@@ -19,7 +19,7 @@ rule silhouettes:
         "benchmarks/silhouettes/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: 1
+    threads: stage_threads(2)  # views segmented side by side
     resources:
         mem_mb=lambda wc, attempt: 1000 * attempt,
         runtime=lambda wc, attempt: 10 * attempt,

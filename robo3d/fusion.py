@@ -184,6 +184,10 @@ class FuseOptions(Options):
         Least weight sum of an observed voxel (module docstring, step 3).
     min_cos_view : float
         Points and range triangles seen more obliquely are not used (0.03: 88 degrees).
+    max_frame_span : int
+        A range triangle joins laser frames at most this many frames apart (2: one frame
+        without a stripe there is bridged); a wider one bridges surface the laser did
+        not see and is not measured (:func:`range_surface`). 0: any.
     border_weight_floor : float in [0, 1]
         The weight ramp at a range surface's border starts at this (step 3; 0 is Curless
         & Levoy's ramp to zero, which drops what only a scan's edge saw).
@@ -227,6 +231,7 @@ class FuseOptions(Options):
     tsdf_trunc_voxels: int = 4
     min_weight: float = 0.003
     min_cos_view: float = 0.03
+    max_frame_span: int = 2
     border_weight_floor: float = 0.1
     fill_holes: bool = True
     close: Literal["hull", "free_space", "none"] = "hull"
@@ -503,7 +508,8 @@ def _as_list(name: str, a: object, dims: int) -> list[np.ndarray]:
 
 def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
                   grid: np.ndarray | None = None, normals: np.ndarray | None = None,
-                  max_edge_factor: float = 2.0, min_cos_view: float = 0.1
+                  max_edge_factor: float = 2.0, min_cos_view: float = 0.1,
+                  max_frame_span: int | None = None
                   ) -> tuple[np.ndarray, dict[str, Any]]:
     """Triangulate one range scan (a sweep) into its range surface.
 
@@ -514,7 +520,12 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
     ``grid`` and ``normals``, of the triangles at its sparsest-sampled vertex where that is
     longer and the triangle's normal is within 25 degrees of its points'), or when it is
     seen at a grazing angle (``|cos| < min_cos_view``, steep triangles bridge
-    jumps too). The kept triangles face the sensor.
+    jumps too). With ``grid`` and ``max_frame_span``, a triangle joining laser frames
+    more than that many frames apart is dropped too: the frames between them have no
+    stripe there, the laser did not see that surface, and a bridge over them is a guess
+    (random scene 299, a black cup seen in 20 of 40 frames: triangles over 5-30 frames
+    made 5,093 mm2 of "measured" surface, 80 % of it more than 0.5 mm off; on the
+    simulated cup/4, 4.6 of 31,200 mm2 span more than 2 frames).
 
     Parameters
     ----------
@@ -528,13 +539,17 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
         The points' unit normals (the triangulation's), for the sparse-sampling test.
     max_edge_factor : float
     min_cos_view : float
+    max_frame_span : int, optional
+        Largest difference of laser frames in one triangle (``grid``'s first column);
+        None: any.
 
     Returns
     -------
     faces : (T, 3) int64
         Indices into ``points``, counter-clockwise seen from the sensor.
     report : dict
-        ``n_triangles_delaunay``, ``n_triangles``, ``max_edge_m``.
+        ``n_triangles_delaunay``, ``n_triangles``, ``max_edge_m`` and, with
+        ``max_frame_span``, ``n_triangles_over_frames`` (those it dropped).
 
     References
     ----------
@@ -596,11 +611,17 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
                                         nrm[long_])), axis=1)
         short[long_] = (longest[long_] <= local) & (agree >= _RELAXED_MIN_NORMAL_COS)
     keep = short & (np.abs(cos) >= min_cos_view) & (area2 > 0)
+    extra = {}
+    if grid is not None and max_frame_span is not None:
+        fr = g[tri, 0]
+        over = fr.max(axis=1) - fr.min(axis=1) > int(max_frame_span)
+        extra["n_triangles_over_frames"] = int(np.count_nonzero(keep & over))
+        keep &= ~over
     faces = tri[keep]
     flip = cos[keep] < 0  # wind counter-clockwise as seen from the sensor
     faces[flip] = faces[flip][:, [0, 2, 1]]
     return faces, {"n_triangles_delaunay": int(len(tri)), "n_triangles": int(len(faces)),
-                   "max_edge_m": max_edge}
+                   "max_edge_m": max_edge, **extra}
 
 
 def _longest_edge(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
@@ -767,7 +788,8 @@ def fuse_tsdf(
         ``n_points``, ``n_points_used``, ``n_scans``, ``voxel_size``, ``trunc``,
         ``grid_shape``, ``n_voxels_observed``, ``n_voxels_seen_empty``,
         ``laser_area_fraction``, ``hull_area_fraction``, ``hull_fill`` (what was done),
-        ``n_observed_voxels_outside_hull``, ``range_surfaces`` (per scan), ``seconds``
+        ``n_observed_voxels_outside_hull``, ``range_surfaces`` (per scan),
+        ``n_range_triangles_over_frames`` (dropped by ``max_frame_span``), ``seconds``
         per step, ``n_vertices``, ``n_faces``.
 
     Raises
@@ -1015,7 +1037,8 @@ def _integrate_scans(P, N, O, Cf, G, origin: np.ndarray, shape: tuple[int, ...],
         ta = time.perf_counter()
         faces, rs = range_surface(P[k], O[k], grid=G[k], normals=N[k],
                                   max_edge_factor=max_edge_factor,
-                                  min_cos_view=o.min_cos_view)
+                                  min_cos_view=o.min_cos_view,
+                                  max_frame_span=o.max_frame_span or None)
         t = [time.perf_counter() - ta, 0.0, 0.0]
         if len(faces) == 0:
             return rs, None, t
@@ -1205,6 +1228,12 @@ def _tsdf_field(acc: _Accumulator, shape: tuple[int, ...], trunc: float, hull: A
     seen_empty = seen_empty.reshape(shape) & ~observed
     report.update(n_voxels_observed=int(observed.sum()), n_voxels_seen_empty=int(
         seen_empty.sum()), range_surfaces=scans)
+    bridges = sum(s.get("n_triangles_over_frames", 0) for s in scans)
+    report["n_range_triangles_over_frames"] = bridges
+    if bridges:
+        log.info("TSDF fusion: %d range triangles joined laser frames more than %d apart "
+                 "(the frames between saw no stripe there): not fused, not measured",
+                 bridges, o.max_frame_span)
     filled = False
     inside = None
     fill_holes = o.fill_holes and o.close != "none"

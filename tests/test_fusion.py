@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from robo3d.errors import StageError
-from robo3d.fusion import FuseOptions, crop_mesh_to_hull, fuse_poisson, remove_vertices
+from robo3d.fusion import FuseOptions, crop_mesh_to_hull, fuse_poisson, fuse_tsdf, remove_vertices
 
 R = 0.03
 C = np.array([0.5, 0.1, 0.1])
@@ -370,6 +370,42 @@ def test_range_surface_on_the_grid_keeps_grazing_surface_and_cuts_jumps():
     assert np.all(ax.min(axis=1) == ax.max(axis=1))
     with pytest.raises(ValueError, match="grid"):
         range_surface(p2, o2, grid=g2[:, :2])
+
+
+def test_range_surface_does_not_bridge_frames_that_saw_nothing():
+    """A frontal plane swept 1 mm a frame: frames 0-9 found the stripe but frame 4, the
+    later ones only every fifth frame (a black band that returns the laser now and then).
+    Between those the laser did not see the plane, and the scan there is sparse
+    everywhere, so the depth-jump test (against the local sampling) keeps the 5 mm
+    bridges: with ``max_frame_span`` 2 no range triangle joins frames more than 2 apart
+    and fusion measures nothing between them, while the missing frame 4 is still bridged.
+    With any span (0) the bridges are fused as measured surface (random scene 299)."""
+    from robo3d.fusion import MEASURED, range_surface
+
+    frames = [f for f in range(10) if f != 4] + list(range(14, 40, 5))
+    ff, ll = np.meshgrid(frames, np.arange(30), indexing="ij")
+    ff, ll = ff.ravel(), ll.ravel()
+    p = C + np.c_[ff * 1e-3, ll * 0.5e-3, np.zeros(len(ff))]
+    o = p + [0.0, 0.0, 0.3]
+    nrm = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    g = np.c_[ff, ll, np.zeros(len(ff), np.int64)]
+    faces, rep = range_surface(p, o, grid=g, normals=nrm, min_cos_view=0.03,
+                               max_frame_span=2)
+    lo, hi = g[faces, 0].min(axis=1), g[faces, 0].max(axis=1)
+    assert (hi - lo).max() == 2 and rep["n_triangles_over_frames"] > 0
+    assert np.any((lo == 3) & (hi == 5)) and not np.any(hi >= 14)
+    faces_any, rep_any = range_surface(p, o, grid=g, normals=nrm, min_cos_view=0.03)
+    assert "n_triangles_over_frames" not in rep_any
+    assert np.any((g[faces_any, 0].min(axis=1) == 24) & (g[faces_any, 0].max(axis=1) == 29))
+    opts = dict(tsdf_voxel_m=0.4e-3, tsdf_voxel_per_spacing=0)
+    for span_opt, bridged in ((2, False), (0, True)):
+        v, f, _, a = fuse_tsdf([p], [nrm], [o], grids=[g], return_attributes=True,
+                               options=FuseOptions(**opts, max_frame_span=span_opt))
+        x = (v[:, 0] - C[0]) * 1e3
+        meas = a["source"] == MEASURED
+        assert np.any(meas & (np.abs(x - 4.0) < 0.3))  # the missing frame 4
+        assert np.any(meas & (x > 25.5) & (x < 27.5)) == bridged
+        assert np.abs(v[meas, 2] - C[2]).max() < 0.05e-3
 
 
 def test_tsdf_measures_a_surface_seen_only_at_a_grazing_angle():

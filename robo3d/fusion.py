@@ -112,7 +112,11 @@ sparsest-sampled vertex, or of the whole scan where that is larger) bridges a de
 and is dropped: a surface seen at a grazing angle is sampled 3 mm apart where the rest of
 the scan is 1 mm apart, and is not a jump. A triangle longer than twice the scan's median
 is kept only where its normal agrees with its points' (within 25 degrees): a bridge
-between a thin wall and what lies behind it can be sparse on both sides too.
+between a thin wall and what lies behind it can be sparse on both sides too. A triangle
+that joins laser frames more than ``max_frame_span`` (2) apart is dropped as well: the
+frames between found no stripe there, so the laser did not see what it spans; where a
+scan is sparse everywhere (a black cup returning the stripe in half its frames), the
+local sampling is no test of that.
 
 References
 ----------

@@ -40,6 +40,9 @@ def test_a_scan_whose_silhouettes_fail_keeps_what_its_laser_measured(tmp_path):
     assert m["surface_sources"]["hull_contradicted"] is True
     assert m["surface_sources"]["inferred_area_fraction"] == 0.0
     assert m["stages"]["fuse"]["hull_contradicted"] is True
+    # and its report says so (it said "holes closed from the hull")
+    assert m["stages"]["fuse"]["source"] == ("laser (TSDF), nothing closed: the hull "
+                                             "contradicts the laser")
     ev = m["evaluation"]["measured"]
     # measured 5.5e-4 m2 (5.5 cm2) of the bracket's surface, median 0.18 mm, 22 % of it
     # more than 0.5 mm off (the robot's poses hold the gauge). Before fusion.max_frame_span

@@ -57,11 +57,15 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 hull=crop, workspace=clouds_workspace(clouds), carve_only=table,
                 max_voxels=int(fc["max_voxels"]), threads=stage_threads(threads),
                 return_attributes=True)
-            source = "laser (TSDF)" + {
-                "hull": ", holes closed from the hull",
-                "free_space": ", holes near measurements closed, far ones left open",
-                "none": ", holes left open"}[fc["close"]] if (
-                crop is not None and fc["fill_holes"]) else "laser (TSDF)"
+            if crop is None or not fc["fill_holes"]:
+                source = "laser (TSDF)"
+            elif fuse_report.get("hull_contradicted"):  # it said "closed from the hull"
+                source = "laser (TSDF), nothing closed: the hull contradicts the laser"
+            else:
+                source = "laser (TSDF)" + {
+                    "hull": ", holes closed from the hull",
+                    "free_space": ", holes near measurements closed, far ones left open",
+                    "none": ", holes left open"}[fc["close"]]
         else:
             off = ~np.concatenate(table) if table else np.ones(0, bool)
             pts = np.concatenate([c.points_base for c in clouds])[off]
@@ -128,10 +132,23 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         if report.get("voxel_from_spacing"):
             grid += (f" ({opts.tsdf_voxel_per_spacing:g} x the points' spacing "
                      f"{report['point_spacing_m'] * 1e3:.2f} mm)")
-    summary.info("fused mesh from %s: %d faces%s%s (%.1f s)", source, len(F),
+    summary.info("fused mesh from %s: %d faces%s%s%s (%.1f s)", source, len(F),
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
-             grid, report["seconds"])
+             grid, _bridges_note(report, opts.max_frame_span), report["seconds"])
     return report
+
+
+def _bridges_note(report: Mapping[str, Any], max_span: int) -> str:
+    """The summary's word on range triangles dropped for joining laser frames more than
+    ``max_span`` apart, when they are at least 1 % of the scans' triangles (a scan whose
+    stripe came and went: the surface between was not seen); else nothing."""
+    n = int(report.get("n_range_triangles_over_frames") or 0)
+    total = sum(int(s.get("n_triangles_delaunay", 0))
+                for s in report.get("range_surfaces") or [] if isinstance(s, Mapping))
+    if not n or n < 0.01 * total:
+        return ""
+    return (f"; {100 * n / total:.0f}% of the range triangles joined laser frames more "
+            f"than {max_span} apart, over frames without a stripe there: not measured")
 
 
 def _table_report(table: list[np.ndarray] | None, tc: Mapping[str, Any]) -> dict[str, Any]:

@@ -57,15 +57,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 hull=crop, workspace=clouds_workspace(clouds), carve_only=table,
                 max_voxels=int(fc["max_voxels"]), threads=stage_threads(threads),
                 return_attributes=True)
-            if crop is None or not fc["fill_holes"]:
-                source = "laser (TSDF)"
-            elif fuse_report.get("hull_contradicted"):  # it said "closed from the hull"
-                source = "laser (TSDF), nothing closed: the hull contradicts the laser"
-            else:
-                source = "laser (TSDF)" + {
-                    "hull": ", holes closed from the hull",
-                    "free_space": ", holes near measurements closed, far ones left open",
-                    "none": ", holes left open"}[fc["close"]]
+            source = _tsdf_source(crop is not None and fc["fill_holes"], fc["close"],
+                                  bool(fuse_report.get("hull_contradicted")))
         else:
             off = ~np.concatenate(table) if table else np.ones(0, bool)
             pts = np.concatenate([c.points_base for c in clouds])[off]
@@ -136,6 +129,20 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
              grid, _bridges_note(report, opts.max_frame_span), report["seconds"])
     return report
+
+
+def _tsdf_source(closes: bool, close: str, contradicted: bool) -> str:
+    """The report's ``source`` of a TSDF fusion: what closed its holes (``closes``: a
+    hull was given and ``fusion.fill_holes``; ``close``: ``fusion.close``); a hull that
+    contradicted the laser closed nothing (it said "closed from the hull")."""
+    if not closes:
+        return "laser (TSDF)"
+    if contradicted:
+        return "laser (TSDF), nothing closed: the hull contradicts the laser"
+    return "laser (TSDF)" + {
+        "hull": ", holes closed from the hull",
+        "free_space": ", holes near measurements closed, far ones left open",
+        "none": ", holes left open"}[close]
 
 
 def _bridges_note(report: Mapping[str, Any], max_span: int) -> str:

@@ -513,7 +513,7 @@ def _as_list(name: str, a: object, dims: int) -> list[np.ndarray]:
 def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
                   grid: np.ndarray | None = None, normals: np.ndarray | None = None,
                   max_edge_factor: float = 2.0, min_cos_view: float = 0.1,
-                  max_frame_span: int | None = None
+                  max_frame_span: int = 0
                   ) -> tuple[np.ndarray, dict[str, Any]]:
     """Triangulate one range scan (a sweep) into its range surface.
 
@@ -527,9 +527,10 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
     jumps too). With ``grid`` and ``max_frame_span``, a triangle joining laser frames
     more than that many frames apart is dropped too: the frames between them have no
     stripe there, the laser did not see that surface, and a bridge over them is a guess
-    (random scene 299, a black cup seen in 20 of 40 frames: triangles over 5-30 frames
-    made 5,093 mm2 of "measured" surface, 80 % of it more than 0.5 mm off; on the
-    simulated cup/4, 4.6 of 31,200 mm2 span more than 2 frames).
+    (random scene 299, a black cup that returned the stripe in 20 of a sweep's 40
+    frames: its second sweep's triangles over 6-32 frames covered 5,093 mm2, 80 % of
+    that area more than 0.5 mm off; on the simulated cup/4, 4.6 of 31,200 mm2 span more
+    than 2 frames).
 
     Parameters
     ----------
@@ -543,9 +544,9 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
         The points' unit normals (the triangulation's), for the sparse-sampling test.
     max_edge_factor : float
     min_cos_view : float
-    max_frame_span : int, optional
+    max_frame_span : int
         Largest difference of laser frames in one triangle (``grid``'s first column);
-        None: any.
+        0: any (:attr:`FuseOptions.max_frame_span`).
 
     Returns
     -------
@@ -553,7 +554,8 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
         Indices into ``points``, counter-clockwise seen from the sensor.
     report : dict
         ``n_triangles_delaunay``, ``n_triangles``, ``max_edge_m`` and, with
-        ``max_frame_span``, ``n_triangles_over_frames`` (those it dropped).
+        ``max_frame_span`` (and ``grid``), ``n_triangles_over_frames`` (those it
+        dropped).
 
     References
     ----------
@@ -616,7 +618,7 @@ def range_surface(points: np.ndarray, sensor_origins: np.ndarray, *,
         short[long_] = (longest[long_] <= local) & (agree >= _RELAXED_MIN_NORMAL_COS)
     keep = short & (np.abs(cos) >= min_cos_view) & (area2 > 0)
     extra = {}
-    if grid is not None and max_frame_span is not None:
+    if grid is not None and max_frame_span > 0:
         fr = g[tri, 0]
         over = fr.max(axis=1) - fr.min(axis=1) > int(max_frame_span)
         extra["n_triangles_over_frames"] = int(np.count_nonzero(keep & over))
@@ -1042,7 +1044,7 @@ def _integrate_scans(P, N, O, Cf, G, origin: np.ndarray, shape: tuple[int, ...],
         faces, rs = range_surface(P[k], O[k], grid=G[k], normals=N[k],
                                   max_edge_factor=max_edge_factor,
                                   min_cos_view=o.min_cos_view,
-                                  max_frame_span=o.max_frame_span or None)
+                                  max_frame_span=o.max_frame_span)
         t = [time.perf_counter() - ta, 0.0, 0.0]
         if len(faces) == 0:
             return rs, None, t

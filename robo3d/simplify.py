@@ -324,42 +324,74 @@ def _scale_of(v: np.ndarray) -> float:
 
 
 def _quadric_options(target: int, preserve_boundary: bool, preserve_normal: bool,
-                     selected: bool) -> dict[str, Any]:
+                     selected: bool, optimal: bool = True) -> dict[str, Any]:
     """The arguments of pymeshlab's quadric edge collapse, one place for the whole mesh's
     collapse (:func:`_decimate`) and a chunk's (:func:`_collapse_chunk`): towards
-    ``target`` faces (of the selected faces when ``selected``), optimal placement, planar
-    quadrics, quality threshold 0.3."""
+    ``target`` faces (of the selected faces when ``selected``), optimal placement (unless
+    not ``optimal``: each new vertex on the collapsed edge), planar quadrics, quality
+    threshold 0.3."""
     return dict(targetfacenum=int(target), qualitythr=0.3,
                 preserveboundary=preserve_boundary, boundaryweight=1.0,
                 preservenormal=preserve_normal, preservetopology=False,
-                optimalplacement=True, planarquadric=True, autoclean=True,
+                optimalplacement=bool(optimal), planarquadric=True, autoclean=True,
                 selected=selected)
+
+
+#: a collapse that puts a vertex farther than this share of its input's bounding-box
+#: diagonal outside that box is made again without optimal placement (:func:`_flew`)
+_FLY_FRACTION = 0.01
+
+
+def _flew(v_in: np.ndarray, v_out: np.ndarray) -> bool:
+    """Whether a collapse of ``v_in`` put a vertex of ``v_out`` more than
+    :data:`_FLY_FRACTION` of the input's bounding-box diagonal outside that box. The
+    quadric's optimal placement can do that where its system is nearly singular: on the
+    simulated cup/7 cut into eight slabs, one slab's collapse put a vertex 310 mm below the
+    table, the check found the mesh 124 mm off, and the locks then kept 60,298 faces where
+    20,000 do (``benchmarks/README.md``, stop 46). No surface within any sensible bound
+    moves that far."""
+    if not len(v_in) or not len(v_out):
+        return False
+    lo, hi = v_in.min(axis=0), v_in.max(axis=0)
+    tol = _FLY_FRACTION * float(np.linalg.norm(hi - lo))
+    return bool(np.any(v_out < lo - tol) or np.any(v_out > hi + tol))
 
 
 def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool,
               preserve_normal: bool, keep: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
     """Quadric collapse of (v, f) towards ``target`` faces; ``keep``: (F,) bool, faces
-    left as they are (only the others are selected for the collapse)."""
+    left as they are (only the others are selected for the collapse). A collapse that
+    throws a vertex far out (:func:`_flew`) is made again without optimal placement."""
     import pymeshlab
 
     scale = _scale_of(v)
     locked = keep is not None and bool(np.any(keep))
-    if locked:
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v * scale, face_matrix=f,
-                                   f_scalar_array=(~keep).astype(np.float64)))
-        ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
-    else:
-        ms = _meshset(v * scale, f)
-    kw = _quadric_options(target, preserve_boundary, preserve_normal, selected=locked)
-    ms.meshing_decimation_quadric_edge_collapse(**kw)
-    # the collapse may stop a few faces above the target on meshes with many boundaries
-    tries = 0
-    while ms.current_mesh().face_number() > target and tries < 3 and not locked:
+
+    def collapse(optimal: bool) -> tuple[np.ndarray, np.ndarray]:
+        if locked:
+            ms = pymeshlab.MeshSet()
+            ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v * scale, face_matrix=f,
+                                       f_scalar_array=(~keep).astype(np.float64)))
+            ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
+        else:
+            ms = _meshset(v * scale, f)
+        kw = _quadric_options(target, preserve_boundary, preserve_normal, selected=locked,
+                              optimal=optimal)
         ms.meshing_decimation_quadric_edge_collapse(**kw)
-        tries += 1
-    out_v, out_f = _arrays(ms)
+        # the collapse may stop a few faces above the target on meshes with many
+        # boundaries
+        tries = 0
+        while ms.current_mesh().face_number() > target and tries < 3 and not locked:
+            ms.meshing_decimation_quadric_edge_collapse(**kw)
+            tries += 1
+        return _arrays(ms)
+
+    out_v, out_f = collapse(True)
+    if _flew(v * scale, out_v):
+        log.warning("simplify: the quadric collapse put a vertex far outside the mesh "
+                    "(optimal placement); made again without it")
+        out_v, out_f = collapse(False)
     return out_v / scale, out_f
 
 
@@ -372,30 +404,39 @@ _CHUNK_MIN_FACES = 100_000
 _N_CHUNKS = 4
 
 
-def _collapse_chunk(job: dict) -> tuple[np.ndarray, np.ndarray]:
+def _collapse_chunk(job: dict) -> tuple[np.ndarray, np.ndarray, bool]:
     """One chunk's quadric collapse (:func:`_chunk_collapse`): ``job`` holds the scaled
     vertices ``v`` and faces ``f`` of the chunk and of the ring of faces around it, the
     faces' ``label`` (1: collapsible, 0: kept as it is, -1: the ring), the ``target``
     number of collapsible faces and the quadric options. The ring is not selected, so the
     vertices the chunk shares with it (and with its kept faces) do not move (MeshLab
     collapses only edges whose vertices have every face selected). Returns the chunk's
-    faces (collapsed and kept, not the ring) and the vertices they use, scaled."""
+    faces (collapsed and kept, not the ring) and the vertices they use, scaled, and
+    whether the collapse was made again without optimal placement (:func:`_flew`)."""
     import pymeshlab
 
     v, f, label = job["v"], job["f"], job["label"]
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f,
-                               f_scalar_array=label.astype(np.float64)))
-    if np.any(label == 1) and job["target"] < int(np.sum(label == 1)):
-        ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
-        ms.meshing_decimation_quadric_edge_collapse(**_quadric_options(
-            job["target"], job["preserve_boundary"], job["preserve_normal"], selected=True))
-    m = ms.current_mesh()
-    out_f = np.asarray(m.face_matrix(), dtype=np.int64).reshape(-1, 3)
-    out_f = out_f[np.asarray(m.face_scalar_array()) > -0.5]
-    used, inv = np.unique(out_f, return_inverse=True)
-    return (np.asarray(m.vertex_matrix(), dtype=np.float64)[used],
-            inv.reshape(-1, 3).astype(np.int64))
+
+    def collapse(optimal: bool) -> tuple[np.ndarray, np.ndarray]:
+        ms = pymeshlab.MeshSet()
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f,
+                                   f_scalar_array=label.astype(np.float64)))
+        if np.any(label == 1) and job["target"] < int(np.sum(label == 1)):
+            ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
+            ms.meshing_decimation_quadric_edge_collapse(**_quadric_options(
+                job["target"], job["preserve_boundary"], job["preserve_normal"],
+                selected=True, optimal=optimal))
+        m = ms.current_mesh()
+        out_f = np.asarray(m.face_matrix(), dtype=np.int64).reshape(-1, 3)
+        out_f = out_f[np.asarray(m.face_scalar_array()) > -0.5]
+        used, inv = np.unique(out_f, return_inverse=True)
+        return (np.asarray(m.vertex_matrix(), dtype=np.float64)[used],
+                inv.reshape(-1, 3).astype(np.int64))
+
+    out_v, out_f = collapse(True)
+    if not _flew(v, out_v):
+        return out_v, out_f, False
+    return (*collapse(False), True)
 
 
 class _Workers:
@@ -430,7 +471,7 @@ class _Workers:
                 self.n = len(self.procs)
                 return
 
-    def map(self, jobs: list[dict]) -> list[tuple[np.ndarray, np.ndarray]]:
+    def map(self, jobs: list[dict]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
         """The results of :func:`_collapse_chunk` on ``jobs``, in order: the jobs dealt
         in turn to the workers and to this process (one message per worker, so that
         neither side waits on a full pipe), this process's collapsed meanwhile."""
@@ -567,8 +608,13 @@ def _chunk_collapse(v: np.ndarray, f: np.ndarray, chunks: _Chunks, count: int,
                          target=int(round(count * np.sum(mine & free) / n_free)),
                          preserve_boundary=preserve_boundary,
                          preserve_normal=preserve_normal))
-    for k, res in zip(todo, workers.map(jobs), strict=True):
-        chunks.results[k] = res
+    results = workers.map(jobs)
+    for k, res in zip(todo, results, strict=True):
+        chunks.results[k] = res[:2]
+    n_again = sum(bool(res[2]) for res in results)
+    if n_again:
+        log.warning("simplify: the quadric collapse put a vertex far outside %d slab(s) "
+                    "(optimal placement); made again without it", n_again)
     parts = [chunks.results[k] for k in range(_N_CHUNKS)]
     allv = np.concatenate([p[0] for p in parts])
     offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])

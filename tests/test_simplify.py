@@ -248,6 +248,53 @@ def _edges(f):
     return np.unique(e, axis=0, return_counts=True)[1]
 
 
+def test_a_vertex_thrown_far_out_is_caught():
+    """:func:`_flew`: a vertex more than 1 % of the input's box diagonal outside that box
+    (the quadric's optimal placement on a nearly singular system) is caught, one at the
+    box's surface is not."""
+    from robo3d.simplify import _flew
+
+    box = np.array([[0, 0, 0], [0.1, 0.05, 0.02]], dtype=float)
+    diag = float(np.linalg.norm(box[1] - box[0]))
+    assert not _flew(box, np.array([[0.1 + 0.005 * diag, 0.0, 0.0]]))
+    assert _flew(box, np.array([[0.05, 0.02, -0.02 * diag]]))
+    assert _flew(box, np.array([[0.05, 0.02, 0.31]]))  # stop 46's: 310 mm below
+    assert not _flew(box, np.zeros((0, 3)))
+
+
+def test_a_collapse_that_throws_a_vertex_out_is_made_again(monkeypatch, caplog):
+    """A collapse whose result :func:`_flew` refuses is made again without optimal
+    placement, in one piece and in slabs, and says so; the result is still a closed mesh
+    within the bound."""
+    import open3d as o3d
+
+    import robo3d.simplify as simplify
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.02, resolution=40)
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
+    calls = []
+    real = simplify._flew
+    monkeypatch.setattr(simplify, "_flew",
+                        lambda a, b: calls.append(len(b)) or len(calls) == 1 or real(a, b))
+    options = []
+    real_opts = simplify._quadric_options
+    monkeypatch.setattr(simplify, "_quadric_options",
+                        lambda *a, **k: options.append(k.get("optimal", True))
+                        or real_opts(*a, **k))
+    opts = SimplifyOptions(target_faces=500, hausdorff_tolerance_m=0.5e-3, seed=0)
+    for chunk_min in (10**9, 1000):  # in one piece, then in slabs (this process: 1 thread)
+        calls.clear()
+        options.clear()
+        monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", chunk_min)
+        with caplog.at_level("WARNING", logger="robo3d.simplify"):
+            caplog.clear()
+            v2, f2, rep = simplify_mesh(v, f, options=opts)
+        assert options[:2] == [True, False]  # the first collapse, then again without
+        assert "made again without it" in caplog.text
+        assert _edges(f2).min() == _edges(f2).max() == 2
+        assert rep["hausdorff_max_m"] <= 0.5e-3 and len(f2) < len(f)
+
+
 def test_large_meshes_are_collapsed_in_chunks_side_by_side(monkeypatch, caplog):
     """Meshes above ``_CHUNK_MIN_FACES`` are collapsed in slabs, one process each, the
     faces outside a slab kept as they are: the pieces weld into one closed mesh (no

@@ -463,9 +463,11 @@ class _Workers:
             try:
                 if not sys.executable:  # an embedded interpreter: no python to start
                     raise OSError("sys.executable is not set")
+                # started in the package's folder: ``-m`` puts the working folder first on
+                # the path, and another robo3d there (a checkout run from) would answer
                 self.procs.append(subprocess.Popen(
                     [sys.executable, "-m", "robo3d.simplify"], stdin=subprocess.PIPE,
-                    stdout=subprocess.PIPE, env=env))
+                    stdout=subprocess.PIPE, env=env, cwd=root))
             except OSError as e:
                 log.warning("simplify: no worker process (%s); collapsing in one", e)
                 self.n = len(self.procs)

@@ -295,6 +295,30 @@ def test_a_collapse_that_throws_a_vertex_out_is_made_again(monkeypatch, caplog):
         assert rep["hausdorff_max_m"] <= 0.5e-3 and len(f2) < len(f)
 
 
+def test_workers_use_this_robo3d_not_one_in_the_working_folder(tmp_path, monkeypatch,
+                                                              caplog):
+    """The slab workers run ``python -m robo3d.simplify``, and ``-m`` puts the working
+    folder first on the path: run from a folder that holds another ``robo3d`` (a checkout
+    of another version), they imported that one (found at stop 46, whose workers answered
+    in the old form). They start in the package's own folder now."""
+    import open3d as o3d
+
+    import robo3d.simplify as simplify
+
+    fake = tmp_path / "robo3d"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('not this robo3d')\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", 1000)
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.02, resolution=40)
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
+    opts = SimplifyOptions(target_faces=500, hausdorff_tolerance_m=0.5e-3, seed=0, threads=2)
+    with caplog.at_level("WARNING", logger="robo3d.simplify"):
+        _, f2, rep = simplify_mesh(v, f, options=opts)
+    assert "worker process failed" not in caplog.text
+    assert len(f2) < len(f) and rep["hausdorff_max_m"] <= 0.5e-3
+
+
 def test_large_meshes_are_collapsed_in_chunks_side_by_side(monkeypatch, caplog):
     """Meshes above ``_CHUNK_MIN_FACES`` are collapsed in slabs, one process each, the
     faces outside a slab kept as they are: the pieces weld into one closed mesh (no

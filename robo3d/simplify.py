@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -357,6 +358,17 @@ def _flew(v_in: np.ndarray, v_out: np.ndarray) -> bool:
     return bool(np.any(v_out < lo - tol) or np.any(v_out > hi + tol))
 
 
+def _guarded(collapse: Callable[[bool], tuple[np.ndarray, np.ndarray]], v_in: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, bool]:
+    """``collapse(optimal)`` of a mesh with vertices ``v_in``, with optimal placement, and
+    again without it when that threw a vertex far out (:func:`_flew`): (vertices, faces,
+    whether it was made again)."""
+    out_v, out_f = collapse(True)
+    if not _flew(v_in, out_v):
+        return out_v, out_f, False
+    return (*collapse(False), True)
+
+
 def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool,
               preserve_normal: bool, keep: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -387,11 +399,10 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
             tries += 1
         return _arrays(ms)
 
-    out_v, out_f = collapse(True)
-    if _flew(v * scale, out_v):
+    out_v, out_f, again = _guarded(collapse, v * scale)
+    if again:
         log.warning("simplify: the quadric collapse put a vertex far outside the mesh "
                     "(optimal placement); made again without it")
-        out_v, out_f = collapse(False)
     return out_v / scale, out_f
 
 
@@ -433,10 +444,7 @@ def _collapse_chunk(job: dict) -> tuple[np.ndarray, np.ndarray, bool]:
         return (np.asarray(m.vertex_matrix(), dtype=np.float64)[used],
                 inv.reshape(-1, 3).astype(np.int64))
 
-    out_v, out_f = collapse(True)
-    if not _flew(v, out_v):
-        return out_v, out_f, False
-    return (*collapse(False), True)
+    return _guarded(collapse, v)
 
 
 class _Workers:

@@ -98,15 +98,16 @@ Method
    :func:`_held_icp` from the robot's relative pose; its convergence is judged on the
    held step. So is a pair that sees the two sides of a thin wall (more than 2 % of its
    points' nearest partners within ``max_corr_dist_m`` with an opposed normal,
-   :func:`_opposed_fraction`): Open3D's ICP pairs the two faces, _held_icp leaves
-   correspondences whose normals differ by more than 60 degrees out. With silhouette
+   :func:`_opposed_fraction`, at the robot's poses): Open3D's ICP pairs the two faces,
+   _held_icp leaves correspondences whose normals differ by more than 60 degrees out; such
+   a pair skips Open3D's ICP, whose result _held_icp would not use. With silhouette
    views a sweep with no accepted pair still takes part in the refinement (against the
    views, with its overlapping pairs). Each sweep's report (``per_sweep``) gives
    ``constrained`` (translation along / rotation about the principal axes of its points:
    fixed by the data or not), ``unconstrained`` (the held directions in plain words: a
    rotation about an axis through a point, base mm, or a translation) and
-   ``information`` (its block's whitened eigenvalues); each pair ``held_directions`` and
-   ``min_information``.
+   ``information`` (its block's whitened eigenvalues); each pair ``held_directions``,
+   ``min_information`` and ``registered_by`` (which ICP, and why).
 
 All computations run in a frame centred on the centroid of all points (better conditioned
 than ``base``, whose origin may be half a metre away); results are returned in ``base``.
@@ -397,6 +398,15 @@ def _motion(t: np.ndarray, centroid: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(moved - centroid) * 1e3), float(rotation_angle_deg(t[:3, :3]))
 
 
+def _icp_distances(max_corr_dist: float, fine_dist: float) -> list[float]:
+    """The correspondence distances of coarse-to-fine ICP: halved from ``max_corr_dist``
+    while not below ``fine_dist``, three at most."""
+    dists = [max_corr_dist]
+    while dists[-1] / 2 >= fine_dist * (1 - 1e-9) and len(dists) < 3:
+        dists.append(dists[-1] / 2)
+    return dists
+
+
 def _icp(src, tgt, max_corr_dist: float, fine_dist: float, init: np.ndarray,
          max_iterations: int):
     """Coarse-to-fine symmetric ICP; returns the result and the step one more iteration
@@ -407,9 +417,7 @@ def _icp(src, tgt, max_corr_dist: float, fine_dist: float, init: np.ndarray,
     est = reg.TransformationEstimationSymmetric()
     crit = reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9,
                                       max_iteration=max_iterations)
-    dists = [max_corr_dist]
-    while dists[-1] / 2 >= fine_dist * (1 - 1e-9) and len(dists) < 3:
-        dists.append(dists[-1] / 2)
+    dists = _icp_distances(max_corr_dist, fine_dist)
     t = np.asarray(init, dtype=np.float64)
     res = None
     for d in dists:
@@ -498,9 +506,7 @@ def _held_icp(src, tgt, tree, max_corr_dist: float, fine_dist: float, c: np.ndar
     solution remapping): each Gauss-Newton step is taken in the subspace whose whitened
     information is at least ``ratio``, and the estimate is projected onto it. Coarse to
     fine like :func:`_icp`. Returns the result and its last step."""
-    dists = [max_corr_dist]
-    while dists[-1] / 2 >= fine_dist * (1 - 1e-9) and len(dists) < 3:
-        dists.append(dists[-1] / 2)
+    dists = _icp_distances(max_corr_dist, fine_dist)
     u = np.zeros(6)  # whitened twist about c
     t = np.eye(4)
     step = np.eye(4)
@@ -1006,30 +1012,40 @@ def _register_pair(i: int, j: int, red, clouds, trees, cents, o: AlignOptions,
 
     reg = o3d.pipelines.registration
     eye = np.eye(4)
-    res, d_fine, step = _icp(clouds[i], clouds[j], o.max_corr_dist_m, fine_dist, eye,
-                             o.max_iterations)
-    t = np.asarray(res.transformation).copy()  # maps sweep i onto sweep j
-    # directions the pair's overlap does not constrain (a flat face: the slide in its
-    # plane and the turn about its normal; a sphere: every turn about its centre), from
-    # its whitened point-to-plane information at ICP's result (none left there: it slid
-    # off the overlap, as on a sphere): ICP slides along them, so such a pair is
-    # registered by :func:`_held_icp`, which holds them there. (Open3D's
-    # get_information_matrix_from_point_clouds is point-to-point, of full rank on a
-    # plane: it hides the slide.)
-    got = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
-                     o.voxel_size_m)
-    n_held = int(np.count_nonzero(got[0] < o.pair_degenerate_ratio)) if got else 6
+    d_fine = _icp_distances(o.max_corr_dist_m, fine_dist)[-1]
     # the two sides of a thin wall within the correspondence distance (normals opposed):
     # Open3D's ICP pairs them and pulls one sweep onto the other's face; _held_icp
-    # leaves such correspondences out
-    if n_held or _opposed_fraction(red[i], red[j], trees[j], o.max_corr_dist_m) > 0.02:
+    # leaves such correspondences out. Such a pair goes to _held_icp straight away (it
+    # starts from the robot's pose, not from ICP's result: ICP would be thrown away)
+    thin_wall = _opposed_fraction(red[i], red[j], trees[j], o.max_corr_dist_m) > 0.02
+    n_held = None
+    if not thin_wall:
+        res, d_fine, step = _icp(clouds[i], clouds[j], o.max_corr_dist_m, fine_dist, eye,
+                                 o.max_iterations)
+        t = np.asarray(res.transformation).copy()  # maps sweep i onto sweep j
+        # directions the pair's overlap does not constrain (a flat face: the slide in its
+        # plane and the turn about its normal; a sphere: every turn about its centre),
+        # from its whitened point-to-plane information at ICP's result (none left there:
+        # it slid off the overlap, as on a sphere): ICP slides along them, so such a pair
+        # is registered by :func:`_held_icp`, which holds them there. (Open3D's
+        # get_information_matrix_from_point_clouds is point-to-point, of full rank on a
+        # plane: it hides the slide.)
+        got = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
+                         o.voxel_size_m)
+        n_held = int(np.count_nonzero(got[0] < o.pair_degenerate_ratio)) if got else 6
+    if thin_wall or n_held:
         t, step = _held_icp(red[i], red[j], trees[j], o.max_corr_dist_m, fine_dist,
                             cents[i], prior_sd, o.pair_degenerate_ratio, o.voxel_size_m,
                             o.max_iterations)
     fin = _pair_info(red[i], red[j], trees[j], t, d_fine, cents[i], prior_sd,
                      o.voxel_size_m)
+    if n_held is None:  # the thin wall's pair: the directions held at _held_icp's result
+        n_held = int(np.count_nonzero(fin[0] < o.pair_degenerate_ratio)) if fin else 6
     held = {"held_directions": n_held,
-            "min_information": float(fin[0][0]) if fin else None}
+            "min_information": float(fin[0][0]) if fin else None,
+            "registered_by": ("held ICP: both sides of a thin wall in reach" if thin_wall
+                              else "held ICP: directions the overlap does not fix"
+                              if n_held else "symmetric ICP")}
     info = np.asarray(reg.get_information_matrix_from_point_clouds(
         clouds[i], clouds[j], d_fine, t)).copy()
     fit = _fit(red[i], red[j], trees[j], t, o.max_corr_dist_m)[0]

@@ -1468,7 +1468,7 @@ def _row_medians(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndarray, *,
                    cos_max: float, side_px: float, search_px: float, min_contrast: float,
-                   cell_tol_px: float = np.inf
+                   cell_tol_px: float = np.inf, group: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Contour-generator points of one view and their distance to the image's edge.
 
@@ -1495,6 +1495,11 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     6 mm upright ended 0.7 mm outward; at the true poses the mean rim residual of the
     sweep seeing the back face was -1.24 px, -0.39 px with this test; on the bumpy
     blob -0.11 to -0.23 px per sweep, +0.02 to +0.04 px with it).
+
+    ``group`` (K,) int >= 0, optional: the points of several sweeps in one call, each
+    point's sweep. Profiles and cells are then those of a sweep, and each sweep's result
+    is what a call with its points alone returns, in the same order (the groups in
+    ascending order): one call per view instead of one per view and sweep.
 
     Returns
     -------
@@ -1532,7 +1537,10 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
         return empty
     ui = np.clip(np.round(uv[cand, 0]).astype(np.int64), 0, w - 1)
     vi = np.clip(np.round(uv[cand, 1]).astype(np.int64), 0, h - 1)
-    key = profile[cand] * (int(f.bucket.max()) + 1) + f.bucket[vi, ui]
+    n_cells = int(f.bucket.max()) + 1
+    key = profile[cand] * n_cells + f.bucket[vi, ui]
+    if group is not None:  # the sweep first: each sweep's groups in their own order
+        key = key + group[cand] * ((int(profile.max()) + 1) * n_cells)
     order = np.lexsort((d[cand], key))
     k = key[order]
     c_o = cand[order]
@@ -1614,7 +1622,8 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     # beyond the edge does not discard the cell's good ones
     cell = f.bucket[np.clip(np.round(uv[idx, 1]).astype(np.int64), 0, h - 1),
                     np.clip(np.round(uv[idx, 0]).astype(np.int64), 0, w - 1)]
-    outer = _near_cell_outermost(r, cell, cell_tol_px)
+    outer = _near_cell_outermost(r, cell if group is None else cell + group[idx] * n_cells,
+                                 cell_tol_px)
     idx, r, m, cell = idx[outer], r[outer], m[outer], cell[outer]
     # d r / d x = m . d uv / d x (numerical, exact through the lens distortion)
     base_uv = uv[idx]
@@ -2166,13 +2175,26 @@ def _add_rim_terms(H: np.ndarray, b: np.ndarray, fields, act, cur, cur_n, org, G
     (sweep, residuals) per view and sweep. The views are searched on ``threads`` threads
     and their terms added in the views' order (the same sums at any thread count)."""
 
+    if not act:
+        return []
+    # every active sweep's points in one call per view (the sweep as each point's group)
+    x_all = np.concatenate([cur[s] for s in act])
+    n_all = np.concatenate([cur_n[s] for s in act])
+    g_all = np.concatenate([G[s] for s in act])
+    sizes = [len(cur[s]) for s in act]
+    grp = np.repeat(np.arange(len(act)), sizes)
+    first = np.r_[0, np.cumsum(sizes)[:-1]]
+
     def contour(f) -> list:
         per_view = []
-        for s in act:
-            idx, r, jac, scl, cell = _rim_residuals(f, cur[s], cur_n[s], G[s], **_RIM)
-            okr = np.abs(r) < gate
-            if okr.any():
-                per_view.append((s, idx[okr], r[okr], jac[okr], scl[okr], cell[okr]))
+        idx_a, r_a, jac_a, scl_a, cell_a = _rim_residuals(f, x_all, n_all, g_all, **_RIM,
+                                                          group=grp)
+        g_of = grp[idx_a]
+        for k, s in enumerate(act):
+            sel = (g_of == k) & (np.abs(r_a) < gate)
+            if sel.any():
+                per_view.append((s, idx_a[sel] - first[k], r_a[sel], jac_a[sel], scl_a[sel],
+                                 cell_a[sel]))
         return _outermost_across_sweeps(per_view, _RIM_CROSS_TOL_PX)
 
     rims = []

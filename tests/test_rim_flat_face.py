@@ -50,3 +50,37 @@ def test_profiles_across_a_grazing_flat_face_do_not_bias_the_silhouette_term():
     assert len(idx) >= 5  # the contour along the top edge is found ...
     assert len(np.unique(profile[idx])) <= 6  # ... from the topmost profiles only
     assert np.mean(r) > -1.0 and r.min() > -2.0  # px; the true contour is at 0
+
+
+def test_several_sweeps_in_one_call_give_each_sweeps_own_result():
+    """The refinement searches each view once for all sweeps (``group``): each sweep's
+    residuals must be exactly those of a call with its points alone, although the sweeps
+    use the same profile numbers and reach the same border cells."""
+    views = _view()
+    field = _view_fields(views, _RIM_CELL_PX, 1.0)[0]
+    x, z = np.meshgrid(np.arange(-0.025, 0.025, 2e-4), HI[2] - 1.1e-3 * (np.arange(40) + 0.3))
+    face = np.stack([x.ravel(), np.full(x.size, HI[1]), z.ravel()], axis=1)
+    profile = np.repeat(np.arange(40), x.shape[1])
+    # three sweeps: the face as it is, lifted by 0.3 mm, and shifted sideways by 0.5 mm
+    # and thinned (other positions, other point counts), all with profiles 0-39
+    sweeps = [face, face + [0.0, 0.0, 3e-4], (face + [5e-4, 0.0, 0.0])[::3]]
+    profiles = [profile, profile, profile[::3]]
+    nrm = [np.tile([0.0, 1.0, 0.0], (len(p), 1)) for p in sweeps]
+    alone = [_rim_residuals(field, p, n, g, **_RIM)
+             for p, n, g in zip(sweeps, nrm, profiles, strict=True)]
+    grp = np.repeat(np.arange(3), [len(p) for p in sweeps])
+    together = _rim_residuals(field, np.concatenate(sweeps), np.concatenate(nrm),
+                              np.concatenate(profiles), **_RIM, group=grp)
+    first = np.r_[0, np.cumsum([len(p) for p in sweeps])[:-1]]
+    for k in range(3):
+        assert len(alone[k][0]) >= 3
+        sel = grp[together[0]] == k
+        np.testing.assert_array_equal(together[0][sel] - first[k], alone[k][0])
+        np.testing.assert_array_equal(together[4][sel], alone[k][4])  # the cells
+        # the values to rounding: a matrix product's last bit may depend on its size
+        for a, b in zip(together[1:4], alone[k][1:4], strict=True):
+            np.testing.assert_allclose(a[sel], b, rtol=1e-7, atol=0.0)
+    # without the groups, the sweeps' profiles 0-39 are taken as one sweep's: fewer kept
+    merged = _rim_residuals(field, np.concatenate(sweeps), np.concatenate(nrm),
+                            np.concatenate(profiles), **_RIM)
+    assert len(merged[0]) < len(together[0])

@@ -1020,8 +1020,8 @@ def _register_pair(i: int, j: int, red, clouds, trees, cents, o: AlignOptions,
     thin_wall = _opposed_fraction(red[i], red[j], trees[j], o.max_corr_dist_m) > 0.02
     n_held = None
     if not thin_wall:
-        res, d_fine, step = _icp(clouds[i], clouds[j], o.max_corr_dist_m, fine_dist, eye,
-                                 o.max_iterations)
+        res, _, step = _icp(clouds[i], clouds[j], o.max_corr_dist_m, fine_dist, eye,
+                            o.max_iterations)
         t = np.asarray(res.transformation).copy()  # maps sweep i onto sweep j
         # directions the pair's overlap does not constrain (a flat face: the slide in its
         # plane and the turn about its normal; a sphere: every turn about its centre),

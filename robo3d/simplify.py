@@ -378,16 +378,17 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
     import pymeshlab
 
     scale = _scale_of(v)
+    vs = v * scale
     locked = keep is not None and bool(np.any(keep))
 
     def collapse(optimal: bool) -> tuple[np.ndarray, np.ndarray]:
         if locked:
             ms = pymeshlab.MeshSet()
-            ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v * scale, face_matrix=f,
+            ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vs, face_matrix=f,
                                        f_scalar_array=(~keep).astype(np.float64)))
             ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
         else:
-            ms = _meshset(v * scale, f)
+            ms = _meshset(vs, f)
         kw = _quadric_options(target, preserve_boundary, preserve_normal, selected=locked,
                               optimal=optimal)
         ms.meshing_decimation_quadric_edge_collapse(**kw)
@@ -399,7 +400,7 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
             tries += 1
         return _arrays(ms)
 
-    out_v, out_f, again = _guarded(collapse, v * scale)
+    out_v, out_f, again = _guarded(collapse, vs)
     if again:
         log.warning("simplify: the quadric collapse put a vertex far outside the mesh "
                     "(optimal placement); made again without it")
@@ -656,7 +657,6 @@ class _Distance:
                                  o3d.core.Tensor(f.astype(np.uint32)))
         self.samples, on_face = _measure_samples(v, f, n_samples, seed, faces=True)
         self.n_samples, self.seed, self.threads = n_samples, seed, threads
-        self.tail = 0.0  # the last candidate's (:func:`_tail`), set by each call
         self.loose = None
         if loose is not None and loose_bound is not None and np.any(loose):
             self.loose, self.loose_bound = np.asarray(loose, dtype=bool), float(loose_bound)
@@ -702,7 +702,8 @@ class _Distance:
         With inferred faces the distance is scaled to ``bound``'s units (an inferred
         sample's distance times ``bound / loose_bound``), the samples beyond their own
         bound are returned, and the dict has ``measured_max`` and ``inferred_max`` (the
-        unscaled maxima on either surface)."""
+        unscaled maxima on either surface). The dict's ``tail`` is the larger of the two
+        sides' :func:`_tail` (scaled like the distance), what the next step is sized by."""
         import open3d as o3d
 
         from .evaluate import open3d_threads
@@ -716,7 +717,7 @@ class _Distance:
         stats = {"a_to_b": _stats(a), "b_to_a": _stats(b), "max": float(max(a.max(), b.max()))}
         if self.loose is None:
             far = np.concatenate([self.samples[a > bound], q[b > bound]])
-            self.tail = max(_tail(a), _tail(b))
+            stats["tail"] = max(_tail(a), _tail(b))
             return stats["max"], far, stats
         la = self.samples_loose
         mb, ib, idx, lb = self._split_max(q, b, bound)
@@ -728,7 +729,7 @@ class _Distance:
         sb = b.copy()
         sb[idx[lb]] *= scale
         far = np.concatenate([self.samples[sa > bound], q[sb > bound]])
-        self.tail = max(_tail(sa), _tail(sb))
+        stats["tail"] = max(_tail(sa), _tail(sb))
         return float(max(sa.max(), sb.max())), far, stats
 
 
@@ -880,7 +881,7 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
             cand_v, cand_f, d, far, stats = attempt(n, redo)
             if d <= max_error:
                 good = (cand_v, cand_f, d, stats)
-                good_tail = dist.tail
+                good_tail = stats["tail"]
                 break
             if k < _LOCK_ROUNDS:
                 places = _places(np.concatenate([places, far]), radius)

@@ -10,6 +10,13 @@ for that module in ``sys.modules`` before Open3D is imported: Open3D's
 module (and plotly and dash) the first time one of them is called, so a user's own
 ``open3d.visualization.draw_plotly(...)`` in a process that imported robo3d still works.
 Nothing is done when Open3D is already imported.
+
+:func:`keep_pandas_out` is for the workflow's stage processes only
+(:func:`robo3d.pipeline.run_from_snakemake`): pyarrow (under rerun) tries to import
+pandas at its first Arrow conversion, to know whether what it converts is a pandas
+object, and pandas takes 0.27 s to import (stop 48), in every job, wherever pandas is
+installed (the test extras' SLURM plugin brings it). No stage hands pandas objects to
+pyarrow, so there a failed import is the right answer, and cheap.
 """
 
 from __future__ import annotations
@@ -70,4 +77,26 @@ def defer_open3d_plotly() -> bool:
     stand_in._robo3d_deferred = True  # type: ignore[attr-defined]
     stand_in.__getattr__ = _stand_in_attr  # type: ignore[method-assign]
     sys.modules[_NAME] = stand_in
+    return True
+
+
+class _NoPandas:
+    """A meta path finder that refuses ``pandas`` (:func:`keep_pandas_out`)."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:
+        if name == "pandas" or name.startswith("pandas."):
+            raise ModuleNotFoundError(
+                f"{name} is kept out of robo3d's workflow jobs (robo3d.deferred."
+                "keep_pandas_out: pyarrow would import it at its first conversion)",
+                name=name)
+        return None
+
+
+def keep_pandas_out() -> bool:
+    """Make ``import pandas`` fail in this process (a workflow stage's), so that pyarrow's
+    probe for pandas objects costs a failed import instead of importing pandas; True
+    when it did. Nothing is done when pandas is imported already."""
+    if "pandas" in sys.modules or any(isinstance(f, _NoPandas) for f in sys.meta_path):
+        return False
+    sys.meta_path.insert(0, _NoPandas())
     return True

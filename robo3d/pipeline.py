@@ -374,6 +374,9 @@ def run_from_snakemake(stage: str, smk: Any) -> None:
     cfg = params.cfg if params is not None and hasattr(params, "cfg") else smk.config
     if stage in OPEN3D_STAGES:  # byte-identical results whatever the thread timing
         pin_open3d_threads()
+    from .deferred import keep_pandas_out
+
+    keep_pandas_out()  # pyarrow's probe for pandas objects, 0.27 s per job (robo3d.deferred)
     try:
         fn(inputs, outputs, cfg, rec, **kwargs)
     except Robo3dError as exc:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from robo3d.deferred import defer_open3d_plotly
 
 _CHILD = """
@@ -34,3 +36,46 @@ def test_nothing_is_done_once_open3d_is_imported():
     import open3d  # noqa: F401
 
     assert defer_open3d_plotly() is False
+
+
+_NO_PANDAS_CHILD = """
+import sys
+import numpy as np
+from robo3d.deferred import keep_pandas_out
+assert keep_pandas_out() is True and keep_pandas_out() is False
+import rerun as rr
+rec = rr.RecordingStream("robo3d_test")
+rr.log("points", rr.Points3D(np.zeros((3, 3))), recording=rec)
+rr.log("base", rr.ViewCoordinates.RDF, static=True, recording=rec)
+assert "pandas" not in sys.modules, "pyarrow imported pandas"
+try:
+    import pandas  # noqa: F401
+except ModuleNotFoundError as exc:
+    assert "keep_pandas_out" in str(exc), exc
+else:
+    raise AssertionError("pandas was imported")
+print("ok")
+"""
+
+
+def test_a_stage_process_logs_to_rerun_without_importing_pandas():
+    import importlib.util
+
+    if importlib.util.find_spec("pandas") is None:
+        pytest.skip("pandas is not installed here: nothing to keep out")
+    out = subprocess.run([sys.executable, "-c", _NO_PANDAS_CHILD], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+def test_pandas_already_imported_is_left_alone():
+    out = subprocess.run([sys.executable, "-c",
+                          "import pandas, sys\nfrom robo3d.deferred import keep_pandas_out\n"
+                          "assert keep_pandas_out() is False\n"
+                          "assert not any(type(f).__name__ == '_NoPandas' "
+                          "for f in sys.meta_path)\nprint('ok')"],
+                         capture_output=True, text=True, timeout=120)
+    if "No module named 'pandas'" in out.stderr:
+        pytest.skip("pandas is not installed here")
+    assert out.returncode == 0, out.stderr

@@ -132,6 +132,7 @@ IEEE PAMI 16(2).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -141,8 +142,8 @@ from .errors import StageError
 from .options import Options
 
 __all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "point_spacing",
-           "range_surface", "crop_mesh_to_hull", "remove_vertices", "SOURCES", "CLOSE_MODES",
-           "face_source", "source_area_fractions", "keep_vertices"]
+           "profile_spacing", "range_surface", "crop_mesh_to_hull", "remove_vertices",
+           "SOURCES", "CLOSE_MODES", "face_source", "source_area_fractions", "keep_vertices"]
 
 #: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
 #: its index here. ``measured``: on the laser's observed surface; ``hull``: inferred, the
@@ -175,13 +176,19 @@ class FuseOptions(Options):
     Attributes
     ----------
     tsdf_voxel_m : float, metres
-        The TSDF grid's finest voxel: the voxel is the larger of this and
-        ``tsdf_voxel_per_spacing`` times the laser points' spacing.
+        The TSDF grid's finest voxel: the voxel is the largest of this,
+        ``tsdf_voxel_per_spacing`` times the laser points' spacing and
+        ``tsdf_voxel_per_footprint`` times the square root of each point's footprint.
     tsdf_voxel_per_spacing : float
         The voxel is at least this many times the median distance between neighbouring
         laser points of a scan (the sensor's sampling along its line); 0: always
         ``tsdf_voxel_m``. A grid finer than the data adds faces, not detail: see
         :func:`data_voxel`.
+    tsdf_voxel_per_footprint : float
+        The voxel is at least this many times ``sqrt(spacing x profile spacing)``, the
+        side of the square each laser point stands for (the profile spacing: the median
+        distance from a point to the next laser frame's profile, :func:`profile_spacing`);
+        0: no such bound. Sweeps of few frames leave their profiles millimetres apart.
     tsdf_trunc_voxels : int
         Half-width of the band around each range surface, in voxels.
     min_weight : float
@@ -232,6 +239,7 @@ class FuseOptions(Options):
     not_in_config = ("seed",)
     tsdf_voxel_m: float = 0.0004
     tsdf_voxel_per_spacing: float = 1.25
+    tsdf_voxel_per_footprint: float = 0.5
     tsdf_trunc_voxels: int = 4
     min_weight: float = 0.003
     min_cos_view: float = 0.03
@@ -822,12 +830,17 @@ def fuse_tsdf(
     if n_used == 0:
         raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
                          f"cos(view angle) >= {o.min_cos_view} with confidence > 0)")
-    voxel_size, spacing = data_voxel(Pm, o, threads=threads)
+    across = (profile_spacing(Pm, [None if g is None else g[c > 0]
+                                   for g, c in zip(G, Cf, strict=True)])
+              if o.tsdf_voxel_per_footprint > 0 else None)
+    voxel_size, spacing = data_voxel(Pm, o, threads=threads, profile_spacing_m=across)
     trunc_voxels = o.tsdf_trunc_voxels
     report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used,
                                   n_points_carve_only=n_carve, n_scans=len(P),
                                   voxel_size=float(voxel_size), point_spacing_m=spacing,
-                                  voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m))
+                                  profile_spacing_m=across,
+                                  voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m),
+                                  voxel_from=_voxel_from(voxel_size, spacing, o))
     trunc = trunc_voxels * voxel_size
     allp = np.concatenate(P)
     origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc)
@@ -880,13 +893,15 @@ def fuse_tsdf(
     return v, f, report
 
 
-def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int = 1
-               ) -> tuple[float, float | None]:
-    """The TSDF voxel for these scans: the larger of ``tsdf_voxel_m`` and
+def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int = 1,
+               profile_spacing_m: float | None = None) -> tuple[float, float | None]:
+    """The TSDF voxel for these scans: the largest of ``tsdf_voxel_m``,
     ``tsdf_voxel_per_spacing`` times the points' spacing, the median over all points of
     the distance to the nearest other point of the same scan (in a laser sweep: the
-    sensor's sampling along its line, finer than the profiles' spacing); (voxel, spacing
-    in metres, None when no scan has two points or the factor is 0).
+    sensor's sampling along its line, finer than the profiles' spacing), and, given the
+    profiles' spacing (:func:`profile_spacing`), ``tsdf_voxel_per_footprint`` times
+    ``sqrt(spacing x profile spacing)``; (voxel, spacing in metres, None when no scan
+    has two points or the factor is 0).
 
     Why: a grid finer than the data adds faces, not detail. On issue 14's small scans
     (320 x 240 pixels, points 0.55 mm apart along the line, profiles about 2 mm apart) the
@@ -898,13 +913,67 @@ def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int =
     thin wall, blob and user mesh (640 x 480: 0.29-0.31 mm) would leave the 0.4 mm grid,
     and the bracket lost a little (measured p95 0.092 -> 0.098 mm); at 1.25 the demos
     (0.27 mm) and every object stay on ``tsdf_voxel_m`` (at most 0.39 mm).
+
+    The footprint: at 640 x 480 the points lie 0.27-0.29 mm apart along the line, so the
+    spacing keeps the 0.4 mm grid, but sweeps of 20-40 frames leave their profiles 2.4-8.5
+    mm apart: scans of about 10,000 points fused into 0.7-1.4 million faces. Measured on
+    18 random scenes (``benchmarks/README.md``, stop 48): where the footprint coarsens the
+    grid most (scenes 187, 332, 340, 349: 0.40-0.69 -> 0.53-1.03 mm) the simplification
+    took 4.6-16.5 s instead of 14.3-56.4 s; the measured surface's median moved by at most
+    0.004 mm on 17 of the 18 (the 18th, a vase of which 5 % was measured: 0.255 -> 0.303
+    mm), its completeness by +0.003 to -0.014. At 0.625 the 320 x 240 scenes, whose
+    spacing already sets 0.7 mm, went to 1.0-1.3 mm, and a bracket's measured completeness
+    fell 0.856 -> 0.824 (0.842 at 0.5). The objects benchmark's profiles lie 1.15-1.28 mm
+    apart: at most 0.31 mm, its grid stays 0.4 mm.
     """
     if not options.tsdf_voxel_per_spacing > 0:
         return float(options.tsdf_voxel_m), None
     spacing = point_spacing(points, threads=threads)
     if spacing is None:
         return float(options.tsdf_voxel_m), None
-    return float(max(options.tsdf_voxel_m, options.tsdf_voxel_per_spacing * spacing)), spacing
+    voxel = max(options.tsdf_voxel_m, options.tsdf_voxel_per_spacing * spacing)
+    if profile_spacing_m is not None and options.tsdf_voxel_per_footprint > 0:
+        voxel = max(voxel, options.tsdf_voxel_per_footprint
+                    * math.sqrt(spacing * max(profile_spacing_m, spacing)))
+    return float(voxel), spacing
+
+
+def _voxel_from(voxel: float, spacing: float | None, o: FuseOptions) -> str:
+    """Which bound of :func:`data_voxel` set the voxel (the report's ``voxel_from``)."""
+    if not voxel > o.tsdf_voxel_m or spacing is None:
+        return "tsdf_voxel_m"
+    return ("point spacing" if math.isclose(voxel, o.tsdf_voxel_per_spacing * spacing)
+            else "point footprint")
+
+
+def profile_spacing(scans: list[np.ndarray], grids: list[np.ndarray | None]) -> float | None:
+    """The laser profiles' spacing: the median over all points of the distance to the
+    nearest point of the next laser frame's profile in the same scan (``grids``: each
+    point's (frame, line, axis), :func:`range_surface`), metres; None when no scan has
+    two frames with points (or no grid). A sweep of 20 frames over an object leaves its
+    profiles 4-9 mm apart while its points lie 0.3 mm apart along the line (the random
+    scenes at 640 x 480, ``benchmarks/README.md`` stop 48); the objects benchmark's sweeps
+    1.2 mm."""
+    from scipy.spatial import cKDTree
+
+    d = []
+    for p, g in zip(scans, grids, strict=True):
+        if g is None or len(p) < 2:
+            continue
+        # the frames' ranks as a fourth coordinate, far apart (``gap`` exceeds the scan's
+        # extent tenfold): a point's nearest neighbour at the next rank is the nearest
+        # point of the next profile present, at its true distance
+        _, rank = np.unique(np.asarray(g)[:, 0], return_inverse=True)
+        rank = rank.reshape(-1).astype(np.float64)
+        p = np.asarray(p, dtype=np.float64)
+        gap = 10.0 * float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) + 1.0
+        tree = cKDTree(np.c_[p, gap * rank])
+        dist, _ = tree.query(np.c_[p, gap * (rank + 1)], k=1, distance_upper_bound=0.5 * gap)
+        d.append(dist[np.isfinite(dist)])
+    d = [x for x in d if len(x)]
+    if not d:
+        return None
+    return float(np.median(np.concatenate(d)))
 
 
 def point_spacing(scans: list[np.ndarray], *, threads: int = 1) -> float | None:

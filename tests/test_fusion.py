@@ -700,3 +700,56 @@ def test_surface_measured_by_a_flagged_sweep_is_labelled():
     # older aligned.npz files have no "flagged" in their reports: nothing is labelled
     old = [SimpleNamespace(points_base=a, sweep=0, report=None)]
     assert not flagged(old).any()
+
+
+def _sparse_cylinder_sweep(step_frame=6e-3, step_line=0.3e-3, length=0.06, radius=0.02):
+    """One sweep over the top of a cylinder lying along x (radius ``radius``), seen from
+    above: profiles across it ``step_frame`` apart, points ``step_line`` apart along each
+    (a sweep of few frames); (points, normals, sensor origins, grid)."""
+    xs = np.arange(0.0, length + 1e-9, step_frame)
+    th = np.arange(-1.0, 1.0, step_line / radius)
+    f, l = np.meshgrid(np.arange(len(xs)), np.arange(len(th)), indexing="ij")
+    f, l = f.ravel(), l.ravel()
+    p = np.c_[xs[f], radius * np.sin(th[l]), radius * np.cos(th[l])]
+    n = np.c_[np.zeros(len(f)), np.sin(th[l]), np.cos(th[l])]
+    o = np.c_[xs[f], np.zeros(len(f)), np.full(len(f), 0.3)]
+    return p, n, o, np.c_[f, l, np.zeros(len(f), np.int64)]
+
+
+def test_voxel_follows_the_profiles_spacing_of_a_sparse_sweep():
+    """Profiles 6 mm apart with points 0.3 mm apart along them: each point stands for a
+    0.3 x 6 mm footprint, and the grid is 0.5 x sqrt(0.3 x 6) = 0.67 mm, not 0.4 mm: a
+    third of the faces, the surface as close (the cylinder is straight between its
+    profiles). Profiles 1.2 mm apart (the objects benchmark's sweeps) keep 0.4 mm."""
+    from robo3d.fusion import MEASURED, data_voxel, fuse_tsdf, profile_spacing
+
+    R = 0.02
+    p, n, o, g = _sparse_cylinder_sweep(radius=R)
+    assert profile_spacing([p], [g]) == pytest.approx(6e-3, rel=1e-6)
+    assert profile_spacing([p], [None]) is None
+    # a missing frame: the next profile present is the neighbour (12 mm there)
+    gap = g[:, 0] != 3
+    assert profile_spacing([p[gap]], [g[gap]]) == pytest.approx(6e-3, rel=1e-6)
+    opts = FuseOptions()
+    voxel, spacing = data_voxel([p], opts, profile_spacing_m=6e-3)
+    assert spacing == pytest.approx(0.3e-3, rel=0.02)
+    assert voxel == pytest.approx(0.5 * np.sqrt(spacing * 6e-3))
+    dense = _sparse_cylinder_sweep(step_frame=1.2e-3, radius=R)
+    assert data_voxel([dense[0]], opts,
+                      profile_spacing_m=profile_spacing([dense[0]], [dense[3]]))[0] == 0.4e-3
+    got = {}
+    for k in (0.0, 0.5):
+        v, f, rep, a = fuse_tsdf([p], [n], [o], grids=[g], return_attributes=True,
+                                 options=FuseOptions(tsdf_voxel_per_footprint=k))
+        inner = ((a["source"] == MEASURED) & (v[:, 0] > 0.006) & (v[:, 0] < 0.054)
+                 & (np.abs(v[:, 1]) < 0.015))
+        err = np.abs(np.hypot(v[inner, 1], v[inner, 2]) - R)
+        got[k] = (rep, len(f), err)
+    rep0, n0, e0 = got[0.0]
+    rep1, n1, e1 = got[0.5]
+    assert rep0["voxel_size"] == 0.4e-3 and rep0["profile_spacing_m"] is None
+    assert rep1["voxel_size"] == pytest.approx(voxel, rel=0.01)
+    assert rep1["profile_spacing_m"] == pytest.approx(6e-3, rel=1e-6)
+    assert rep1["voxel_from"] == "point footprint" and rep0["voxel_from"] == "tsdf_voxel_m"
+    assert n1 < n0 / 2.5
+    assert len(e1) > 100 and e1.mean() < 2e-6 and e1.max() < 10e-6

@@ -122,7 +122,11 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     grid = ""
     if report.get("voxel_size") is not None:
         grid = f", voxel {report['voxel_size'] * 1e3:.2f} mm"
-        if report.get("voxel_from_spacing"):
+        if report.get("voxel_from") == "point footprint":
+            grid += (f" ({opts.tsdf_voxel_per_footprint:g} x sqrt(the points' spacing "
+                     f"{report['point_spacing_m'] * 1e3:.2f} mm x the profiles' "
+                     f"{report['profile_spacing_m'] * 1e3:.2f} mm))")
+        elif report.get("voxel_from_spacing"):
             grid += (f" ({opts.tsdf_voxel_per_spacing:g} x the points' spacing "
                      f"{report['point_spacing_m'] * 1e3:.2f} mm)")
     summary.info("fused mesh from %s: %d faces%s%s%s (%.1f s)", source, len(F),

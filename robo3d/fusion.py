@@ -145,6 +145,13 @@ __all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "point_spac
            "profile_spacing", "range_surface", "crop_mesh_to_hull", "remove_vertices",
            "SOURCES", "CLOSE_MODES", "face_source", "source_area_fractions", "keep_vertices"]
 
+#: SciPy KD-tree options for nearest-point queries from far away (fused vertices on
+#: hull-closed surface centimetres from the laser's dense lines): the default tree
+#: (balanced, nodes shrunk to their points) took 5.1 s for the 337,123 vertices of issue
+#: 11's cup/4 at 1280 x 960, these 0.6 s, with the same neighbours (exact either way;
+#: ``benchmarks/README.md``, stop 48)
+KD_FAR = {"balanced_tree": False, "compact_nodes": False}
+
 #: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
 #: its index here. ``measured``: on the laser's observed surface; ``hull``: inferred, the
 #: visual hull's surface where the laser saw nothing; ``filled``: inferred, a gap closed
@@ -687,7 +694,7 @@ def _boundary_ramp(points: np.ndarray, faces: np.ndarray, ramp: float,
     if ramp <= 0 or len(border) == 0:
         w[used] = 1.0
         return w
-    d, _ = cKDTree(points[border]).query(points[used], k=1)
+    d, _ = cKDTree(points[border], **KD_FAR).query(points[used], k=1)
     # at least one sample step where the scan is sparse (a surface seen at a grazing
     # angle): else every vertex of a sparse strip would lie on the ramp, weighing ~0
     ramp = np.maximum(ramp, _vertex_median(faces, _longest_edge(points, faces),
@@ -1202,7 +1209,7 @@ def _scan_terms(p: np.ndarray, n: np.ndarray, o: np.ndarray, vw: np.ndarray,
     ijk = np.stack(np.nonzero(band), axis=1) + lo
     lin = np.ravel_multi_index(tuple(ijk.T), shape)
     x = origin + ijk * voxel_size
-    _, nb = cKDTree(p).query(x, k=1, workers=int(threads))
+    _, nb = cKDTree(p, **KD_FAR).query(x, k=1, workers=int(threads))
     d = p[nb] - o[nb]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))
@@ -1381,8 +1388,8 @@ def _extract_surface(tsdf: np.ndarray, observed: np.ndarray, inside: np.ndarray 
         if not filled:  # crossings next to unobserved voxels are not surface
             v, f, attrs = keep_vertices(v, f, attrs, attrs["source"] == MEASURED)
     if len(v):
-        attrs["dist_measured_m"] = cKDTree(allp).query(v, k=1, workers=int(threads))[0
-                                                                                   ].astype(np.float32)
+        attrs["dist_measured_m"] = cKDTree(allp, **KD_FAR).query(
+            v, k=1, workers=int(threads))[0].astype(np.float32)
     else:
         attrs["dist_measured_m"] = np.zeros(0, np.float32)
     far = ((attrs["source"] != MEASURED)

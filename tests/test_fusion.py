@@ -753,3 +753,23 @@ def test_voxel_follows_the_profiles_spacing_of_a_sparse_sweep():
     assert rep1["voxel_from"] == "point footprint" and rep0["voxel_from"] == "tsdf_voxel_m"
     assert n1 < n0 / 2.5
     assert len(e1) > 100 and e1.mean() < 2e-6 and e1.max() < 10e-6
+
+
+def test_far_query_tree_options_find_the_same_neighbours():
+    """``KD_FAR`` (an unbalanced tree whose nodes keep their split boxes) only changes how
+    fast far queries run: laser lines dense along themselves and queries centimetres
+    away get the same nearest points and distances as SciPy's default tree."""
+    from scipy.spatial import cKDTree
+
+    from robo3d.fusion import KD_FAR
+
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 0.05, 4000)
+    lines = np.concatenate([np.c_[t, np.full_like(t, y), 0.001 * np.sin(60 * t)]
+                            for y in np.arange(0.0, 0.01, 0.0015)])
+    queries = np.concatenate([rng.uniform([-0.02, -0.03, -0.02], [0.07, 0.04, 0.03],
+                                          (3000, 3)), lines[::7] + 1e-5])
+    d0, i0 = cKDTree(lines).query(queries, k=1)
+    d1, i1 = cKDTree(lines, **KD_FAR).query(queries, k=1)
+    np.testing.assert_array_equal(d0, d1)
+    np.testing.assert_array_equal(i0, i1)

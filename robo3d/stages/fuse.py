@@ -196,12 +196,14 @@ def _flagged_sweep(V: np.ndarray, measured: np.ndarray, clouds: list, flags: lis
         return out
     from scipy.spatial import cKDTree
 
+    from ..fusion import KD_FAR
+
     pts = np.concatenate([c.points_base for c in clouds])
     of = np.concatenate([np.full(len(c.points_base), f) for c, f in zip(clouds, flags,
                                                                          strict=True)])
     if not len(pts):
         return out
-    _, idx = cKDTree(pts).query(V[measured], workers=-1)
+    _, idx = cKDTree(pts, **KD_FAR).query(V[measured], workers=-1)
     out[measured] = of[idx].astype(np.uint8)
     return out
 

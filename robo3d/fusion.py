@@ -149,7 +149,7 @@ __all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "point_spac
 #: hull-closed surface centimetres from the laser's dense lines): the default tree
 #: (balanced, nodes shrunk to their points) took 5.1 s for the 337,123 vertices of issue
 #: 11's cup/4 at 1280 x 960, these 0.6 s, with the same neighbours (exact either way;
-#: ``benchmarks/README.md``, stop 48)
+#: ``benchmarks/README.md``, stop 48). Queries near the points gain nothing from them.
 KD_FAR = {"balanced_tree": False, "compact_nodes": False}
 
 #: Provenance of a fused vertex (the ``source`` vertex property of fused.ply and mesh.ply):
@@ -195,7 +195,8 @@ class FuseOptions(Options):
         The voxel is at least this many times ``sqrt(spacing x profile spacing)``, the
         side of the square each laser point stands for (the profile spacing: the median
         distance from a point to the next laser frame's profile, :func:`profile_spacing`);
-        0: no such bound. Sweeps of few frames leave their profiles millimetres apart.
+        0: no such bound (nor with ``tsdf_voxel_per_spacing`` 0, which measures no
+        spacing). Sweeps of few frames leave their profiles millimetres apart.
     tsdf_trunc_voxels : int
         Half-width of the band around each range surface, in voxels.
     min_weight : float
@@ -694,7 +695,7 @@ def _boundary_ramp(points: np.ndarray, faces: np.ndarray, ramp: float,
     if ramp <= 0 or len(border) == 0:
         w[used] = 1.0
         return w
-    d, _ = cKDTree(points[border], **KD_FAR).query(points[used], k=1)
+    d, _ = cKDTree(points[border]).query(points[used], k=1)
     # at least one sample step where the scan is sparse (a surface seen at a grazing
     # angle): else every vertex of a sparse strip would lie on the ramp, weighing ~0
     ramp = np.maximum(ramp, _vertex_median(faces, _longest_edge(points, faces),
@@ -839,15 +840,16 @@ def fuse_tsdf(
                          f"cos(view angle) >= {o.min_cos_view} with confidence > 0)")
     across = (profile_spacing(Pm, [None if g is None else g[c > 0]
                                    for g, c in zip(G, Cf, strict=True)])
-              if o.tsdf_voxel_per_footprint > 0 else None)
+              if o.tsdf_voxel_per_footprint > 0 and o.tsdf_voxel_per_spacing > 0 else None)
     voxel_size, spacing = data_voxel(Pm, o, threads=threads, profile_spacing_m=across)
+    bounds = _voxel_bounds(o, spacing, across)
     trunc_voxels = o.tsdf_trunc_voxels
     report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used,
                                   n_points_carve_only=n_carve, n_scans=len(P),
                                   voxel_size=float(voxel_size), point_spacing_m=spacing,
                                   profile_spacing_m=across,
                                   voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m),
-                                  voxel_from=_voxel_from(voxel_size, spacing, o))
+                                  voxel_from=max(bounds, key=bounds.__getitem__))
     trunc = trunc_voxels * voxel_size
     allp = np.concatenate(P)
     origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc)
@@ -867,6 +869,7 @@ def fuse_tsdf(
             raise StageError(f"TSDF grid {shape} has {n} voxels > max_voxels {max_voxels}; "
                              "use a larger voxel_size")
         report.update(voxel_size=float(voxel_size), voxel_coarsened_from=float(fine),
+                      voxel_from="max_voxels",
                       voxel_coarsened_why=f"the grid at {fine * 1e3:.3f} mm would have had "
                       f"{n_vox} voxels, more than max_voxels {max_voxels}")
         log.warning("TSDF fusion: the points and the hull span a grid of %d voxels at "
@@ -938,19 +941,21 @@ def data_voxel(points: list[np.ndarray], options: FuseOptions, *, threads: int =
     spacing = point_spacing(points, threads=threads)
     if spacing is None:
         return float(options.tsdf_voxel_m), None
-    voxel = max(options.tsdf_voxel_m, options.tsdf_voxel_per_spacing * spacing)
-    if profile_spacing_m is not None and options.tsdf_voxel_per_footprint > 0:
-        voxel = max(voxel, options.tsdf_voxel_per_footprint
-                    * math.sqrt(spacing * max(profile_spacing_m, spacing)))
-    return float(voxel), spacing
+    return float(max(_voxel_bounds(options, spacing, profile_spacing_m).values())), spacing
 
 
-def _voxel_from(voxel: float, spacing: float | None, o: FuseOptions) -> str:
-    """Which bound of :func:`data_voxel` set the voxel (the report's ``voxel_from``)."""
-    if not voxel > o.tsdf_voxel_m or spacing is None:
-        return "tsdf_voxel_m"
-    return ("point spacing" if math.isclose(voxel, o.tsdf_voxel_per_spacing * spacing)
-            else "point footprint")
+def _voxel_bounds(o: FuseOptions, spacing: float | None, profile_spacing_m: float | None
+                  ) -> dict[str, float]:
+    """:func:`data_voxel`'s lower bounds on the voxel by what sets them, the floor first
+    (so that a tie names it): the voxel is the largest, the report's ``voxel_from`` its
+    name."""
+    bounds = {"tsdf_voxel_m": float(o.tsdf_voxel_m)}
+    if spacing is not None and o.tsdf_voxel_per_spacing > 0:
+        bounds["point spacing"] = o.tsdf_voxel_per_spacing * spacing
+        if profile_spacing_m is not None and o.tsdf_voxel_per_footprint > 0:
+            bounds["point footprint"] = o.tsdf_voxel_per_footprint * math.sqrt(
+                spacing * max(profile_spacing_m, spacing))
+    return bounds
 
 
 def profile_spacing(scans: list[np.ndarray], grids: list[np.ndarray | None]) -> float | None:
@@ -977,10 +982,8 @@ def profile_spacing(scans: list[np.ndarray], grids: list[np.ndarray | None]) -> 
         tree = cKDTree(np.c_[p, gap * rank])
         dist, _ = tree.query(np.c_[p, gap * (rank + 1)], k=1, distance_upper_bound=0.5 * gap)
         d.append(dist[np.isfinite(dist)])
-    d = [x for x in d if len(x)]
-    if not d:
-        return None
-    return float(np.median(np.concatenate(d)))
+    d = np.concatenate(d) if d else np.zeros(0)
+    return float(np.median(d)) if len(d) else None
 
 
 def point_spacing(scans: list[np.ndarray], *, threads: int = 1) -> float | None:
@@ -1209,7 +1212,7 @@ def _scan_terms(p: np.ndarray, n: np.ndarray, o: np.ndarray, vw: np.ndarray,
     ijk = np.stack(np.nonzero(band), axis=1) + lo
     lin = np.ravel_multi_index(tuple(ijk.T), shape)
     x = origin + ijk * voxel_size
-    _, nb = cKDTree(p, **KD_FAR).query(x, k=1, workers=int(threads))
+    _, nb = cKDTree(p).query(x, k=1, workers=int(threads))
     d = p[nb] - o[nb]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     scene = o3d.t.geometry.RaycastingScene(nthreads=int(threads))

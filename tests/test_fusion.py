@@ -515,10 +515,12 @@ def test_tsdf_grid_too_large_is_fused_coarser_and_says_so():
     assert rep["voxel_coarsened_from"] == pytest.approx(2e-4)
     assert rep["voxel_size"] > 2e-4 and np.prod(rep["grid_shape"]) <= 300_000
     assert "would have had" in rep["voxel_coarsened_why"]
+    assert rep["voxel_from"] == "max_voxels"
     d = np.abs(np.linalg.norm(v - C, axis=1) - R)
     assert len(f) > 1000 and np.median(d) < 0.25 * rep["voxel_size"]
     _, _, fine = fuse_tsdf(pts, nrm, org, options=opts.replace(tsdf_voxel_m=1e-3))
     assert "voxel_coarsened_from" not in fine  # within the limit: as asked
+    assert fine["voxel_from"] == "tsdf_voxel_m"
 
 
 def test_tsdf_provenance_per_vertex_and_close_modes():

@@ -126,7 +126,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
             grid += (f" ({opts.tsdf_voxel_per_footprint:g} x sqrt(the points' spacing "
                      f"{report['point_spacing_m'] * 1e3:.2f} mm x the profiles' "
                      f"{report['profile_spacing_m'] * 1e3:.2f} mm))")
-        elif report.get("voxel_from_spacing"):
+        elif report.get("voxel_from") == "point spacing":
             grid += (f" ({opts.tsdf_voxel_per_spacing:g} x the points' spacing "
                      f"{report['point_spacing_m'] * 1e3:.2f} mm)")
     summary.info("fused mesh from %s: %d faces%s%s%s (%.1f s)", source, len(F),
@@ -196,14 +196,12 @@ def _flagged_sweep(V: np.ndarray, measured: np.ndarray, clouds: list, flags: lis
         return out
     from scipy.spatial import cKDTree
 
-    from ..fusion import KD_FAR
-
     pts = np.concatenate([c.points_base for c in clouds])
     of = np.concatenate([np.full(len(c.points_base), f) for c, f in zip(clouds, flags,
                                                                          strict=True)])
     if not len(pts):
         return out
-    _, idx = cKDTree(pts, **KD_FAR).query(V[measured], workers=-1)
+    _, idx = cKDTree(pts).query(V[measured], workers=-1)
     out[measured] = of[idx].astype(np.uint8)
     return out
 

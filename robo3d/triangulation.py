@@ -916,9 +916,12 @@ def _median_step(P: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _grid_normals(P: np.ndarray, O: np.ndarray, frame_pos: np.ndarray, line: np.ndarray,
-                  frame_axis: np.ndarray, span: int, smooth: int, jump: float) -> np.ndarray:
+                  frame_axis: np.ndarray, span: int, smooth: int, jump: float,
+                  at: np.ndarray | None = None) -> np.ndarray:
     """Normals from the organised (frame x line) structure, oriented toward ``O``,
-    averaged over a (2 smooth + 1)^2 grid neighbourhood; NaN where not available."""
+    averaged over a (2 smooth + 1)^2 grid neighbourhood; NaN where not available. With
+    ``at`` ((N,) bool) only those points are averaged (the others are NaN): every point
+    still lends its own normal to its neighbours'."""
     n_pts = len(P)
     n_f = int(frame_pos.max()) + 1
     lmin = int(line.min())
@@ -963,16 +966,18 @@ def _grid_normals(P: np.ndarray, O: np.ndarray, frame_pos: np.ndarray, line: np.
     # average over the grid neighbourhood, in mirrored pairs of cells only, so that on a
     # curved surface the first-order bias cancels (a profile at the end of the sweep is
     # averaged along itself, not toward its one neighbour); the loop is over the stencil
-    acc = np.where(np.isfinite(nrm), nrm, 0.0)
+    sel = slice(None) if at is None else np.flatnonzero(at)
+    own, fs, ls, ps = nrm[sel], fr[sel], lc[sel], P[sel]
+    acc = np.where(np.isfinite(own), own, 0.0)
     reach = jump * smooth * max(step_a, step_c if np.isfinite(step_c) else 0.0)
 
     def _cell(df: int, dl: int) -> tuple[np.ndarray, np.ndarray]:
-        nb = grid[fr + df, lc + dl]
+        nb = grid[fs + df, ls + dl]
         if df:
-            nb = np.where(ax_pad[fr + df] == ax_pad[fr], nb, -1)
+            nb = np.where(ax_pad[fs + df] == ax_pad[fs], nb, -1)
         j = np.maximum(nb, 0)
         ok = (nb >= 0) & np.all(np.isfinite(nrm[j]), axis=1)
-        ok &= np.linalg.norm(P[j] - P, axis=1) <= reach
+        ok &= np.linalg.norm(P[j] - ps, axis=1) <= reach
         return j, ok
 
     for df in range(0, smooth + 1):
@@ -983,18 +988,26 @@ def _grid_normals(P: np.ndarray, O: np.ndarray, frame_pos: np.ndarray, line: np.
             j2, ok2 = _cell(-df, -dl)
             pair = ok1 & ok2
             acc += np.where(pair[:, None], nrm[j1] + nrm[j2], 0.0)
-    out = _unit(acc)[0]
-    out[~np.all(np.isfinite(nrm), axis=1)] = np.nan  # no own grid normal: fall back
+    part = _unit(acc)[0]
+    part[~np.all(np.isfinite(own), axis=1)] = np.nan  # no own grid normal: fall back
+    if at is None:
+        return part
+    out = np.full_like(nrm, np.nan)
+    out[sel] = part
     return out
 
 
-def _knn_normals(P: np.ndarray, k: int) -> np.ndarray:
-    """PCA normals of the k nearest neighbours (Hoppe et al. 1992), unoriented."""
+def _knn_normals(P: np.ndarray, k: int, at: np.ndarray | None = None) -> np.ndarray:
+    """PCA normals of the k nearest neighbours among ``P`` (Hoppe et al. 1992),
+    unoriented, of the points ``P[at]`` (``at``: indices or a mask; default every
+    point): only where the profile grid gave none, which on a dense scan are few, so the
+    neighbours and eigenvectors of the others are not computed for nothing."""
     from scipy.spatial import cKDTree
 
     k = int(min(k, len(P)))
-    _, idx = cKDTree(P).query(P, k=k)
-    idx = idx.reshape(len(P), k)
+    Q = P if at is None else P[at]
+    _, idx = cKDTree(P).query(Q, k=k)
+    idx = idx.reshape(len(Q), k)
     nb = P[idx] - P[idx].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
     _, evecs = np.linalg.eigh(cov)
@@ -1058,24 +1071,27 @@ def _sweep_pixels(stripes: Sequence[StripePoints]):
 
 
 def _sweep_normals(P: np.ndarray, O: np.ndarray, fpos: np.ndarray, line: np.ndarray,
-                   frame_axis: np.ndarray, options: TriangulateOptions
-                   ) -> tuple[np.ndarray, dict[str, int]]:
+                   frame_axis: np.ndarray, options: TriangulateOptions,
+                   at: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
     """Unit normals of a sweep's points, oriented toward their camera centres ``O``:
     from the profile grid where it has both tangents, else PCA of the ``normal_knn``
-    nearest points, else facing the camera; and how many came from each."""
+    nearest points, else facing the camera; and how many came from each. With ``at``
+    ((N,) bool) only those points' normals (the others NaN, not counted), each from all
+    the points around it."""
     normals = _grid_normals(P, O, fpos, line, frame_axis, max(1, int(options.normal_span)),
-                            max(0, int(options.normal_smooth)), float(options.normal_jump))
-    need = ~np.all(np.isfinite(normals), axis=1)
-    n_grid = int((~need).sum())
+                            max(0, int(options.normal_smooth)), float(options.normal_jump),
+                            at)
+    asked = np.ones(len(P), dtype=bool) if at is None else np.asarray(at, dtype=bool)
+    need = ~np.all(np.isfinite(normals), axis=1) & asked
+    n_grid = int(asked.sum() - need.sum())
     n_knn = 0
     if need.any() and len(P) >= 3:
-        knn = _knn_normals(P, options.normal_knn)
-        normals[need] = knn[need]
+        normals[need] = _knn_normals(P, options.normal_knn, need)
         n_knn = int(need.sum())
         need[:] = False
     if need.any():  # fewer than 3 points: face the camera
         normals[need] = _unit(O[need] - P[need])[0]
-    n_view = int(len(P) - n_grid - n_knn)
+    n_view = int(asked.sum() - n_grid - n_knn)
     flip = np.einsum("ni,ni->n", normals, O - P) < 0
     normals[flip] *= -1.0
     return _unit(normals)[0], {"from_grid": n_grid, "from_knn": n_knn, "from_view": n_view}
@@ -1175,14 +1191,19 @@ def triangulate_sweep(
     P = pts_base[keep]
     O = origin[keep]
     fpos = frame_pos[keep]
-    normals, report["normals"] = _sweep_normals(P, O, fpos, line[keep], frame_axis, options)
     if in_margin and in_box.any():
         # the box's points keep the normals of their neighbours in the box: the margin
         # holds the table, whose crease with the object would tilt the foot's normals
         # (10 degrees on bracket/4's walls); the margin's points see all their neighbours
+        # (only theirs are computed from all: the box's would be replaced)
         b = in_box[keep]
+        normals, margin = _sweep_normals(P, O, fpos, line[keep], frame_axis, options, ~b)
         normals[b], report["normals_in_box"] = _sweep_normals(
             P[b], O[b], fpos[b], line[keep][b], frame_axis, options)
+        report["normals"] = {k: margin[k] + report["normals_in_box"][k] for k in margin}
+    else:
+        normals, report["normals"] = _sweep_normals(P, O, fpos, line[keep], frame_axis,
+                                                    options)
     geo = np.clip(sin_a[keep] / np.sin(np.radians(_CONF_REF_ANGLE_DEG)), 0.0, 1.0)
     from .viz import format_counts
 

@@ -262,6 +262,32 @@ def test_sweep_normals_fall_back_to_knn_on_holes():
     assert ang.max() < 1.0, ang.max()
 
 
+def test_sweep_normals_of_a_subset_are_those_of_the_whole():
+    # the margin's pass computes only the margin's normals (grid and k-NN fallback), each
+    # from all the points around it: the same values as computed for every point
+    from robo3d.triangulation import _sweep_normals
+
+    stripes, poses, T_cl, _ = _plane_sweep(n_frames=12)
+    rng = np.random.default_rng(7)
+    holed = []
+    for sp in stripes:  # holes, so that some normals come from the k-NN fallback
+        keep = rng.random(len(sp)) < 0.5
+        holed.append(StripePoints(u=sp.u[keep], v=sp.v[keep]))
+    cloud = triangulate_sweep(holed, CAM, poses, T_cl)
+    P, O = cloud.points_base, cloud.sensor_origin_base
+    fpos = cloud.frame_index - cloud.frame_index.min()
+    axis = np.zeros(int(fpos.max()) + 1, dtype=np.int64)
+    opts = TriangulateOptions()
+    full, n_full = _sweep_normals(P, O, fpos, cloud.line, axis, opts)
+    assert n_full["from_grid"] > 0 and n_full["from_knn"] > 0
+    at = rng.random(len(P)) < 0.3
+    part, n_part = _sweep_normals(P, O, fpos, cloud.line, axis, opts, at)
+    np.testing.assert_array_equal(part[at], full[at])
+    assert np.all(np.isnan(part[~at]))
+    assert sum(n_part.values()) == int(at.sum())
+    assert 0 < n_part["from_knn"] < n_full["from_knn"]
+
+
 def test_sweep_normals_under_stripe_noise():
     # 0.03 px of stripe noise is ~0.1 mm of depth noise here; the grid normals are
     # averaged over 5 x 5 cells, the raw cross products (normal_smooth=0) are not

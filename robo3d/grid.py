@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import save_npz
 
 __all__ = ["VoxelGrid", "make_grid", "shell_voxels", "check_box", "carve_counts", "MAX_VOXELS"]
 
@@ -188,8 +188,7 @@ class VoxelGrid:
                                  f"got {type(value).__name__}")
             arrays[key] = a
         arrays["_json_keys"] = np.array(json_keys, dtype=np.str_)
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+        save_npz(path, **arrays)
 
     @classmethod
     def load_npz(cls, path: str | os.PathLike, *, return_extra: bool = False):

@@ -217,3 +217,29 @@ def test_stl_and_obj_in_millimetres_and_files_readable_by_others(tmp_path):
     assert "unit mm" in (tmp_path / "m_mm.obj").read_text().splitlines()[0]
     with pytest.raises(ValueError, match="unit"):
         write_mesh(tmp_path / "x.stl", v, f, unit="inch")
+
+
+def test_npz_files_round_trip_at_the_fast_level(tmp_path):
+    # robo3d.atomic.save_npz writes what np.savez_compressed does (np.load reads it back
+    # exactly), deflated; an object array is refused, not pickled
+    import zipfile
+
+    from robo3d.atomic import save_npz
+
+    rng = np.random.default_rng(3)
+    arrays = {"points": rng.normal(size=(5000, 3)), "index": np.arange(5000, dtype=np.int32),
+              "flags": rng.random(5000) < 0.5, "note": np.str_("{\"a\": 1}"),
+              "empty": np.zeros((0, 3), dtype=np.float32)}
+    path = tmp_path / "a.npz"
+    save_npz(path, **arrays)
+    with np.load(path, allow_pickle=False) as z:
+        assert sorted(z.files) == sorted(arrays)
+        for k, v in arrays.items():
+            assert z[k].dtype == np.asarray(v).dtype
+            np.testing.assert_array_equal(z[k], v)
+    with zipfile.ZipFile(path) as zf:
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_DEFLATED}
+        assert zf.getinfo("points.npy").compress_size < zf.getinfo("points.npy").file_size
+    with pytest.raises(ValueError):
+        save_npz(tmp_path / "b.npz", bad=np.array([{"a": 1}], dtype=object))
+    assert not (tmp_path / "b.npz").exists()

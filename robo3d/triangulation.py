@@ -962,6 +962,8 @@ def _grid_normals(P: np.ndarray, O: np.ndarray, frame_pos: np.ndarray, line: np.
     flip = np.einsum("ni,ni->n", nrm, O - P) < 0
     nrm[flip] *= -1.0
     if smooth <= 0:
+        if at is not None:
+            nrm[~np.asarray(at, dtype=bool)] = np.nan
         return nrm
     # average over the grid neighbourhood, in mirrored pairs of cells only, so that on a
     # curved surface the first-order bias cancels (a profile at the end of the sweep is

@@ -277,15 +277,15 @@ def test_sweep_normals_of_a_subset_are_those_of_the_whole():
     P, O = cloud.points_base, cloud.sensor_origin_base
     fpos = cloud.frame_index - cloud.frame_index.min()
     axis = np.zeros(int(fpos.max()) + 1, dtype=np.int64)
-    opts = TriangulateOptions()
-    full, n_full = _sweep_normals(P, O, fpos, cloud.line, axis, opts)
-    assert n_full["from_grid"] > 0 and n_full["from_knn"] > 0
     at = rng.random(len(P)) < 0.3
-    part, n_part = _sweep_normals(P, O, fpos, cloud.line, axis, opts, at)
-    np.testing.assert_array_equal(part[at], full[at])
-    assert np.all(np.isnan(part[~at]))
-    assert sum(n_part.values()) == int(at.sum())
-    assert 0 < n_part["from_knn"] < n_full["from_knn"]
+    for opts in (TriangulateOptions(), TriangulateOptions(normal_smooth=0)):
+        full, n_full = _sweep_normals(P, O, fpos, cloud.line, axis, opts)
+        assert n_full["from_grid"] > 0 and n_full["from_knn"] > 0
+        part, n_part = _sweep_normals(P, O, fpos, cloud.line, axis, opts, at)
+        np.testing.assert_array_equal(part[at], full[at])
+        assert np.all(np.isnan(part[~at]))
+        assert sum(n_part.values()) == int(at.sum())
+        assert 0 < n_part["from_knn"] < n_full["from_knn"]
 
 
 def test_sweep_normals_under_stripe_noise():

@@ -843,13 +843,14 @@ def fuse_tsdf(
               if o.tsdf_voxel_per_footprint > 0 and o.tsdf_voxel_per_spacing > 0 else None)
     voxel_size, spacing = data_voxel(Pm, o, threads=threads, profile_spacing_m=across)
     bounds = _voxel_bounds(o, spacing, across)
+    voxel_from = max(bounds, key=bounds.__getitem__)
     trunc_voxels = o.tsdf_trunc_voxels
     report: dict[str, Any] = dict(n_points=n_total, n_points_used=n_used,
                                   n_points_carve_only=n_carve, n_scans=len(P),
                                   voxel_size=float(voxel_size), point_spacing_m=spacing,
                                   profile_spacing_m=across,
-                                  voxel_from_spacing=bool(voxel_size > o.tsdf_voxel_m),
-                                  voxel_from=max(bounds, key=bounds.__getitem__))
+                                  voxel_from_spacing=voxel_from != "tsdf_voxel_m",
+                                  voxel_from=voxel_from)
     trunc = trunc_voxels * voxel_size
     allp = np.concatenate(P)
     origin, shape, shift = _tsdf_grid(allp, hull, voxel_size, trunc)
@@ -869,7 +870,7 @@ def fuse_tsdf(
             raise StageError(f"TSDF grid {shape} has {n} voxels > max_voxels {max_voxels}; "
                              "use a larger voxel_size")
         report.update(voxel_size=float(voxel_size), voxel_coarsened_from=float(fine),
-                      voxel_from="max_voxels",
+                      voxel_from="max_voxels", voxel_from_spacing=False,
                       voxel_coarsened_why=f"the grid at {fine * 1e3:.3f} mm would have had "
                       f"{n_vox} voxels, more than max_voxels {max_voxels}")
         log.warning("TSDF fusion: the points and the hull span a grid of %d voxels at "

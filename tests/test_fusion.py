@@ -515,7 +515,7 @@ def test_tsdf_grid_too_large_is_fused_coarser_and_says_so():
     assert rep["voxel_coarsened_from"] == pytest.approx(2e-4)
     assert rep["voxel_size"] > 2e-4 and np.prod(rep["grid_shape"]) <= 300_000
     assert "would have had" in rep["voxel_coarsened_why"]
-    assert rep["voxel_from"] == "max_voxels"
+    assert rep["voxel_from"] == "max_voxels" and not rep["voxel_from_spacing"]
     d = np.abs(np.linalg.norm(v - C, axis=1) - R)
     assert len(f) > 1000 and np.median(d) < 0.25 * rep["voxel_size"]
     _, _, fine = fuse_tsdf(pts, nrm, org, options=opts.replace(tsdf_voxel_m=1e-3))

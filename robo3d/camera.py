@@ -29,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 
 from .errors import CalibrationError
 from .transforms import invert_transform
@@ -219,13 +218,3 @@ def distortion_limit_r2(camera: CameraModel) -> float:
     roots = np.roots(coeffs)
     real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
     return float(real.min()) if real.size else float("inf")
-
-
-@njit(inline="always", cache=True)
-def distort_xy(x, y, k1, k2, p1, p2, k3):  # noqa: ANN001, ANN202 - numba helper
-    """Plumb_bob distortion of one normalised point, operation for operation as
-    :meth:`CameraModel.distort_normalized`, for compiled kernels: ``(xd, yd)``."""
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)

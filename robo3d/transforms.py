@@ -24,6 +24,7 @@ import numpy as np
 from .errors import TransformError
 
 __all__ = [
+    "correction_at",
     "quat_to_matrix",
     "matrix_to_quat",
     "quat_normalize",
@@ -374,3 +375,14 @@ class TransformBuffer:
             t_common_parent = self._link_at(self._links[f], times, what) @ t_common_parent
         out = invert_transform(t_common_parent) @ t_common_child
         return out[0] if scalar else out
+
+
+def correction_at(origin: np.ndarray, rotation: np.ndarray, translation: np.ndarray
+                  ) -> np.ndarray:
+    """The rigid ``base`` transform (4, 4) that a correction applies at one frame whose
+    sensor was at ``origin`` (3,): ``[R, (I - R) o + t]`` (the alignment's model,
+    :mod:`robo3d.registration`; here so that the evaluation need not import it)."""
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = (np.eye(3) - rotation) @ np.asarray(origin, dtype=np.float64) + translation
+    return out

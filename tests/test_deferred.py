@@ -79,3 +79,25 @@ def test_pandas_already_imported_is_left_alone():
     if "No module named 'pandas'" in out.stderr:
         pytest.skip("pandas is not installed here")
     assert out.returncode == 0, out.stderr
+
+
+_NO_NUMBA_CHILD = """
+import sys
+from robo3d.pipeline import run_from_snakemake  # what every workflow job imports
+import robo3d.fusion, robo3d.simplify, robo3d.evaluate, robo3d.silhouettes, robo3d.viz
+import robo3d.transforms, robo3d.camera
+print("numba" in sys.modules)
+"""
+
+
+def test_stages_without_compiled_kernels_do_not_import_numba():
+    # numba costs 0.2-0.5 s of every job's start; only the stripes, triangulation,
+    # carving and alignment use it, and they import it themselves
+    out = subprocess.run([sys.executable, "-c", _NO_NUMBA_CHILD], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
+    out = subprocess.run([sys.executable, "-c", "import sys, robo3d.registration\n"
+                          "print('numba' in sys.modules)"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.stdout.strip() == "True", out.stderr  # the check above can see numba

@@ -389,7 +389,7 @@ def _frame_pose_errors(rec, clouds, aligned, stamps: np.ndarray, stripes_path: P
     to the points (:func:`robo3d.evaluate.frame_displacement`). A sweep's figure is its
     worst frame; ``worst_*_frame_*`` the worst sweep. Empty without that attachment."""
     from ..evaluate import frame_displacement
-    from ..registration import correction_at
+    from ..transforms import correction_at
 
     if "ground_truth/image_poses.json" not in rec.attachments:
         return {}

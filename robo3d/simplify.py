@@ -1031,7 +1031,8 @@ def _zero() -> dict[str, float]:
 
 
 def transfer_vertex_attributes(vertices_from: np.ndarray, attributes: dict[str, np.ndarray],
-                               vertices_to: np.ndarray) -> dict[str, np.ndarray]:
+                               vertices_to: np.ndarray, *, tree: Any = None, threads: int = 1
+                               ) -> dict[str, np.ndarray]:
     """Per-vertex attributes (e.g. the fusion's provenance and confidence) carried from a
     mesh to its cleaned / simplified version: each new vertex takes those of the nearest
     original vertex (quadric collapse places a vertex on the surface it replaces, within
@@ -1043,6 +1044,11 @@ def transfer_vertex_attributes(vertices_from: np.ndarray, attributes: dict[str, 
         The original mesh's vertices, one row per entry of each attribute.
     attributes : dict of str to (V,) array
     vertices_to : (W, 3) float
+    tree : scipy.spatial.cKDTree, optional
+        The tree of ``vertices_from`` when the caller has it (the simplify stage asks
+        twice with the same original vertices); built here otherwise.
+    threads : int
+        Threads of the nearest-vertex query (the result does not depend on it).
 
     Returns
     -------
@@ -1060,7 +1066,8 @@ def transfer_vertex_attributes(vertices_from: np.ndarray, attributes: dict[str, 
             raise ValueError(f"attribute {k!r} has {len(a)} values for {len(v0)} vertices")
     if len(v1) == 0 or len(v0) == 0:
         return {k: np.zeros(len(v1), a.dtype) for k, a in attributes.items()}
-    _, nn = cKDTree(v0).query(v1, k=1)
+    _, nn = (cKDTree(v0) if tree is None else tree).query(v1, k=1,
+                                                          workers=max(1, int(threads)))
     return {k: np.asarray(a)[nn] for k, a in attributes.items()}
 
 

@@ -172,6 +172,10 @@ def test_simplification_keeps_the_vertex_provenance():
     assert a2["source"].dtype == np.uint8
     far = np.abs(v2[:, 2]) > 0.002  # away from the boundary the label is exact
     np.testing.assert_array_equal(a2["source"][far], (v2[far, 2] < 0).astype(np.uint8))
+    from scipy.spatial import cKDTree  # the stage's tree, built once, and two threads
+
+    a3 = transfer_vertex_attributes(v, attrs, v2, tree=cKDTree(v), threads=2)
+    assert all(np.array_equal(a2[k], a3[k]) for k in attrs)
     assert transfer_vertex_attributes(v, {}, v2) == {}
     with pytest.raises(ValueError, match="vertices"):
         transfer_vertex_attributes(v[:10], attrs, v2)

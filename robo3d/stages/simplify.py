@@ -25,6 +25,8 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     that is more. Writes
     ``ply`` and, when given, ``stl`` / ``obj`` outputs. ``threads``: the job's, for the
     distance checks (the result does not depend on it)."""
+    from scipy.spatial import cKDTree
+
     from ..fusion import MEASURED, source_area_fractions
     from ..grid import VoxelGrid
     from ..meshio import read_mesh, read_vertex_attributes, write_mesh
@@ -43,8 +45,10 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
     V0 = V
     V, F, clean_report = clean_mesh(V, F, options=opts)
     inferred = None  # surface no sensor measured is held to its own, looser bound
+    tree = cKDTree(V0) if attrs_in and len(V0) else None  # asked twice: built once
     if "source" in attrs_in:
-        inferred = transfer_vertex_attributes(V0, {"source": attrs_in["source"]}, V)[
+        inferred = transfer_vertex_attributes(V0, {"source": attrs_in["source"]}, V,
+                                              tree=tree, threads=opts.threads)[
             "source"] != MEASURED
     V2, F2, simp_report = simplify_mesh(V, F, options=opts, inferred=inferred)
     haus = simp_report.get("hausdorff_max_m")
@@ -66,7 +70,7 @@ def stage_simplify(inputs: Mapping[str, str], outputs: Mapping[str, str],
               "exports": [k for k in ("ply", "stl", "obj") if outputs.get(k)],
               "export_unit": {"ply": "m", "stl": sc["export_unit"], "obj": sc["export_unit"]},
               "seconds": round(time.perf_counter() - t0, 3)}
-    attrs = transfer_vertex_attributes(V0, attrs_in, V2)
+    attrs = transfer_vertex_attributes(V0, attrs_in, V2, tree=tree, threads=opts.threads)
     if "source" in attrs:
         fractions = source_area_fractions(V2, F2, attrs["source"])
         report["source_area_fraction"] = fractions

@@ -349,7 +349,8 @@ def _by_stamp(messages: Sequence[Any], stamps_ns: np.ndarray) -> list[Any | None
 
 def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
                   mask_iou: Mapping[int, float] | None = None,
-                  left_out: set[int] | frozenset[int] = frozenset()) -> np.ndarray:
+                  left_out: set[int] | frozenset[int] = frozenset(),
+                  notes: Sequence[str] = ()) -> np.ndarray:
     """Evenly spaced silhouette views with their masks over their images.
 
     Parameters
@@ -365,6 +366,8 @@ def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
         Each view's mask against the true one (ground truth), for the captions.
     left_out : set of int
         Views the carve left out (its agreement check), said in the captions.
+    notes : sequence of str
+        More lines under the title (what the laser said of the masks).
     """
     from .viz import spaced_indices
 
@@ -387,7 +390,7 @@ def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
     return titled(tile_grid(tiles, caps, cols=min(4, len(tiles))),
                   f"Silhouettes: {len(tiles)} of {len(masks)} views, mask outlined",
                   [f"object tinted, background dimmed; {n_flag} view(s) flagged by the "
-                   f"mask check, {len(left_out)} left out of the hull"])
+                   f"mask check, {len(left_out)} left out of the hull", *notes])
 
 
 def stripes_picture(rec: Any, stripes: Any, *, n: int = 6, tile_px: int = 320) -> np.ndarray:

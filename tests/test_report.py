@@ -305,3 +305,25 @@ def test_overview_and_batch_table_speak_in_words_with_units(tmp_path):
     assert "<h2>real_b</h2>" in (tmp_path / "o.html").read_text()
     with pytest.raises(ValueError, match="one picture per recording"):
         write_batch_report([str(paths[0])], [], "x", "y", "z")
+
+
+def test_the_masks_picture_says_when_the_laser_contradicts_the_masks():
+    """The alignment's warning on masks that the laser contradicts sends the user to
+    pictures/masks.png, which said only "0 view(s) flagged by the mask check" (random
+    scene 408: a white checker bottle on a marker table, masks IoU 0.04-0.05)."""
+    from robo3d.stages.pictures import _laser_against_masks
+
+    oh = {"contradicted": True, "would_drop_fraction": 0.8702,
+          "views_not_used_contradict_laser": [{"view": 0, "would_drop_alone_fraction": 0.1174}]}
+    lines = _laser_against_masks({"stages": {"align": {"outside_hull": oh}}})
+    assert len(lines) == 2
+    assert "contradicts these masks: 87 % of its points" in lines[0]
+    assert lines[1].endswith(": 0 (12 %)")
+    many = {"views_not_used_contradict_laser": [
+        {"view": i, "would_drop_alone_fraction": 0.3} for i in range(11)]}
+    only = _laser_against_masks({"stages": {"align": {"outside_hull": many}}})
+    assert len(only) == 1 and only[0].endswith("7 (30 %) and 3 more")
+    ok = {"contradicted": False, "would_drop_fraction": 0.01,
+          "views_not_used_contradict_laser": []}
+    assert _laser_against_masks({"stages": {"align": {"outside_hull": ok}}}) == []
+    assert _laser_against_masks({}) == []

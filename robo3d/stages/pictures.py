@@ -98,7 +98,35 @@ def _masks(rec, sil, metrics: Mapping[str, Any], n: int, tile: int) -> np.ndarra
            if isinstance(v, dict) and v.get("iou") is not None}
     left = {int(v["view"]) for v in metrics.get("views_left_out") or []
             if isinstance(v, dict) and "view" in v}
-    return masks_picture(rec, sil, n=n, tile_px=tile, mask_iou=iou, left_out=left)
+    return masks_picture(rec, sil, n=n, tile_px=tile, mask_iou=iou, left_out=left,
+                         notes=_laser_against_masks(metrics))
+
+
+def _laser_against_masks(metrics: Mapping[str, Any]) -> list[str]:
+    """What the alignment's test of the laser points against the silhouettes said of the
+    masks (``stages.align.outside_hull``), for the masks picture: a line when the masks
+    as a whole contradict the laser (the alignment's warning sends the user to this
+    picture), and the views it did not trust with the share of the points that each
+    alone put outside. Without them the picture said "0 view(s) flagged" over masks that the
+    laser showed to be wrong (a white checker bottle on a marker table: IoU 0.04-0.05,
+    87 % of the laser's points outside them)."""
+    oh = ((metrics.get("stages") or {}).get("align") or {}).get("outside_hull") or {}
+    alone = {int(v["view"]): float(v["would_drop_alone_fraction"])
+             for v in oh.get("views_not_used_contradict_laser") or []
+             if isinstance(v, dict) and "view" in v
+             and isinstance(v.get("would_drop_alone_fraction"), int | float)}
+    notes = []
+    if oh.get("contradicted"):
+        frac = oh.get("would_drop_fraction")
+        share = f"{100 * frac:.0f} % of" if isinstance(frac, int | float) else "many of"
+        notes.append(f"the laser contradicts these masks: {share} its points lie outside "
+                     "them, so none was dropped for it; the masks are likely wrong")
+    if alone:
+        views = ", ".join(f"{i} ({100 * f:.0f} %)" for i, f in sorted(alone.items())[:8])
+        more = f" and {len(alone) - 8} more" if len(alone) > 8 else ""
+        notes.append(f"views not trusted to drop laser points (the share that each alone "
+                     f"put outside): {views}{more}")
+    return notes
 
 
 def _stripes(rec, stripes, n: int, tile: int) -> np.ndarray:

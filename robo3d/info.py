@@ -124,6 +124,7 @@ def inspect_with_config(path: str | os.PathLike[str], cfg: Mapping[str, Any]) ->
         frames=dict(cfg.get("frames") or {}),
         max_pose_gap_ns=int(round(timing.get("max_pose_gap_s", 0.05) * 1e9)),
         sweep_gap_ns=int(round(timing.get("sweep_gap_s", 1.0) * 1e9)),
+        sweep_gap_intervals=float(timing.get("sweep_gap_intervals", 3.0)),
         stamp_source=timing.get("stamp_source", "header"),
         image_offset_ns=int(round(timing.get("image_offset_s", 0.0) * 1e9)))
 
@@ -132,7 +133,7 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
                       frames: Mapping[str, str] | None = None,
                       max_pose_gap_ns: int = 50_000_000, sweep_gap_ns: int = 1_000_000_000,
                       stamp_source: str = "header", image_offset_ns: int = 0,
-                      ) -> dict[str, Any]:
+                      sweep_gap_intervals: float = 3.0) -> dict[str, Any]:
     """Everything a user needs to know about a recording before running the pipeline.
 
     Parameters
@@ -142,8 +143,9 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
     topics, frames, max_pose_gap_ns, stamp_source, image_offset_ns
         As :func:`robo3d.recording.read_recording` (the config's ``topics``, ``frames``,
         ``timing``).
-    sweep_gap_ns : int
-        A pause between laser frames longer than this starts a new sweep.
+    sweep_gap_ns, sweep_gap_intervals
+        How laser frames split into sweeps, as the pipeline splits them
+        (:func:`robo3d.triangulation.split_sweeps`, the config's ``timing``).
 
     Returns
     -------
@@ -190,7 +192,7 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
     out["warnings"] += clock_warnings
     out["pairing"] = {role: _pairing(rec, msgs, max_pose_gap_ns) for role, msgs in
                       (("views", rec.views), ("laser", rec.laser_frames)) if msgs}
-    out["sweeps"] = _sweeps(rec, sweep_gap_ns)
+    out["sweeps"] = _sweeps(rec, sweep_gap_ns, sweep_gap_intervals)
     out["workspace"] = _workspace(rec)
     if rec.joint_states is not None:
         js = rec.joint_states
@@ -472,13 +474,15 @@ def _pairing(rec: Recording, msgs: list, max_gap_ns: int) -> dict[str, Any]:
     return out
 
 
-def _sweeps(rec: Recording, sweep_gap_ns: int) -> dict[str, Any] | None:
+def _sweeps(rec: Recording, sweep_gap_ns: int, intervals: float = 3.0
+            ) -> dict[str, Any] | None:
+    from .triangulation import split_sweeps
+
     if not rec.laser_frames:
         return None
     t = np.array([m.timestamp_ns for m in rec.laser_frames], dtype=np.int64)
-    starts = np.concatenate([[0], np.nonzero(np.diff(t) > sweep_gap_ns)[0] + 1])
-    sizes = np.diff(np.concatenate([starts, [len(t)]]))
-    return {"count": len(starts), "frames": sizes.tolist()}
+    sizes = np.bincount(split_sweeps(t, sweep_gap_ns, intervals))
+    return {"count": len(sizes), "frames": sizes.tolist()}
 
 
 def _stages(rec: Recording, topics: TopicMap) -> dict[str, dict[str, Any]]:

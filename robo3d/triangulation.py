@@ -56,7 +56,8 @@ update falls below 1e-15), equal to ``CameraModel.rays`` to 1e-12.
 Sweep clouds
 ------------
 A sweep is a run of laser frames without a time gap longer than ``sweep_gap``
-(:func:`split_sweeps`). :func:`triangulate_sweep` maps each frame's profile into
+(:func:`split_sweeps`; and, for a slow stop-and-go cell, longer than three times the
+frames' median interval). :func:`triangulate_sweep` maps each frame's profile into
 ``base`` with that frame's camera pose, crops to the workspace box grown by
 ``workspace_margin_m`` (the reported poses' error moves points across its faces; the
 align stage crops to the exact box once the sweep is corrected), and gives each point
@@ -834,15 +835,26 @@ def triangulate_pixels_eq17(
 
 
 # ---------------------------------------------------------------------------- sweeps
-def split_sweeps(stamps_ns: np.ndarray, gap_ns: int) -> np.ndarray:
-    """Sweep index of each laser frame: a time gap longer than ``gap_ns`` starts a sweep.
+def split_sweeps(stamps_ns: np.ndarray, gap_ns: int, intervals: float = 0.0) -> np.ndarray:
+    """Sweep index of each laser frame: a time gap longer than ``gap_ns`` starts a sweep,
+    and, with ``intervals`` > 0, longer than ``intervals`` times the median interval
+    between consecutive frames as well.
+
+    Why the second test: a stop-and-go cell that stops the robot for each laser frame
+    records one every second or two. By the time gap alone every frame was then a sweep
+    of its own: a blob recorded at one frame per 1.5 s, two sweeps of 30 frames 10 s
+    apart, became 60 one-frame sweeps, from which no range surface could be made (the
+    mesh 0 % measured). Where frames come faster than a third of ``gap_ns`` apart (any
+    cell that scans while it moves) the second test changes nothing.
 
     Parameters
     ----------
     stamps_ns : (N,) int64, nanoseconds
         Frame timestamps, in any order (sweeps follow time order).
     gap_ns : int, nanoseconds
-        The config's ``sweep_gap``; must be positive.
+        The config's ``timing.sweep_gap_s``; must be positive.
+    intervals : float
+        The config's ``timing.sweep_gap_intervals`` (0: the time gap alone).
 
     Returns
     -------
@@ -855,11 +867,17 @@ def split_sweeps(stamps_ns: np.ndarray, gap_ns: int) -> np.ndarray:
                          f"{stamps.shape} {stamps.dtype}")
     if not gap_ns > 0:
         raise ValueError(f"gap_ns must be positive, got {gap_ns}")
+    if not intervals >= 0:
+        raise ValueError(f"intervals must be >= 0, got {intervals}")
     stamps = stamps.astype(np.int64)
     order = np.argsort(stamps, kind="stable")
     s = stamps[order]
+    d = np.diff(s)
+    limit = float(gap_ns)
+    if intervals > 0 and len(d):
+        limit = max(limit, float(intervals) * float(np.median(d)))
     new = np.zeros(s.size, dtype=np.int64)
-    new[1:] = (np.diff(s) > gap_ns).astype(np.int64)
+    new[1:] = (d > limit).astype(np.int64)
     out = np.zeros(s.size, dtype=np.int64)
     out[order] = np.cumsum(new)
     return out

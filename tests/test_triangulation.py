@@ -190,9 +190,29 @@ def test_split_sweeps():
     perm = np.array([4, 0, 6, 2, 1, 5, 3])
     np.testing.assert_array_equal(split_sweeps(s[perm], 1_000_000_000),
                                   np.array([0, 0, 0, 1, 1, 2, 2])[perm])
+    # frames faster than a third of the gap: the median-interval test changes nothing
+    np.testing.assert_array_equal(split_sweeps(s, 1_000_000_000, 3.0), [0, 0, 0, 1, 1, 2, 2])
+    with pytest.raises(ValueError, match="intervals"):
+        split_sweeps(s, 1_000_000_000, -1.0)
     assert split_sweeps(np.zeros(0, np.int64), 1).shape == (0,)
     with pytest.raises(ValueError, match="gap_ns"):
         split_sweeps(s, 0)
+
+
+def test_split_sweeps_of_a_stop_and_go_cell():
+    """A cell that stops for each laser frame: two sweeps of 30 frames 1.5 s apart (with
+    0.2 s of jitter), 10 s between them. By the 1 s gap alone every frame was a sweep of
+    its own; with the median interval's test (3 x 1.5 s) they are the two sweeps."""
+    rng = np.random.default_rng(0)
+    t = np.concatenate([np.arange(30) * 1.5, 43.5 + 10.0 + np.arange(30) * 1.5])
+    t += rng.uniform(-0.1, 0.1, t.size)
+    ns = np.round(t * 1e9).astype(np.int64)
+    assert split_sweeps(ns, 1_000_000_000).max() == 59  # the gap alone
+    np.testing.assert_array_equal(split_sweeps(ns, 1_000_000_000, 3.0),
+                                  np.repeat([0, 1], 30))
+    # a pause of only twice the interval is not told apart: one sweep (documented limit)
+    t2 = np.concatenate([np.arange(30) * 1.5, 43.5 + 3.0 + np.arange(30) * 1.5])
+    assert split_sweeps(np.round(t2 * 1e9).astype(np.int64), 1_000_000_000, 3.0).max() == 0
 
 
 def _plane_sweep(n_frames=24, step=0.002, T_cl=None):
@@ -577,3 +597,36 @@ def test_points_in_the_box_are_those_of_an_exact_crop():
     np.testing.assert_array_equal(grown.points_base[inb], exact.points_base)
     np.testing.assert_array_equal(grown.normals_base[inb], exact.normals_base)
     np.testing.assert_array_equal(grown.confidence[inb], exact.confidence)
+
+
+def test_a_slow_scan_keeps_its_sweeps(tmp_path):
+    """A simulated scan whose laser frames come 1.4-1.6 s apart (a stop-and-go cell; two
+    sweeps 8 s apart): the stripes and triangulation stages and ``robo3d info`` split it
+    into its two sweeps, each with its points (by the 1 s gap alone: 24 one-frame
+    sweeps, no range surface; the workflow's mesh was 0 % measured)."""
+    import json
+
+    from stages_in_process import stage_outputs
+
+    from robo3d.config import default_config
+    from robo3d.info import inspect_recording
+    from robo3d.pipeline import stage_stripes, stage_triangulate
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    rec = tmp_path / "slow.mcap"
+    simulate_recording(rec, "blob", seed=2, params=SimulationParams.small(
+        views=0, sweeps=2, sweep_frames=12, sweep_speed=0.008, sweep_gap_s=8.0))
+    assert inspect_recording(rec)["sweeps"]["frames"] == [12, 12]
+    assert inspect_recording(rec, sweep_gap_intervals=0.0)["sweeps"]["count"] == 24
+    cfg = default_config()
+    res = tmp_path / "res"
+    (res / "reports").mkdir(parents=True)
+    stage_stripes({"recording": str(rec)}, stage_outputs(res, "stripes", npz="stripes.npz"),
+                  cfg, "slow")
+    stage_triangulate({"stripes": str(res / "stripes.npz")},
+                      stage_outputs(res, "triangulate", npz="clouds.npz", ply="clouds.ply"),
+                      cfg, "slow")
+    rep = json.loads((res / "reports" / "triangulate.json").read_text())
+    assert rep["n_sweeps"] == 2
+    assert [s["frames"] for s in rep["sweeps"]] == [12, 12]
+    assert all(s["points"] > 500 for s in rep["sweeps"]), rep["sweeps"]

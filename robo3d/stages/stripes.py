@@ -100,7 +100,8 @@ def _sweeps_of(frames: list, cfg: Mapping[str, Any]) -> np.ndarray:
     if not frames:
         return np.zeros(0, dtype=np.int64)
     stamps = np.array([m.timestamp_ns for m in frames], dtype=np.int64)
-    return split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)))
+    return split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)),
+                        float(cfg["timing"]["sweep_gap_intervals"]))
 
 
 def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list

@@ -75,7 +75,8 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         T_camera_laser = s["T_camera_laser"]
         laser_source = "recording transforms (camera -> laser)"
     opts = TriangulateOptions.from_config(tc)
-    sweep_of = split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)))
+    sweep_of = split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)),
+                        float(cfg["timing"]["sweep_gap_intervals"]))
     clouds, per_sweep = [], []
     for k in np.unique(sweep_of):
         idx = np.nonzero(sweep_of == k)[0]

@@ -56,25 +56,25 @@ update falls below 1e-15), equal to ``CameraModel.rays`` to 1e-12.
 Sweep clouds
 ------------
 A sweep is a run of laser frames without a time gap longer than ``sweep_gap``
-(:func:`split_sweeps`; and, for a slow stop-and-go cell, longer than three times the
-frames' median interval). :func:`triangulate_sweep` maps each frame's profile into
-``base`` with that frame's camera pose, crops to the workspace box grown by
-``workspace_margin_m`` (the reported poses' error moves points across its faces; the
-align stage crops to the exact box once the sweep is corrected), and gives each point
-a normal from the sweep's own structure: the profiles form an organised grid (frame ×
-image line), and the normal is the cross product of the along-profile tangent
-(neighbouring lines ``±normal_span`` of the same frame) and the across-profile tangent
-(the same line in the neighbouring frames), as for organised range images. A tangent is
-the central difference where both neighbours exist, else the second-order one-sided
-difference ``(-3 P0 + 4 P1 - P2) / 2`` (no chord bias at the first and last profile of a
-sweep or the ends of a profile on a curved surface), else the first-order one. The
-normals, oriented toward the camera, are then averaged over ``(2 normal_smooth + 1)²``
-grid cells taken in mirrored pairs only, so that the average adds no first-order bias on
-a curved surface (what this gains is recorded in ``benchmarks/README.md``). A
-neighbour further than ``normal_jump`` times the sweep's median spacing is a depth jump,
-not a neighbour. Points without both tangents (isolated points, holes) get a PCA normal
-of their k nearest neighbours instead (Hoppe et al.); every normal is oriented toward the
-camera centre of its frame.
+(:func:`split_sweeps`; where that leaves sweeps of one or two frames, a stop-and-go
+cell's, longer than three times the frames' median interval as well).
+:func:`triangulate_sweep` maps each frame's profile into ``base`` with that frame's
+camera pose, crops to the workspace box grown by ``workspace_margin_m`` (the reported
+poses' error moves points across its faces; the align stage crops to the exact box once
+the sweep is corrected), and gives each point a normal from the sweep's own structure:
+the profiles form an organised grid (frame × image line), and the normal is the cross
+product of the along-profile tangent (neighbouring lines ``±normal_span`` of the same
+frame) and the across-profile tangent (the same line in the neighbouring frames), as for
+organised range images. A tangent is the central difference where both neighbours exist,
+else the second-order one-sided difference ``(-3 P0 + 4 P1 - P2) / 2`` (no chord bias at
+the first and last profile of a sweep or the ends of a profile on a curved surface),
+else the first-order one. The normals, oriented toward the camera, are then averaged
+over ``(2 normal_smooth + 1)²`` grid cells taken in mirrored pairs only, so that the
+average adds no first-order bias on a curved surface (what this gains is recorded in
+``benchmarks/README.md``). A neighbour further than ``normal_jump`` times the sweep's
+median spacing is a depth jump, not a neighbour. Points without both tangents (isolated
+points, holes) get a PCA normal of their k nearest neighbours instead (Hoppe et al.);
+every normal is oriented toward the camera centre of its frame.
 
 The confidence of a point is the stripe confidence times a geometric factor
 ``min(1, sin α / sin 15°)``, α being the angle between the ray and the sheet.
@@ -835,17 +835,24 @@ def triangulate_pixels_eq17(
 
 
 # ---------------------------------------------------------------------------- sweeps
-def split_sweeps(stamps_ns: np.ndarray, gap_ns: int, intervals: float = 0.0) -> np.ndarray:
-    """Sweep index of each laser frame: a time gap longer than ``gap_ns`` starts a sweep,
-    and, with ``intervals`` > 0, longer than ``intervals`` times the median interval
-    between consecutive frames as well.
+#: with the time gap alone, sweeps shorter than this (median, frames) mean a cell whose
+#: frames come slower than the gap: :func:`split_sweeps` then splits by the frame interval
+MIN_SWEEP_FRAMES = 3
 
-    Why the second test: a stop-and-go cell that stops the robot for each laser frame
-    records one every second or two. By the time gap alone every frame was then a sweep
-    of its own: a blob recorded at one frame per 1.5 s, two sweeps of 30 frames 10 s
-    apart, became 60 one-frame sweeps, from which no range surface could be made (the
-    mesh 0 % measured). Where frames come faster than a third of ``gap_ns`` apart (any
-    cell that scans while it moves) the second test changes nothing.
+
+def split_sweeps(stamps_ns: np.ndarray, gap_ns: int, intervals: float = 0.0) -> np.ndarray:
+    """Sweep index of each laser frame: a time gap longer than ``gap_ns`` starts a sweep
+    (the recording contract). With ``intervals`` > 0, where that leaves most sweeps
+    shorter than :data:`MIN_SWEEP_FRAMES` frames (median), a gap must be longer than
+    ``intervals`` times the median interval between consecutive frames as well.
+
+    Why: a stop-and-go cell that stops the robot for each laser frame records one every
+    second or two, and by the time gap alone every frame was a sweep of its own: a blob
+    recorded at one frame per 1.5 s, two sweeps of 30 frames 10 s apart, became 60
+    one-frame sweeps, from which no range surface could be made (the mesh 0 % measured).
+    A recording whose sweeps the gap alone splits into runs of three frames or more is
+    split as the contract says (a slow camera, 0.7 s a frame, whose sweeps are 2 s
+    apart: two sweeps, where the interval's test alone would merge them).
 
     Parameters
     ----------
@@ -873,11 +880,13 @@ def split_sweeps(stamps_ns: np.ndarray, gap_ns: int, intervals: float = 0.0) -> 
     order = np.argsort(stamps, kind="stable")
     s = stamps[order]
     d = np.diff(s)
-    limit = float(gap_ns)
-    if intervals > 0 and len(d):
-        limit = max(limit, float(intervals) * float(np.median(d)))
     new = np.zeros(s.size, dtype=np.int64)
-    new[1:] = (d > limit).astype(np.int64)
+    new[1:] = (d > gap_ns).astype(np.int64)
+    if intervals > 0 and len(d):
+        sizes = np.diff(np.flatnonzero(np.r_[1, new[1:], 1]))
+        if np.median(sizes) < MIN_SWEEP_FRAMES:  # frames slower than the gap: by interval
+            limit = max(float(gap_ns), float(intervals) * float(np.median(d)))
+            new[1:] = (d > limit).astype(np.int64)
     out = np.zeros(s.size, dtype=np.int64)
     out[order] = np.cumsum(new)
     return out

@@ -213,6 +213,12 @@ def test_split_sweeps_of_a_stop_and_go_cell():
     # a pause of only twice the interval is not told apart: one sweep (documented limit)
     t2 = np.concatenate([np.arange(30) * 1.5, 43.5 + 3.0 + np.arange(30) * 1.5])
     assert split_sweeps(np.round(t2 * 1e9).astype(np.int64), 1_000_000_000, 3.0).max() == 0
+    # a slow camera (0.7 s a frame) whose sweeps the gap alone splits into runs of ten
+    # frames, 2 s apart (the simulator's sweeps of 10 frames): split as the contract says
+    t3 = np.concatenate([np.arange(10) * 0.697, 6.273 + 2.034 + np.arange(10) * 0.623])
+    np.testing.assert_array_equal(
+        split_sweeps(np.round(t3 * 1e9).astype(np.int64), 1_000_000_000, 3.0),
+        np.repeat([0, 1], 10))
 
 
 def _plane_sweep(n_frames=24, step=0.002, T_cl=None):

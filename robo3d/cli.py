@@ -189,6 +189,9 @@ _SIM_OPTIONS: list[tuple[str, str, object, str, str]] = [
      "drift model: pose-dependent rotation error gradient"),
     ("--clock-lag-ms", "clock_lag_ms", float, "MS",
      "the camera clock is late: each image is stamped this much before it was taken"),
+    ("--rolling-shutter-ms", "rolling_shutter_ms", float, "MS",
+     "a rolling shutter: a laser frame's last row is exposed this much after its first "
+     "(the robot moving meanwhile); 0: a global shutter"),
     ("--vignetting", "vignetting", float, "FRACTION",
      "light lost in the image corners"),
 ]

@@ -224,6 +224,12 @@ class SimulationParams:
     clock_lag_ms : float
         The camera clock is late by this much: an image stamped ``t`` is rendered at the
         robot's pose at ``t + lag`` (``|lag| <= 30`` ms).
+    rolling_shutter_ms : float
+        A rolling-shutter camera: a laser frame's rows are exposed one after the other,
+        the first at the frame's time and the last this much later (a webcam: about 30
+        ms), each at the robot's pose then (rendered in bands of
+        :data:`ROLLING_BAND_ROWS` rows). The views are taken at rest and unaffected. 0:
+        a global shutter.
     object_mesh : str or None
         A mesh file (STL, PLY, OBJ) to scan instead of a named object
         (:func:`load_object_mesh`).
@@ -289,6 +295,7 @@ class SimulationParams:
     pose_error_mm_per_m: float = 0.3
     pose_error_deg_per_m: float = 0.05
     clock_lag_ms: float = 0.0
+    rolling_shutter_ms: float = 0.0
     object_mesh: str | None = None
     mesh_unit: str = "m"
     laser_off: bool = False
@@ -359,6 +366,7 @@ class SimulationParams:
             ("pose_error_mm_per_m", self.pose_error_mm_per_m >= 0),
             ("pose_error_deg_per_m", self.pose_error_deg_per_m >= 0),
             ("clock_lag_ms", abs(self.clock_lag_ms) <= 30),
+            ("rolling_shutter_ms", 0 <= self.rolling_shutter_ms <= 100),
             ("mesh_unit", self.mesh_unit in MESH_UNITS),
         ]
         for name, ok in checks:
@@ -403,7 +411,10 @@ CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
                                    vignetting=0.25)
 _NEW_FIELDS = frozenset({"laser_off", "vignetting", "robot_error", "drift_mm", "drift_deg",
                          "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
-                         "object_mesh", "mesh_unit"})
+                         "object_mesh", "mesh_unit", "rolling_shutter_ms"})
+#: rows of a rolling-shutter laser frame rendered at one pose (``rolling_shutter_ms``): a
+#: 960-row frame with a 30 ms readout at 20 mm/s moves 5 micrometres within a band
+ROLLING_BAND_ROWS = 8
 _LEGACY_APPEARANCE = frozenset(LEGACY_FIELDS)
 
 
@@ -753,6 +764,7 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     rng_drift = np.random.default_rng([p.seed, 4])
     tf_period = int(round(1e9 / p.tf_rate_hz))
     laser_frames: list[tuple[int, int, int, np.ndarray]] = []  # (stamp, sweep, frame, T_cam)
+    laser_velocity: list[np.ndarray] = []  # the camera's velocity at each frame, m/s
     frames_per_sweep: list[int] = []
     error_span: list[dict[str, float]] = []
     for k, (az, el, roll) in enumerate(plan):
@@ -776,6 +788,7 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             # a late camera clock: the image stamped tj was taken lag_ns later
             cam[:3, 3] += direction * p.sweep_speed * (tj + lag_ns - ts) * 1e-9
             laser_frames.append((int(tj), k, j, cam))
+            laser_velocity.append(direction * p.sweep_speed)
         trues = []
         for tj in tf_t:
             cam = t_start_cam.copy()
@@ -868,12 +881,14 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             else:
                 _, k, j, cam = laser_frames[i]
                 img = _laser_image(scene, camera, cam, t_camera_laser, p, vig,
-                                   np.random.default_rng([p.seed, 11, k, j]), fast_noise)
+                                   np.random.default_rng([p.seed, 11, k, j]), fast_noise,
+                                   laser_velocity[i])
                 w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
                               p.jpeg_quality)
                 if p.laser_off:  # the same camera's frame with the laser dark, own noise
                     off = _laser_image(off_scene, camera, cam, t_camera_laser, p, vig,
-                                       np.random.default_rng([p.seed, 12, k, j]), fast_noise)
+                                       np.random.default_rng([p.seed, 12, k, j]), fast_noise,
+                                       laser_velocity[i])
                     w.write_image(LASER_OFF_TOPIC, stamp + 1_000_000, camera.frame_id, off,
                                   p.laser_encoding, p.jpeg_quality)
     return SimulationResult(path=path, object_name=object_name, n_views=p.views,
@@ -885,17 +900,49 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
 
 def _laser_image(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: np.ndarray,
                  p: SimulationParams, vig: np.ndarray | None, rng: np.random.Generator,
-                 fast_noise: bool) -> np.ndarray:
+                 fast_noise: bool, velocity: np.ndarray | None = None) -> np.ndarray:
     """One laser frame as the camera records it: rendered at camera pose ``cam``
-    (``scene``'s laser; dark for a laser-off frame), averaged to grey for a monochrome
-    camera, vignetted, with sensor noise drawn from ``rng``."""
-    signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
+    (``scene``'s laser; dark for a laser-off frame), row band by row band at the poses
+    of their exposure with a rolling shutter (``p.rolling_shutter_ms``, the camera moving
+    at ``velocity``), averaged to grey for a monochrome camera, vignetted, with sensor
+    noise drawn from ``rng``."""
+    if p.rolling_shutter_ms > 0 and velocity is not None:
+        signal = _rolling_signal(scene, camera, cam, t_camera_laser,
+                                 p.rolling_shutter_ms * 1e-3, np.asarray(velocity))
+    else:
+        signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
     if signal.ndim == 3 and p.laser_encoding == "mono8":
         signal = signal.mean(axis=2)  # a monochrome camera: no colour filters
     if vig is not None:
         signal = signal * (vig if signal.ndim == 2 else vig[..., None])
     return sensor_noise(signal, rng, p.gain_dn_per_electron, p.laser_read_noise_dn,
                         fast_noise)
+
+
+def _rolling_signal(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: np.ndarray,
+                    readout_s: float, velocity: np.ndarray) -> np.ndarray:
+    """A rolling shutter's laser frame: row ``r`` exposed ``r / (H - 1) * readout_s`` after
+    the first, the camera (and the laser on its flange) moved on by ``velocity`` times
+    that; each band of :data:`ROLLING_BAND_ROWS` rows rendered at its middle row's pose
+    through a camera cropped to those rows and one more on each side (the same lens: only
+    the principal point's row moves; the room light's edge test sees its neighbours), so
+    the frame costs about one and a quarter renders. With no motion it is the global
+    shutter's frame."""
+    from .camera import CameraModel
+
+    h = camera.height
+    bands = []
+    for r0 in range(0, h, ROLLING_BAND_ROWS):
+        r1 = min(r0 + ROLLING_BAND_ROWS, h)
+        a, b = max(r0 - 1, 0), min(r1 + 1, h)  # a row more each side: the edges' test
+        K = camera.K.copy()
+        K[1, 2] -= a
+        crop = CameraModel(camera.frame_id, camera.width, b - a, K, camera.D)
+        moved = cam.copy()
+        moved[:3, 3] += velocity * readout_s * (0.5 * (r0 + r1 - 1)) / max(h - 1, 1)
+        bands.append(render_laser_frame(scene, crop, moved, moved @ t_camera_laser
+                                        )[r0 - a:r1 - a])
+    return np.concatenate(bands, axis=0)
 
 
 def _legacy_truth(tf_true: list[tuple[int, np.ndarray]], order: np.ndarray, t0: int,

@@ -189,7 +189,8 @@ class Silhouettes:
 #: workspace's), and those that every file has (the others are missing in older files).
 _STRIPES_ARRAYS = ("u", "v", "confidence", "peak", "width_px", "line", "offsets", "axis",
                    "angle_deg", "colour", "s", "n_lines", "rejected", "rejection_reasons",
-                   "stamps_ns", "T_base_camera", "T_camera_laser", "skew_px", "faint")
+                   "stamps_ns", "T_base_camera", "T_camera_laser", "skew_px", "faint",
+                   "T_base_camera_end")
 _STRIPES_REQUIRED = ("u", "v", "confidence", "offsets", "stamps_ns", "T_base_camera")
 
 
@@ -238,6 +239,10 @@ class Stripes:
     rejection_reasons : (R,) str or None
     workspace : ((3,), (3,)) float64, metres, or None
         The recording's workspace box in ``base``.
+    T_base_camera_end : (F, 4, 4) float64 or None
+        With a rolling shutter (``timing.rolling_shutter_s``): the camera's pose when each
+        frame's last row was exposed (``T_base_camera`` is the first row's); None for a
+        global shutter.
 
     The fields that may be None are absent from files written by older versions; the file
     holds one array per field under its name, the cameras as in :class:`Silhouettes`.
@@ -264,12 +269,14 @@ class Stripes:
     workspace: tuple[np.ndarray, np.ndarray] | None = None
     skew_px: np.ndarray | None = None
     faint: np.ndarray | None = None
+    T_base_camera_end: np.ndarray | None = None
 
     @classmethod
     def from_frames(cls, found: Sequence[StripePoints], stamps_ns: Sequence[int],
                     T_base_camera: np.ndarray, T_camera_laser: np.ndarray,
                     cameras: list[CameraModel],
-                    workspace: tuple[np.ndarray, np.ndarray] | None = None) -> Stripes:
+                    workspace: tuple[np.ndarray, np.ndarray] | None = None,
+                    T_base_camera_end: np.ndarray | None = None) -> Stripes:
         """The artefact of one :class:`~robo3d.stripes.StripePoints` per laser frame."""
         from .stripes import REJECTION_REASONS
 
@@ -295,7 +302,7 @@ class Stripes:
                    n_lines=np.array([sp.n_lines for sp in found], dtype=np.int64),
                    rejected=rejected, rejection_reasons=np.array(REJECTION_REASONS),
                    workspace=workspace, skew_px=cat("skew_px", np.float32),
-                   faint=cat("faint", np.bool_))
+                   faint=cat("faint", np.bool_), T_base_camera_end=T_base_camera_end)
 
     @property
     def counts(self) -> np.ndarray:

@@ -118,6 +118,7 @@ __all__ = [
     "sheet_roi_mask",
     "triangulate_pixels",
     "triangulate_pixels_eq17",
+    "rows_poses",
     "split_sweeps",
     "triangulate_sweep",
 ]
@@ -892,6 +893,33 @@ def split_sweeps(stamps_ns: np.ndarray, gap_ns: int, intervals: float = 0.0) -> 
     return out
 
 
+def rows_poses(T_start: np.ndarray, T_end: np.ndarray, frame: np.ndarray,
+               fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A rolling shutter's pose of each point: between its frame's ``T_start`` (first row)
+    and ``T_end`` (last row), at ``fraction`` (its row over the last row's, clipped to
+    [0, 1]); the translation linear, the rotation along the geodesic (the relative
+    rotation's axis-angle, scaled). Returns ((N, 3, 3) rotations, (N, 3) origins)."""
+    f = np.clip(np.asarray(fraction, dtype=np.float64), 0.0, 1.0)
+    R0, R1 = T_start[:, :3, :3], T_end[:, :3, :3]
+    rel = np.einsum("fji,fjk->fik", R0, R1)  # R0^T R1 per frame
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    ang = np.arccos(cos)
+    w = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
+                  rel[:, 1, 0] - rel[:, 0, 1]], axis=1)
+    s = np.sin(ang)
+    axis = np.where(s[:, None] > 1e-12, w / np.where(s > 1e-12, 2.0 * s, 1.0)[:, None], 0.0)
+    a = ang[frame] * f  # per point: the angle turned by its row
+    k = axis[frame]
+    K = np.zeros((len(a), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    step = (np.eye(3) + np.sin(a)[:, None, None] * K
+            + (1.0 - np.cos(a))[:, None, None] * np.einsum("nij,njk->nik", K, K))
+    R = np.einsum("nij,njk->nik", R0[frame], step)
+    origin = T_start[frame, :3, 3] + f[:, None] * (T_end[frame, :3, 3] - T_start[frame, :3, 3])
+    return R, origin
+
+
 def _unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.linalg.norm(v, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -1136,6 +1164,7 @@ def triangulate_sweep(
     frame_indices: np.ndarray | None = None,
     sweep: int = 0,
     options: TriangulateOptions = TriangulateOptions(),
+    T_base_camera_end: np.ndarray | None = None,
 ) -> SweepCloud:
     """Triangulate the stripe profiles of one sweep into a cloud in ``base``.
 
@@ -1159,6 +1188,12 @@ def triangulate_sweep(
         The sweep's index, stored in the cloud.
     options : TriangulateOptions
         The ``triangulation`` section's parameters (:class:`TriangulateOptions`).
+    T_base_camera_end : (F, 4, 4) float64, optional
+        A rolling shutter: the camera pose when each frame's last row was exposed
+        (``T_base_camera`` being the first row's). Each point then takes the pose of its
+        row, interpolated (translation linearly, rotation along the geodesic) at
+        ``v / (H - 1)``: the camera and the laser move together, so the point is right
+        in the camera and only its place in ``base`` moves (:func:`rows_poses`).
 
     Returns
     -------
@@ -1183,8 +1218,16 @@ def triangulate_sweep(
     pts_cam, keep, dropped, sin_a = _intersect(uv, camera, frame_pos, n_f, d_f,
                                                options.min_angle_deg, options.min_range_m,
                                                options.max_range_m)
-    R = tb[frame_pos, :3, :3]
-    origin = tb[frame_pos, :3, 3]
+    if T_base_camera_end is None:
+        R = tb[frame_pos, :3, :3]
+        origin = tb[frame_pos, :3, 3]
+    else:
+        tb_end = np.asarray(T_base_camera_end, dtype=np.float64)
+        if tb_end.shape != tb.shape or not np.all(np.isfinite(tb_end)):
+            raise ValueError(f"T_base_camera_end must be finite {tb.shape}, got "
+                             f"{tb_end.shape}")
+        R, origin = rows_poses(tb, tb_end, frame_pos,
+                               uv[:, 1] / max(camera.height - 1, 1))
     pts_base = np.einsum("nij,nj->ni", R, np.nan_to_num(pts_cam)) + origin
     outside = np.zeros_like(keep)
     in_box = keep

@@ -1,9 +1,11 @@
-"""The simulator's rolling shutter (``SimulationParams.rolling_shutter_ms``): a laser frame's
-rows exposed one after the other while the robot moves, an error that the triangulation
-does not model (it takes one camera pose per frame).
+"""A rolling shutter: a laser frame's rows exposed one after the other while the robot
+moves. The simulator renders it (``SimulationParams.rolling_shutter_ms``); the
+triangulation takes one camera pose per frame unless ``timing.rolling_shutter_s`` gives
+the readout time, and then each point takes the pose of its row.
 
 Without motion the banded rendering is the global shutter's frame; with it the stripe's
-points land off the object by up to the distance the camera moved during the readout."""
+points land off the object by up to the distance the camera moved during the readout,
+and back on it with the readout time in the config."""
 
 from __future__ import annotations
 
@@ -40,17 +42,17 @@ def test_without_motion_the_bands_make_the_global_shutter_frame():
     assert np.abs(moved - full)[:8].max() < np.abs(moved - full)[-8:].max()  # later rows
 
 
-def _distances_mm(rec_path: Path, out: Path) -> np.ndarray:
-    """The stripes and triangulation stages (default config, exact poses): each point's
-    distance to the true surface, mm."""
+def _distances_mm(rec_path: Path, out: Path, readout_s: float = 0.0) -> np.ndarray:
+    """The stripes and triangulation stages (default config but ``timing.
+    rolling_shutter_s``, exact poses): each point's distance to the true surface, mm."""
     from robo3d.artefacts import load_clouds_npz
-    from robo3d.config import default_config
+    from robo3d.config import load_config
     from robo3d.evaluate import TruthSurface
     from robo3d.meshio import read_mesh
     from robo3d.pipeline import STAGES
     from robo3d.recording.reader import read_recording
 
-    cfg = default_config()
+    cfg = load_config(None, {"timing": {"rolling_shutter_s": readout_s}})
     (out / "reports").mkdir(parents=True)
     s = stage_outputs(out, "stripes", npz="stripes.npz")
     c = stage_outputs(out, "triangulate", npz="clouds.npz", ply="clouds.ply")
@@ -77,9 +79,34 @@ def test_a_rolling_shutter_puts_the_stripe_where_the_camera_was_later(tmp_path, 
                            params=dataclasses.replace(base, rolling_shutter_ms=ms))
         d[ms] = _distances_mm(path, tmp_path / f"out{ms:g}")
     glob, roll = d[0.0], d[readout_ms]
+    fixed = _distances_mm(tmp_path / f"rs{readout_ms:g}.mcap", tmp_path / "fixed",
+                          readout_ms * 1e-3)
     # measured (320 x 240, 20 mm/s: the camera moves 0.6 mm during the readout): median
-    # 0.104 -> 0.144 mm, p95 0.316 -> 0.420 mm
+    # 0.104 -> 0.144 mm, p95 0.316 -> 0.420 mm; with the readout in the config 0.1045 mm,
+    # p95 0.3167 mm
     assert np.median(roll) > 1.2 * np.median(glob), (np.median(glob), np.median(roll))
     assert np.percentile(roll, 95) > 1.15 * np.percentile(glob, 95)
     move_mm = base.sweep_speed * readout_ms  # mm: m/s x ms
     assert np.median(roll) < np.median(glob) + move_mm
+    assert np.median(fixed) < 1.05 * np.median(glob), (np.median(glob), np.median(fixed))
+    assert np.percentile(fixed, 95) < 1.05 * np.percentile(glob, 95)
+
+
+def test_rows_poses_between_the_first_and_the_last_row():
+    from robo3d.transforms import make_transform
+    from robo3d.triangulation import rows_poses
+
+    a = np.radians(0.3)  # the camera turns 0.3 degrees about z and moves 0.6 mm in x
+    Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    T0 = make_transform(np.eye(3), [0.1, 0.0, 0.3])[None]
+    T1 = make_transform(Rz, [0.1006, 0.0, 0.3])[None]
+    R, o = rows_poses(T0, T1, np.zeros(4, int), np.array([0.0, 0.5, 1.0, 1.5]))
+    np.testing.assert_allclose(R[0], np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(R[2], Rz, atol=1e-15)
+    np.testing.assert_allclose(R[3], Rz, atol=1e-15)  # clipped to the last row
+    h = a / 2
+    np.testing.assert_allclose(R[1], [[np.cos(h), -np.sin(h), 0], [np.sin(h), np.cos(h), 0],
+                                      [0, 0, 1]], atol=1e-15)
+    np.testing.assert_allclose(o[:, 0], [0.1, 0.1003, 0.1006, 0.1006], atol=1e-15)
+    R, o = rows_poses(T0, T0, np.zeros(2, int), np.array([0.2, 0.9]))  # no motion
+    np.testing.assert_allclose(R, np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-15)

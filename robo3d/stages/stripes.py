@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -67,14 +68,20 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                                                       frames[0].data if frames else None))
     found, decode_s, detect_s = _detect(rec, frames, background, roi, options, n_threads,
                                         axes, inputs["recording"])
+    readout_s = float(cfg["timing"].get("rolling_shutter_s") or 0.0)
+    poses_end, n_extrapolated = (_readout_end_poses(rec, frames, poses, readout_s)
+                                 if readout_s > 0 and frames else (None, 0))
     stripes = Stripes.from_frames(found, [m.timestamp_ns for m in frames], poses,
-                                  T_camera_laser, cameras, rec.workspace)
+                                  T_camera_laser, cameras, rec.workspace, poses_end)
     if frames and len(stripes.u) == 0:
         raise StageError(f"{inputs['recording']}: topic {frames[0].topic}: no laser stripe "
                          f"found in any of {len(frames)} frames (check stripes.min_peak, "
                          "the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
+    if readout_s > 0:
+        report["rolling_shutter"] = {"readout_s": readout_s,
+                                     "frames_end_pose_extrapolated": n_extrapolated}
     # centres found only in the frame averaged along the stripe (faint, noisy frames)
     n_faint = [int(np.count_nonzero(sp.faint)) for sp in found]
     report["faint_points"] = int(sum(n_faint))
@@ -90,6 +97,36 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
              "detection %.1f s of CPU)", report["n_points"], len(frames), n_threads,
              report["seconds"], decode_s, detect_s)
     return report
+
+
+def _readout_end_poses(rec, frames: list, poses: np.ndarray, readout_s: float
+                       ) -> tuple[np.ndarray, int]:
+    """Each laser frame's camera pose when its last row was exposed (``timing.
+    rolling_shutter_s`` after the stamp, the first row's), and how many were extrapolated:
+    where the pose stream ends within the readout, the motion from ``readout_s`` before
+    the stamp is carried on (constant velocity), else the frame keeps its stamp's pose."""
+    from ..errors import TransformError
+
+    r_ns = int(round(readout_s * 1e9))
+    shifted = [dataclasses.replace(m, timestamp_ns=m.timestamp_ns + r_ns) for m in frames]
+    try:
+        return rec.camera_poses(shifted), 0
+    except TransformError:
+        pass
+    out = poses.copy()
+    n_ex = 0
+    for i, m in enumerate(frames):  # one lookup per frame: only when the stream ends early
+        try:
+            out[i] = rec.camera_poses([shifted[i]])[0]
+        except TransformError:
+            try:
+                before = rec.camera_poses([dataclasses.replace(
+                    m, timestamp_ns=m.timestamp_ns - r_ns)])[0]
+                out[i] = poses[i] @ np.linalg.inv(before) @ poses[i]
+                n_ex += 1
+            except TransformError:
+                n_ex += 1  # no motion known: the stamp's pose for every row
+    return out, n_ex
 
 
 def _sweeps_of(frames: list, cfg: Mapping[str, Any]) -> np.ndarray:

@@ -77,6 +77,8 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
     opts = TriangulateOptions.from_config(tc)
     sweep_of = split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)),
                         float(cfg["timing"]["sweep_gap_intervals"]))
+    # a rolling shutter: the poses of the frames' last rows, from the stripes stage
+    end = s.get("T_base_camera_end")
     clouds, per_sweep = [], []
     for k in np.unique(sweep_of):
         idx = np.nonzero(sweep_of == k)[0]
@@ -85,7 +87,8 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         try:
             cloud = triangulate_sweep(stripes, cam, s["T_base_camera"][idx],
                                       T_camera_laser[idx], workspace=ws,
-                                      frame_indices=idx, sweep=int(k), options=opts)
+                                      frame_indices=idx, sweep=int(k), options=opts,
+                                      T_base_camera_end=end[idx] if end is not None else None)
         except StageError as exc:
             log.warning("sweep %d (frames %d..%d) skipped: %s", k, idx[0], idx[-1], exc)
             per_sweep.append({"sweep": int(k), "frames": len(idx), "points": 0,

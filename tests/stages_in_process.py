@@ -1,5 +1,6 @@
 """The workflow's stages run in process on one recording, for tests that need a scan's
-intermediate files without Snakemake (``tests/test_view.py``, ``tests/test_table.py``)."""
+intermediate files without Snakemake (``tests/test_view.py``, ``tests/test_table.py``,
+``tests/test_clock_offset.py``, ``tests/test_rolling_shutter.py``)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,31 @@ def stage_outputs(res: Path, stage: str, **files: str) -> dict[str, str]:
     return {"rrd": str(res / f"{stage}.rrd"),
             "report": str(res / "reports" / f"{stage}.json"),
             **{k: str(res / v) for k, v in files.items()}}
+
+
+def laser_point_distances_mm(rec: Path, out: Path, cfg: Mapping[str, Any],
+                             min_points: int = 1) -> Any:
+    """The stripes and triangulation stages on ``rec`` (files in ``out``, created): each
+    triangulated point's distance to the recording's true surface, mm ((N,) array)."""
+    import numpy as np
+
+    from robo3d.artefacts import load_clouds_npz
+    from robo3d.evaluate import TruthSurface
+    from robo3d.meshio import read_mesh
+    from robo3d.pipeline import STAGES
+    from robo3d.recording.reader import read_recording
+
+    (out / "reports").mkdir(parents=True)
+    s = stage_outputs(out, "stripes", npz="stripes.npz")
+    c = stage_outputs(out, "triangulate", npz="clouds.npz", ply="clouds.ply")
+    STAGES["stripes"]({"recording": str(rec)}, s, cfg, out.name, threads=1)
+    STAGES["triangulate"]({"recording": str(rec), "stripes": s["npz"]}, c, cfg, out.name)
+    r = read_recording(rec, roles=("laser",))
+    truth = TruthSurface(*read_mesh(bytes(r.attachments["ground_truth/mesh.ply"]),
+                                    suffix=".ply"))
+    pts = np.concatenate([cl.points_base for cl in load_clouds_npz(c["npz"])])
+    assert len(pts) >= min_points, (len(pts), min_points)
+    return truth.distance(pts) * 1e3
 
 
 def run_up_to_align(rec: Path, res: Path, cfg: Mapping[str, Any], name: str,

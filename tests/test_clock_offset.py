@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from stages_in_process import stage_outputs  # noqa: E402
+from stages_in_process import laser_point_distances_mm  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -33,25 +33,10 @@ def late_clock(tmp_path_factory):
 def _p95_mm(rec_path, out, offset_s: float) -> float:
     """The stripes and triangulation stages with ``timing.image_offset_s``: the 95th
     percentile of the points' distance to the true surface (mm)."""
-    from robo3d.artefacts import load_clouds_npz
     from robo3d.config import load_config
-    from robo3d.evaluate import TruthSurface
-    from robo3d.meshio import read_mesh
-    from robo3d.pipeline import STAGES
-    from robo3d.recording.reader import read_recording
 
     cfg = load_config(None, {"timing": {"image_offset_s": offset_s}})
-    (out / "reports").mkdir(parents=True)
-    s = stage_outputs(out, "stripes", npz="stripes.npz")
-    c = stage_outputs(out, "triangulate", npz="clouds.npz", ply="clouds.ply")
-    STAGES["stripes"]({"recording": str(rec_path)}, s, cfg, "late", threads=1)
-    STAGES["triangulate"]({"recording": str(rec_path), "stripes": s["npz"]}, c, cfg, "late")
-    rec = read_recording(rec_path, roles=("laser",))
-    truth = TruthSurface(*read_mesh(bytes(rec.attachments["ground_truth/mesh.ply"]),
-                                    suffix=".ply"))
-    pts = np.concatenate([cl.points_base for cl in load_clouds_npz(c["npz"])])
-    assert len(pts) > 2000
-    return float(np.percentile(truth.distance(pts), 95) * 1e3)
+    return float(np.percentile(laser_point_distances_mm(rec_path, out, cfg, 2001), 95))
 
 
 def test_the_clock_offset_puts_the_lag_back(late_clock, tmp_path):

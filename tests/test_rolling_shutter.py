@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from stages_in_process import stage_outputs  # noqa: E402
+from stages_in_process import laser_point_distances_mm  # noqa: E402
 
 
 def test_without_motion_the_bands_make_the_global_shutter_frame():
@@ -45,25 +45,10 @@ def test_without_motion_the_bands_make_the_global_shutter_frame():
 def _distances_mm(rec_path: Path, out: Path, readout_s: float = 0.0) -> np.ndarray:
     """The stripes and triangulation stages (default config but ``timing.
     rolling_shutter_s``, exact poses): each point's distance to the true surface, mm."""
-    from robo3d.artefacts import load_clouds_npz
     from robo3d.config import load_config
-    from robo3d.evaluate import TruthSurface
-    from robo3d.meshio import read_mesh
-    from robo3d.pipeline import STAGES
-    from robo3d.recording.reader import read_recording
 
     cfg = load_config(None, {"timing": {"rolling_shutter_s": readout_s}})
-    (out / "reports").mkdir(parents=True)
-    s = stage_outputs(out, "stripes", npz="stripes.npz")
-    c = stage_outputs(out, "triangulate", npz="clouds.npz", ply="clouds.ply")
-    STAGES["stripes"]({"recording": str(rec_path)}, s, cfg, "rs", threads=1)
-    STAGES["triangulate"]({"recording": str(rec_path), "stripes": s["npz"]}, c, cfg, "rs")
-    rec = read_recording(rec_path, roles=("laser",))
-    truth = TruthSurface(*read_mesh(bytes(rec.attachments["ground_truth/mesh.ply"]),
-                                    suffix=".ply"))
-    pts = np.concatenate([cl.points_base for cl in load_clouds_npz(c["npz"])])
-    assert len(pts) > 5000
-    return truth.distance(pts) * 1e3
+    return laser_point_distances_mm(rec_path, out, cfg, 5001)
 
 
 @pytest.mark.parametrize("readout_ms", [30.0])

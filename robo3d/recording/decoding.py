@@ -58,8 +58,9 @@ else unsupported), or empty with an empty or all-zero ``D`` (no distortion; an e
 model with 5 coefficients is read as plumb_bob with a warning, as some ROS drivers leave
 the name empty). ``R`` and ``P`` are ignored: images are the raw (distorted,
 unrectified) images that ``K`` and ``D`` describe. A ROS ``CameraInfo`` with binning or
-a region of interest is unsupported (its ``K`` describes another image than the one
-recorded).
+a region of interest (REP 104: ``K`` of the full sensor, the image its binned ROI) is
+read as the camera of the recorded image (:func:`_binned_k`); a frame whose ROI changes
+between images is not (the last calibration is kept, with the warning above).
 """
 
 from __future__ import annotations
@@ -189,6 +190,23 @@ def _vec(obj: Any, is_json: bool, keys: str) -> list[float]:
         v = _get(obj, is_json, k, 0.0)
         out.append(float(v) if v is not None else math.nan)
     return out
+
+
+def _binned_k(k: Any, x0: int, y0: int, bx: int, by: int) -> list[float]:
+    """``K`` of a ROS camera's binned region of interest, from the full sensor's: a pixel
+    of the binned image covers ``b`` sensor pixels, whose centre lies at ``b u + (b - 1) /
+    2`` after the offset (pixel centres at integers, as everywhere in robo3d; ROS's
+    image_geometry leaves out the ``(b - 1) / 2``, a quarter pixel at 2x2). The lens's
+    ``D`` acts on normalised coordinates and stays."""
+    try:
+        kk = [float(x) for x in k]
+    except (TypeError, ValueError):
+        return list(k)  # left for _add_calibration's own message
+    if len(kk) != 9:
+        return kk
+    fx, skew, cx, _, fy, cy = kk[0], kk[1], kk[2], kk[3], kk[4], kk[5]
+    return [fx / bx, skew / bx, (cx - x0 - (bx - 1) / 2) / bx,
+            0.0, fy / by, (cy - y0 - (by - 1) / 2) / by, 0.0, 0.0, 1.0]
 
 
 def _ros(obj: Any, *names: str, default: Any = None) -> Any:
@@ -493,18 +511,28 @@ class MessageDecoder:
         st = self._ros_time(obj.header, topic, log_time)
         fid = str(obj.header.frame_id or "")
         width, height = int(obj.width), int(obj.height)
-        bx = int(_ros(obj, "binning_x", default=0) or 0)
-        by = int(_ros(obj, "binning_y", default=0) or 0)
+        bx = max(int(_ros(obj, "binning_x", default=0) or 0), 1)  # 0 and 1: none
+        by = max(int(_ros(obj, "binning_y", default=0) or 0), 1)
         roi = _ros(obj, "roi")
+        x0 = int(getattr(roi, "x_offset", 0) or 0) if roi is not None else 0
+        y0 = int(getattr(roi, "y_offset", 0) or 0) if roi is not None else 0
         rw = int(getattr(roi, "width", 0) or 0) if roi is not None else 0
         rh = int(getattr(roi, "height", 0) or 0) if roi is not None else 0
-        if bx > 1 or by > 1 or ((rw or rh) and (rw, rh) != (width, height)):
-            raise CalibrationError(f"calibration of frame_id {fid!r}: CameraInfo with binning "
-                                   f"{bx}x{by} or region of interest {rw}x{rh} (image "
-                                   f"{width}x{height}) is unsupported: record full-resolution "
-                                   f"images, or publish K for the binned/cropped image",
-                                   path=self.path, topic=topic, time_ns=st)
-        self._add_calibration(topic, st, fid, list(_ros(obj, "k", "K", default=[])),
+        k = list(_ros(obj, "k", "K", default=[]))
+        if bx > 1 or by > 1 or rw or rh or x0 or y0:
+            # REP 104: K describes the full sensor (width x height); the image is its
+            # region of interest (all of it when the ROI is zero), binned
+            rw, rh = (rw or width - x0), (rh or height - y0)
+            if (x0 < 0 or y0 < 0 or rw <= 0 or rh <= 0 or x0 + rw > width
+                    or y0 + rh > height or rw % bx or rh % by):
+                raise CalibrationError(
+                    f"calibration of frame_id {fid!r}: region of interest {rw}x{rh} at "
+                    f"({x0}, {y0}) with binning {bx}x{by} does not fit the {width}x{height} "
+                    "sensor (or is not a whole number of bins)", path=self.path,
+                    topic=topic, time_ns=st)
+            k = _binned_k(k, x0, y0, bx, by)
+            width, height = rw // bx, rh // by
+        self._add_calibration(topic, st, fid, k,
                               list(_ros(obj, "d", "D", default=[])), width, height,
                               str(obj.distortion_model or ""))
         return st

@@ -95,3 +95,66 @@ def test_rows_poses_between_the_first_and_the_last_row():
     np.testing.assert_allclose(o[:, 0], [0.1, 0.1003, 0.1006, 0.1006], atol=1e-15)
     R, o = rows_poses(T0, T0, np.zeros(2, int), np.array([0.2, 0.9]))  # no motion
     np.testing.assert_allclose(R, np.broadcast_to(np.eye(3), (2, 3, 3)), atol=1e-15)
+
+
+def _tf_cut(src: Path, dst: Path, end_ns: int) -> Path:
+    """``src`` without its ``/tf`` messages after ``end_ns`` (a pose stream that ends just
+    after the last laser frame)."""
+    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        r = make_reader(f)
+        w = Writer(g)
+        w.start()
+        sids: dict[int, int] = {}
+        cids: dict[int, int] = {}
+        for sch, ch, m in r.iter_messages(log_time_order=False):
+            if ch.topic == "/tf" and FrameTransforms.FromString(
+                    m.data).transforms[0].timestamp.ToNanoseconds() > end_ns:
+                continue
+            if sch.id not in sids:
+                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
+            if ch.id not in cids:
+                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id])
+            w.add_message(cids[ch.id], log_time=m.log_time, data=m.data,
+                          publish_time=m.publish_time)
+        for md in r.iter_metadata():
+            w.add_metadata(md.name, dict(md.metadata))
+        w.finish()
+    return dst
+
+
+def test_the_last_rows_pose_where_the_pose_stream_ends_first(tmp_path):
+    """A pose stream that ends 20 ms after the last laser frame cannot give that frame's
+    last-row pose 30 ms on: the motion of the 30 ms before the stamp is carried on, and
+    counted. The sweep moves in a straight line at constant speed, so the carried-on pose
+    is the one the whole stream gives."""
+    import json
+
+    from stages_in_process import stage_outputs
+
+    from robo3d.artefacts import Stripes
+    from robo3d.config import load_config
+    from robo3d.pipeline import STAGES
+    from robo3d.recording.reader import read_recording
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    rec = tmp_path / "one.mcap"
+    simulate_recording(rec, "blob", seed=4, params=SimulationParams.small(
+        views=0, sweeps=1, sweep_frames=12))
+    last = max(m.timestamp_ns for m in read_recording(rec, roles=("laser",)).laser_frames)
+    cut = _tf_cut(rec, tmp_path / "cut.mcap", last + 20_000_000)
+    cfg = load_config(None, {"timing": {"rolling_shutter_s": 0.03}})
+    ends, reps = [], []
+    for r in (rec, cut):
+        out = tmp_path / r.stem
+        (out / "reports").mkdir(parents=True)
+        s = stage_outputs(out, "stripes", npz="stripes.npz")
+        STAGES["stripes"]({"recording": str(r)}, s, cfg, r.stem, threads=1)
+        ends.append(Stripes.load(s["npz"]).T_base_camera_end)
+        reps.append(json.loads(Path(s["report"]).read_text())["rolling_shutter"])
+    assert reps[0] == {"readout_s": 0.03, "frames_end_pose_extrapolated": 0}
+    assert reps[1]["frames_end_pose_extrapolated"] >= 1
+    np.testing.assert_allclose(ends[1], ends[0], atol=1e-7)  # 0.1 um

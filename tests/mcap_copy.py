@@ -11,10 +11,12 @@ from pathlib import Path
 def copy_recording(src: Path, dst: Path, *,
                    metadata: Callable[[str, dict[str, str]], dict[str, str] | None] | None
                    = lambda name, md: md,
-                   attachments: bool = True) -> Path:
-    """Copy ``src`` to ``dst``: every channel and message; each metadata record as
-    ``metadata(name, record)`` returns it (None leaves it out; ``metadata=None`` leaves
-    all out); the attachments when ``attachments``."""
+                   attachments: bool = True,
+                   keep: Callable[[str, bytes], bool] | None = None) -> Path:
+    """Copy ``src`` to ``dst``: every channel and message (those for which ``keep(topic,
+    data)`` is true, when given); each metadata record as ``metadata(name, record)``
+    returns it (None leaves it out; ``metadata=None`` leaves all out); the attachments
+    when ``attachments``."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -25,6 +27,8 @@ def copy_recording(src: Path, dst: Path, *,
         sids: dict[int, int] = {}
         cids: dict[int, int] = {}
         for sch, ch, m in r.iter_messages(log_time_order=False):
+            if keep is not None and not keep(ch.topic, m.data):
+                continue
             if sch.id not in sids:
                 sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
             if ch.id not in cids:

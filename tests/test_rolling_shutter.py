@@ -101,29 +101,13 @@ def _tf_cut(src: Path, dst: Path, end_ns: int) -> Path:
     """``src`` without its ``/tf`` messages after ``end_ns`` (a pose stream that ends just
     after the last laser frame)."""
     from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
+    from mcap_copy import copy_recording
 
-    with open(src, "rb") as f, open(dst, "wb") as g:
-        r = make_reader(f)
-        w = Writer(g)
-        w.start()
-        sids: dict[int, int] = {}
-        cids: dict[int, int] = {}
-        for sch, ch, m in r.iter_messages(log_time_order=False):
-            if ch.topic == "/tf" and FrameTransforms.FromString(
-                    m.data).transforms[0].timestamp.ToNanoseconds() > end_ns:
-                continue
-            if sch.id not in sids:
-                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
-            if ch.id not in cids:
-                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id])
-            w.add_message(cids[ch.id], log_time=m.log_time, data=m.data,
-                          publish_time=m.publish_time)
-        for md in r.iter_metadata():
-            w.add_metadata(md.name, dict(md.metadata))
-        w.finish()
-    return dst
+    def keep(topic: str, data: bytes) -> bool:
+        return topic != "/tf" or FrameTransforms.FromString(
+            data).transforms[0].timestamp.ToNanoseconds() <= end_ns
+
+    return copy_recording(src, dst, keep=keep, attachments=False)
 
 
 def test_the_last_rows_pose_where_the_pose_stream_ends_first(tmp_path):

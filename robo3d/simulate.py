@@ -926,7 +926,7 @@ def _rolling_signal(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_lase
     that; each band of :data:`ROLLING_BAND_ROWS` rows rendered at its middle row's pose
     through a camera cropped to those rows and one more on each side (the same lens: only
     the principal point's row moves; the room light's edge test sees its neighbours), so
-    the frame costs about one and a quarter renders. With no motion it is the global
+    the frame costs 1.4-1.5 global renders (320 x 240). With no motion it is the global
     shutter's frame."""
     from .camera import CameraModel
 

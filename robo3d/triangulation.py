@@ -104,7 +104,7 @@ from .checks import check_transform
 from .errors import StageError
 from .options import Options
 from .stripes import StripePoints
-from .transforms import euler_to_matrix
+from .transforms import euler_to_matrix, matrix_to_quat, quat_slerp, quat_to_matrix
 
 __all__ = [
     "DROP_REASONS",
@@ -897,25 +897,12 @@ def rows_poses(T_start: np.ndarray, T_end: np.ndarray, frame: np.ndarray,
                fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A rolling shutter's pose of each point: between its frame's ``T_start`` (first row)
     and ``T_end`` (last row), at ``fraction`` (its row over the last row's, clipped to
-    [0, 1]); the translation linear, the rotation along the geodesic (the relative
-    rotation's axis-angle, scaled). Returns ((N, 3, 3) rotations, (N, 3) origins)."""
+    [0, 1]); interpolated as the recording's poses are between two ``/tf`` samples
+    (translation linear, rotation by :func:`robo3d.transforms.quat_slerp`). Returns
+    ((N, 3, 3) rotations, (N, 3) origins)."""
     f = np.clip(np.asarray(fraction, dtype=np.float64), 0.0, 1.0)
-    R0, R1 = T_start[:, :3, :3], T_end[:, :3, :3]
-    rel = np.einsum("fji,fjk->fik", R0, R1)  # R0^T R1 per frame
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    ang = np.arccos(cos)
-    w = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
-                  rel[:, 1, 0] - rel[:, 0, 1]], axis=1)
-    s = np.sin(ang)
-    axis = np.where(s[:, None] > 1e-12, w / np.where(s > 1e-12, 2.0 * s, 1.0)[:, None], 0.0)
-    a = ang[frame] * f  # per point: the angle turned by its row
-    k = axis[frame]
-    K = np.zeros((len(a), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    step = (np.eye(3) + np.sin(a)[:, None, None] * K
-            + (1.0 - np.cos(a))[:, None, None] * np.einsum("nij,njk->nik", K, K))
-    R = np.einsum("nij,njk->nik", R0[frame], step)
+    q0, q1 = matrix_to_quat(T_start[:, :3, :3]), matrix_to_quat(T_end[:, :3, :3])
+    R = quat_to_matrix(quat_slerp(q0[frame], q1[frame], f))
     origin = T_start[frame, :3, 3] + f[:, None] * (T_end[frame, :3, 3] - T_start[frame, :3, 3])
     return R, origin
 

@@ -117,6 +117,18 @@ def laser_poses(rec, frames: list, laser_frame: str = "laser") -> np.ndarray:
     return out
 
 
+def sweeps_of(stamps_ns: np.ndarray, cfg: Mapping[str, Any]) -> np.ndarray:
+    """Each laser frame's sweep by the config's ``timing`` (``sweep_gap_s``,
+    ``sweep_gap_intervals``; :func:`robo3d.triangulation.split_sweeps`): the stripes
+    stage's rerun timeline and the triangulation split them the same way."""
+    from ..triangulation import split_sweeps
+
+    timing = cfg["timing"]
+    return split_sweeps(np.asarray(stamps_ns, dtype=np.int64),
+                        int(round(timing["sweep_gap_s"] * 1e9)),
+                        float(timing["sweep_gap_intervals"]))
+
+
 def stage_threads(threads: int | None) -> int:
     """Worker threads of a stage: the job's (Snakemake's ``threads``) or 1."""
     n = 1 if threads is None else int(threads)

@@ -21,6 +21,7 @@ from .common import (
     open_recording,
     stage_threads,
     summary,
+    sweeps_of,
 )
 
 if TYPE_CHECKING:
@@ -91,7 +92,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    "seconds": round(time.perf_counter() - t0, 3)})
     stripes.save(outputs["npz"])
     _log_rerun(outputs["rrd"], rec_name, frames, cameras, poses, found, report,
-               cfg["rerun"]["max_images"], _sweeps_of(frames, cfg))
+               cfg["rerun"]["max_images"], sweeps_of([m.timestamp_ns for m in frames], cfg))
     write_json(outputs["report"], report)
     summary.info("stripes: %d points in %d frames on %d threads (%.1f s; decoding %.1f s, "
              "detection %.1f s of CPU)", report["n_points"], len(frames), n_threads,
@@ -127,18 +128,6 @@ def _readout_end_poses(rec, frames: list, poses: np.ndarray, readout_s: float
             except TransformError:
                 n_ex += 1  # no motion known: the stamp's pose for every row
     return out, n_ex
-
-
-def _sweeps_of(frames: list, cfg: Mapping[str, Any]) -> np.ndarray:
-    """Each frame's sweep, as the triangulation splits them (``timing.sweep_gap_s``), for
-    the rerun log's ``sweep`` timeline."""
-    from ..triangulation import split_sweeps
-
-    if not frames:
-        return np.zeros(0, dtype=np.int64)
-    stamps = np.array([m.timestamp_ns for m in frames], dtype=np.int64)
-    return split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)),
-                        float(cfg["timing"]["sweep_gap_intervals"]))
 
 
 def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..atomic import write_json
 from ..errors import StageError
-from .common import cameras_from, log, summary, sweep_color, workspace_from
+from .common import cameras_from, log, summary, sweep_color, sweeps_of, workspace_from
 
 
 def _stripes_of_frame(s: Mapping[str, np.ndarray], i: int):
@@ -53,7 +53,6 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         DROP_REASONS,
         TriangulateOptions,
         laser_transform_from_params,
-        split_sweeps,
         triangulate_sweep,
     )
     from ..viz import log_points, log_report, log_scalar, rerun_log, set_image_time
@@ -75,8 +74,7 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
         T_camera_laser = s["T_camera_laser"]
         laser_source = "recording transforms (camera -> laser)"
     opts = TriangulateOptions.from_config(tc)
-    sweep_of = split_sweeps(stamps, int(round(cfg["timing"]["sweep_gap_s"] * 1e9)),
-                        float(cfg["timing"]["sweep_gap_intervals"]))
+    sweep_of = sweeps_of(stamps, cfg)
     # a rolling shutter: the poses of the frames' last rows, from the stripes stage
     end = s.get("T_base_camera_end")
     clouds, per_sweep = [], []

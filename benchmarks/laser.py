@@ -802,6 +802,14 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
             P = rays * (d_b / (rays @ n_b))[:, None]
             rec_i.update(quad=quad, inside=inside, P=P, n_b=n_b, d_b=d_b, R=R,
                          t=tvec.ravel())
+            # the search as the calibrate stage makes it: within the board's region only
+            # (robo3d.calibration.sheet.board_region_mask), where the line on the floor or
+            # the wall beside the board cannot win the frame's axis
+            region = np.zeros((h, w), np.uint8)
+            cv2.fillPoly(region, [np.round(quad * 16).astype(np.int32)], 1, cv2.LINE_8,
+                         shift=4)
+            rec_i["stripe_region"] = extract_stripe_centres(img, roi=region.astype(bool),
+                                                            options=options)
         per.append(rec_i)
     boards = [p for p in per if p["board"]]
     P_all = np.concatenate([p["P"][p["inside"]] for p in boards] or [np.zeros((0, 3))])
@@ -819,6 +827,7 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
 
     # where the stripe must be on each board: the laser plane's line on the board plane
     n_found, n_expected, line_px, off_line, cover = 0, 0, [], 0, []
+    n_found_region = 0
     n_on_board = n_off_board = 0
     for p in boards:
         sp = p["stripe"]
@@ -848,23 +857,26 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
         if lines.size < 10:
             continue
         n_expected += 1
-        order = np.argsort(uvl[:, along])
-        exp_across = np.interp(lines, uvl[order, along], uvl[order, 1 - along])
-        pts = sp.pixels_uv[p["inside"]]
-        got = dict(zip(np.rint(pts[:, along]).astype(int).tolist(),
-                       pts[:, 1 - along].tolist(), strict=True))
-        dev = np.array([got[ln] - e if ln in got else np.nan
-                        for ln, e in zip(lines.tolist(), exp_across, strict=True)])
+        dev = _deviations(uvl, lines, along, sp.pixels_uv[p["inside"]])
         hit = np.abs(dev) <= 2.0
         cover.append(float(hit.mean()))
         line_px.extend(np.abs(dev[hit]).tolist())
         off_line += int((np.abs(dev) > 2.0).sum())
         p["cover"] = float(hit.mean())
         n_found += int(hit.mean() >= 0.5)
+        # the same, searched within the board's region (the calibrate stage's search)
+        sr = p["stripe_region"]
+        along_r = 1 if sr.axis == "rows" else 0
+        lines_r = np.unique(np.rint(uvl[:, along_r]).astype(int))
+        lines_r = lines_r[(lines_r >= 0) & (lines_r < (h if along_r else w))]
+        dev_r = _deviations(uvl, lines_r, along_r, sr.pixels_uv)
+        p["cover_region"] = float((np.abs(dev_r) <= 2.0).mean()) if dev_r.size else 0.0
+        n_found_region += int(p["cover_region"] >= 0.5)
     out = {
         "frames": len(per), "frames_board_detected": len(boards),
         "frames_stripe_expected_on_board": n_expected,
         "frames_stripe_found_on_board": n_found,
+        "frames_stripe_found_on_board_region_search": n_found_region,
         "board_line_coverage_median": float(np.median(cover)) if cover else 0.0,
         "board_line_coverage_min": float(np.min(cover)) if cover else 0.0,
         "srv_board_plane_rms_mm": rms_inl, "board_plane_rms_all_mm": rms_all,
@@ -893,12 +905,15 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
         "laser_plane_camera": {"n": n_l.tolist(), "d_m": d_l},
         "per_frame": [{"frame": p["frame"], "board": p["board"], "points": len(p["stripe"]),
                        "on_board": int(p["inside"].sum()) if p["board"] else 0,
-                       "line_coverage": p.get("cover"), "axis": p["stripe"].axis,
+                       "line_coverage": p.get("cover"),
+                       "line_coverage_region_search": p.get("cover_region"),
+                       "axis": p["stripe"].axis,
                        "angle_deg": round(p["stripe"].angle_deg, 2),
                        "rejected": p["stripe"].rejected} for p in per],
     }
     log(f"srv: board in {len(boards)} of {len(per)} frames, stripe expected on {n_expected}, "
-        f"found on {n_found}; plane RMS {rms_inl:.3f} mm ({inl.sum()} of {len(P_all)} points "
+        f"found on {n_found} ({n_found_region} searched within the board's region); "
+        f"plane RMS {rms_inl:.3f} mm ({inl.sum()} of {len(P_all)} points "
         f"inliers; {rms_all:.3f} mm with all); {n_off_board} points off the board; "
         f"{int(skewed.sum())} on the board skewed more than {max_skew:g} px, "
         f"{out['skew_test']['outlier_fraction_skewed'] or 0:.1%} of them outliers")
@@ -920,6 +935,19 @@ def srv_board_figures(path: Path = SRV, *, view_step: int = 1, frame_step: int =
                         cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 255, 255), 1)
             cv2.imwrite(str(overlay_dir / f"srv_{p['frame']:03d}.png"), o)
     return out
+
+
+def _deviations(uvl: np.ndarray, lines: np.ndarray, along: int, pts: np.ndarray
+                ) -> np.ndarray:
+    """Per image line of the stripe's axis (``lines``; ``along`` 1: rows, 0: columns):
+    the found centre's offset across the line from the expected line ``uvl`` (the laser
+    plane on the board, projected), NaN where no centre was found."""
+    order = np.argsort(uvl[:, along])
+    exp_across = np.interp(lines, uvl[order, along], uvl[order, 1 - along])
+    got = dict(zip(np.rint(pts[:, along]).astype(int).tolist(), pts[:, 1 - along].tolist(),
+                   strict=True))
+    return np.array([got[ln] - e if ln in got else np.nan
+                     for ln, e in zip(lines.tolist(), exp_across, strict=True)])
 
 
 _COLD = """
@@ -964,7 +992,8 @@ def real_and_ambient(log=print, quick: bool = False) -> dict:
         srv = srv_board_figures(SRV, view_step=2 if quick else 1, log=log)
         out.update({k: srv[k] for k in ("srv_board_plane_rms_mm", "frames_board_detected",
                                         "frames_stripe_expected_on_board",
-                                        "frames_stripe_found_on_board")})
+                                        "frames_stripe_found_on_board",
+                                        "frames_stripe_found_on_board_region_search")})
         out["srv_frames"] = srv["frames"]
         details["srv"] = srv
     out["notes_real_and_ambient"] = _notes_real_and_ambient(out, details)
@@ -994,6 +1023,9 @@ def _notes_real_and_ambient(out: dict, details: dict) -> str:
                 "plane (fitted to the stripe's points on the boards) crosses the board "
                 f"region in {srv['frames_stripe_expected_on_board']} of them and the stripe "
                 f"covers at least half of that line in {srv['frames_stripe_found_on_board']} "
+                f"with the whole frame searched, in "
+                f"{srv.get('frames_stripe_found_on_board_region_search')} searched within "
+                "the board's region as the calibrate stage searches them "
                 f"(median coverage {srv['board_line_coverage_median']:.2f}, centres "
                 f"{srv['centre_to_expected_line_px_median']:.2f} px from it); "
                 f"srv_board_plane_rms_mm over the RANSAC inliers (2 mm), "

@@ -9,8 +9,12 @@ Choices:
 * Camera frames are optical: +x right, +y down, +z forward. Pixel ``(u, v)`` is
   (column, row) with the origin at the centre of the top-left pixel, as OpenCV and ROS
   use. A point is in front of the camera when ``z > 1e-12`` m.
-* The lens model is ROS's ``plumb_bob`` (``k1 k2 p1 p2 k3``); a ``rational_polynomial``
-  calibration is accepted only when its ``k4..k6`` are zero (then it is plumb_bob).
+* The lens model is ROS's ``plumb_bob`` (``k1 k2 p1 p2 k3``). A ``rational_polynomial``
+  calibration (``k1 k2 p1 p2 k3 k4 k5 k6``, radial ``(1 + k1 r^2 + k2 r^4 + k3 r^6) /
+  (1 + k4 r^2 + k5 r^4 + k6 r^6)``) whose ``k4..k6`` are zero is plumb_bob; with any of
+  them non-zero its images are resampled to a pinhole camera as they are decoded
+  (:class:`Rectifier`, what ROS's ``image_proc`` does), and every stage sees that
+  pinhole camera.
 * Undistortion is OpenCV's fixed-point iteration (``undistortPoints``), vectorised;
   OpenCV is the independent oracle of the tests.
 * Beyond the radius where the radial term stops being monotonic
@@ -26,6 +30,7 @@ D. C. Brown, "Decentering distortion of lenses", Photogrammetric Engineering 32(
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,7 +38,7 @@ import numpy as np
 from .errors import CalibrationError
 from .transforms import invert_transform
 
-__all__ = ["CameraModel", "project_points", "pixel_rays", "distortion_limit_r2"]
+__all__ = ["CameraModel", "Rectifier", "project_points", "pixel_rays", "distortion_limit_r2"]
 
 
 @dataclass(frozen=True)
@@ -68,11 +73,12 @@ class CameraModel:
                                    f"coefficients, got {d.size}")
         if d.size == 4:
             d = np.concatenate([d, [0.0]])
-        if d.size == 8:  # rational_polynomial: only its plumb_bob part is modelled
+        if d.size == 8:  # rational_polynomial: only its plumb_bob part is modelled here
             if np.any(d[5:] != 0):
                 raise CalibrationError(f"camera {self.frame_id!r}: rational_polynomial "
-                                       f"k4..k6 = {d[5:].tolist()} are unsupported "
-                                       f"(plumb_bob only)")
+                                       f"k4..k6 = {d[5:].tolist()} are not a plumb_bob "
+                                       f"model (the recording reader rectifies such a "
+                                       f"camera's images: robo3d.camera.Rectifier)")
             d = d[:5]
         if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
             raise CalibrationError(f"camera {self.frame_id!r}: K or D is not finite")
@@ -218,3 +224,132 @@ def distortion_limit_r2(camera: CameraModel) -> float:
     roots = np.roots(coeffs)
     real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
     return float(real.min()) if real.size else float("inf")
+
+
+#: OpenCV's iteration inverting a lens model to convergence (its default, 5 steps, leaves
+#: 3.6 px at the corners of a strong rational_polynomial lens; 20 steps 5e-4 px, 50 1e-11)
+_UNDISTORT_CRITERIA = (3, 100, 1e-12)  # cv2.TERM_CRITERIA_COUNT | EPS, steps, epsilon
+
+
+class Rectifier:
+    """Raw images of a ``rational_polynomial`` camera resampled to a pinhole camera.
+
+    The 8-coefficient model's images are remapped once per image as they are decoded
+    (OpenCV's ``initUndistortRectifyMap`` and ``remap``, bilinear, the border replicated:
+    ROS's ``image_proc`` does the same), and the pipeline sees :attr:`camera`, a pinhole
+    camera without distortion of the same size whose ``K`` is OpenCV's
+    ``getOptimalNewCameraMatrix`` with ``alpha = 0``: every pixel of the rectified image
+    has a source pixel in the raw one (no invented border, which the carve would read as
+    background), at the cost of the raw image's outer rim (:attr:`kept_fraction`).
+
+    Parameters
+    ----------
+    frame_id : str
+    width, height : int
+        The raw (and rectified) image size.
+    K : (3, 3) float64
+        The raw camera matrix.
+    D : (8,) float64
+        ``k1 k2 p1 p2 k3 k4 k5 k6``.
+    """
+
+    def __init__(self, frame_id: str, width: int, height: int, K: np.ndarray,
+                 D: np.ndarray) -> None:
+        import cv2
+
+        k = np.asarray(K, dtype=np.float64).reshape(3, 3)
+        d = np.asarray(D, dtype=np.float64).reshape(-1)
+        if d.size != 8:
+            raise CalibrationError(f"camera {frame_id!r}: rational_polynomial needs 8 "
+                                   f"coefficients (k1 k2 p1 p2 k3 k4 k5 k6), got {d.size}")
+        if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
+            raise CalibrationError(f"camera {frame_id!r}: K or D is not finite")
+        self.frame_id, self.width, self.height = frame_id, int(width), int(height)
+        self.K_raw, self.D_raw = k, d
+        size = (self.width, self.height)
+        k_new, _ = cv2.getOptimalNewCameraMatrix(k, d, size, 0.0, size)
+        if not (np.all(np.isfinite(k_new)) and k_new[0, 0] > 0 and k_new[1, 1] > 0):
+            raise CalibrationError(f"camera {frame_id!r}: the rational_polynomial lens "
+                                   f"model (D={d.tolist()}) has no valid rectified "
+                                   f"camera (K' = {k_new.tolist()})")
+        k_new[0, 1] = 0.0
+        self.camera = CameraModel(frame_id, self.width, self.height, k_new, np.zeros(5))
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
+        self._raw_index: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """The remap tables (fixed point, built once, on first use)."""
+        import cv2
+
+        with self._lock:
+            if self._maps is None:
+                self._maps = cv2.initUndistortRectifyMap(
+                    self.K_raw, self.D_raw, None, self.camera.K, (self.width, self.height),
+                    cv2.CV_16SC2)
+            return self._maps
+
+    @property
+    def kept_fraction(self) -> float:
+        """The share of the raw image's area that the rectified image shows."""
+        u, v = np.meshgrid(np.arange(0.0, self.width, 4.0), np.arange(0.0, self.height, 4.0))
+        uv = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+        q = self.raw_to_rectified(uv)
+        inside = ((q[:, 0] >= -0.5) & (q[:, 0] < self.width - 0.5)
+                  & (q[:, 1] >= -0.5) & (q[:, 1] < self.height - 0.5))
+        return float(inside.mean())
+
+    def raw_to_rectified(self, uv: np.ndarray) -> np.ndarray:
+        """Raw pixels ``(N, 2)`` where the rectified camera sees the same rays (exact, the
+        8-coefficient model inverted by OpenCV's iteration: no resampling)."""
+        import cv2
+
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not len(uv):
+            return uv.copy()
+        return cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K_raw, self.D_raw,
+                                   P=self.camera.K, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+
+    @property
+    def raw_index(self) -> np.ndarray:
+        """(H, W) int64: for each raw pixel the flat index of the rectified pixel nearest
+        to where it lands there, -1 outside the rectified image (built once, on every
+        other pixel and spread to its 2 x 2 block: a region of interest is grown by
+        several pixels anyway; 0.23 s at 1280 x 960 instead of 0.9)."""
+        with self._lock:
+            if self._raw_index is None:
+                h2, w2 = (self.height + 1) // 2, (self.width + 1) // 2
+                u, v = np.meshgrid(np.arange(w2, dtype=np.float64) * 2 + 0.5,
+                                   np.arange(h2, dtype=np.float64) * 2 + 0.5)
+                q = np.rint(self.raw_to_rectified(np.stack([u.ravel(), v.ravel()], 1)))
+                ok = ((q[:, 0] >= 0) & (q[:, 0] < self.width) & (q[:, 1] >= 0)
+                      & (q[:, 1] < self.height))
+                idx = np.full(len(q), -1, np.int64)
+                idx[ok] = q[ok, 1].astype(np.int64) * self.width + q[ok, 0].astype(np.int64)
+                full = np.repeat(np.repeat(idx.reshape(h2, w2), 2, axis=0), 2, axis=1)
+                self._raw_index = np.ascontiguousarray(full[:self.height, :self.width])
+            return self._raw_index
+
+    def raw_mask(self, mask: np.ndarray) -> np.ndarray:
+        """A region given on the rectified image ``(H, W)`` bool, on the raw image (each raw
+        pixel takes the value of the rectified pixel it lands on; False outside it)."""
+        idx = self.raw_index
+        flat = np.asarray(mask, dtype=bool).reshape(-1)
+        return np.where(idx >= 0, flat[np.maximum(idx, 0)], False)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """The raw image ``(H, W)`` or ``(H, W, 3)`` (uint8 or uint16) rectified."""
+        import cv2
+
+        m1, m2 = self.maps
+        return cv2.remap(image, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def describe(self) -> str:
+        k4, k5, k6 = self.D_raw[5:]
+        return (f"frame {self.frame_id!r}: rational_polynomial (k4..k6 = {k4:g}, {k5:g}, "
+                f"{k6:g}) rectified to a pinhole camera, fx {self.camera.fx:.1f}, "
+                f"fy {self.camera.fy:.1f}, cx {self.camera.cx:.1f}, cy {self.camera.cy:.1f} "
+                f"(raw fx {self.K_raw[0, 0]:.1f}), which shows {100 * self.kept_fraction:.1f} "
+                "% of the raw image's area: views are resampled to it, stripe centres are "
+                "found in the raw frames and moved to it exactly")

@@ -409,8 +409,10 @@ def volume_iou(occupancy: np.ndarray, origin: np.ndarray, voxel_size: float,
 TRUE_SILHOUETTES = "ground_truth/silhouettes/"
 
 
-def _decode_truth_mask(data: bytes, shape: tuple[int, int]) -> tuple[np.ndarray | None, str]:
-    """A true silhouette (object > 127) from PNG bytes, or None and why not."""
+def _decode_truth_mask(data: bytes, shape: tuple[int, int], rectify=None
+                       ) -> tuple[np.ndarray | None, str]:
+    """A true silhouette (object > 127) from PNG bytes, or None and why not; with
+    ``rectify`` (a :class:`~robo3d.camera.Rectifier`) resampled as its view was."""
     import cv2
 
     try:
@@ -427,11 +429,14 @@ def _decode_truth_mask(data: bytes, shape: tuple[int, int]) -> tuple[np.ndarray 
     if img.shape != shape:
         return None, (f"is {img.shape[1]}x{img.shape[0]} px, the view is "
                       f"{shape[1]}x{shape[0]}")
+    if rectify is not None:
+        img = rectify(img)
     return img > 127, ""
 
 
 def silhouette_iou(masks: list[np.ndarray], attachments: dict[str, bytes], *,
-                   prefix: str = TRUE_SILHOUETTES) -> dict[str, Any]:
+                   prefix: str = TRUE_SILHOUETTES, rectify: list | None = None
+                   ) -> dict[str, Any]:
     """Intersection over union of each view's silhouette with the true one.
 
     Parameters
@@ -442,6 +447,10 @@ def silhouette_iou(masks: list[np.ndarray], attachments: dict[str, bytes], *,
         The recording's attachments; ``<prefix>NNN.png`` is the true silhouette of view
         ``NNN`` (0-based), 8-bit, object > 127, the view's size.
     prefix : str
+    rectify : list of N Rectifier or None, optional
+        Per view, how its image was resampled before it was segmented (a
+        ``rational_polynomial`` camera, :class:`robo3d.camera.Rectifier`): its true
+        silhouette, drawn on the raw image, is resampled alike.
 
     Returns
     -------
@@ -477,7 +486,8 @@ def silhouette_iou(masks: list[np.ndarray], attachments: dict[str, bytes], *,
             reason = f"no {prefix}{i:03d}.png"
             t = None
         else:
-            t, reason = _decode_truth_mask(truth[i], mask.shape)
+            t, reason = _decode_truth_mask(truth[i], mask.shape,
+                                           rectify[i] if rectify is not None else None)
         if t is None:
             per_view.append({"view": i, "iou": None, "skipped": reason})
             skipped[str(i)] = reason

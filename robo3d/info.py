@@ -336,10 +336,15 @@ def _calibrations(rec: Recording) -> list[dict[str, Any]]:
     out = []
     images = rec.views + rec.laser_frames
     for fid, cam in sorted(rec.calibrations.items()):
+        rect = rec.rectifiers.get(fid)  # a rational_polynomial camera: its rectified one
+        dist = "plumb_bob" if np.any(cam.D) else "none"
+        if rect is not None:
+            dist = (f"none: rectified from rational_polynomial D = "
+                    f"{np.round(rect.D_raw, 6).tolist()} (raw fx {rect.K_raw[0, 0]:.1f}), "
+                    f"{100 * rect.kept_fraction:.1f} % of the raw image kept")
         out.append({"frame_id": fid, "width": cam.width, "height": cam.height,
                     "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-                    "distortion": "plumb_bob" if np.any(cam.D) else "none",
-                    "D": cam.D.tolist(),
+                    "distortion": dist, "D": cam.D.tolist(),
                     "hfov_deg": float(np.degrees(2 * np.arctan(cam.width / (2 * cam.fx)))),
                     "vfov_deg": float(np.degrees(2 * np.arctan(cam.height / (2 * cam.fy)))),
                     "images": sum(1 for m in images if m.frame_id == fid)})

@@ -1577,6 +1577,9 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
             continue
         truth = cv2.imdecode(np.frombuffer(rec.attachments[key], np.uint8),
                              cv2.IMREAD_GRAYSCALE)
+        rect = rec.rectifiers.get(views[i].frame_id)  # the view is segmented rectified
+        if rect is not None and truth is not None and truth.shape == (rect.height, rect.width):
+            truth = rect(truth)
         image = rec.decode(views[i])
         t0 = time.perf_counter()
         sil, _ = segment_view(image, rec.camera_for(views[i]), poses[i], rec.workspace,

@@ -183,6 +183,33 @@ def test_apply_calibration_with_the_laser_on_the_flange(tmp_path):
     assert ("flange", "laser") in {(p, c) for p, c, _, _ in rec.tf.links()}
 
 
+def test_apply_calibration_describes_the_raw_images_of_a_rational_camera(tmp_path):
+    """A rational_polynomial camera is rectified as it is read; a calibration from the
+    calibrate stage, which estimates plumb_bob from the raw images, replaces it and its
+    images are then read raw."""
+    from dataclasses import replace
+
+    from robo3d.camera import Rectifier
+    from robo3d.recording import encode_image, read_recording
+
+    rec_path = tmp_path / "scan.mcap"
+    _write_recording(rec_path, "scan")
+    rec = read_recording(rec_path)
+    cam = rec.calibrations["camera"]
+    rect = Rectifier("camera", cam.width, cam.height, cam.K,
+                     np.r_[cam.D, 0.2, 0.0, 0.0])
+    rec = replace(rec, calibrations={**rec.calibrations, "camera": rect.camera},
+                  rectifiers={"camera": rect})
+    noise = np.random.default_rng(0).integers(0, 256, (cam.height, cam.width), np.uint8)
+    msg = replace(rec.views[0], data=encode_image(noise, "png"))
+    np.testing.assert_array_equal(rec.decode_raw(msg), noise)
+    np.testing.assert_array_equal(rec.decode(msg), rect(noise))
+    assert not np.array_equal(rect(noise), noise)
+    out = apply_calibration(rec, _calibration_file())
+    assert out.rectifiers == {} and rec.rectifiers == {"camera": rect}
+    np.testing.assert_array_equal(out.decode(msg), noise)
+
+
 def test_apply_calibration_refuses_another_resolution(tmp_path):
     from robo3d.recording import read_recording
 

@@ -571,7 +571,9 @@ def test_image_outside_pose_stream_names_topic_and_time(reference: dict[str, Pat
 
 @pytest.mark.parametrize(("model", "D", "ok"), [
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.0, 0.0, 0.0], True),
-    ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0, 0.0], False),
+    # with k4..k6: rectified to a pinhole camera (tests/test_rational_polynomial.py)
+    ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0, 0.0], "rectified"),
+    ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0], False),
     ("kannala_brandt", [0.1, 0.01, 0.0, 0.0], False),
     ("equidistant", [0.0, 0.0, 0.0, 0.0], False),
     ("plumb_bob", [0.1, np.nan, 0.0, 0.0, 0.0], False),
@@ -584,9 +586,14 @@ def test_distortion_models(tmp_path: Path, model: str, D: list[float], ok: bool)
             ("/camera/image", _img_msg(T0))]
     p = craft(tmp_path / "d.mcap", msgs, calib=False)
     if ok:
-        cam = read_recording(p, roles=("views",)).calibrations["camera"]
-        want = np.zeros(5) if not D else np.array(D[:5])
+        rec = read_recording(p, roles=("views",))
+        cam = rec.calibrations["camera"]
+        want = np.zeros(5) if not D or ok == "rectified" else np.array(D[:5])
         np.testing.assert_array_equal(cam.D, want)
+        assert ("camera" in rec.rectifiers) == (ok == "rectified")
+        if ok == "rectified":  # its images as the pinhole camera sees them
+            raw, img = rec.decode_raw(rec.views[0]), rec.decode(rec.views[0])
+            assert img.shape == raw.shape and img.dtype == raw.dtype
     else:
         with pytest.raises(CalibrationError) as ei:
             read_recording(p, roles=("views",))

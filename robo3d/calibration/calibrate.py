@@ -209,6 +209,13 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
         raise RecordingError(f"metadata robo3d.recording kind is {kind!r}: only kind="
                              "calibration recordings are calibrated from", path=recording.path)
     target = target_from_recording(recording)
+    # the lens model is estimated from the images as recorded: a published
+    # rational_polynomial camera's images are not rectified here (robo3d.camera.Rectifier)
+    raw_note = ([f"the images of {', '.join(sorted(recording.rectifiers))} are read as "
+                 "recorded (not rectified from the published rational_polynomial model): "
+                 "the calibrated plumb_bob model describes the raw images"]
+                if recording.rectifiers else [])
+    recording = replace(recording, rectifiers={})
     frame_id, published = _camera_frame(recording)
     if frame_id not in recording.calibrations:  # decode() checks sizes against it
         recording = replace(recording, calibrations={**recording.calibrations,
@@ -229,6 +236,7 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
         edge_width_px=np.array([d.sharpness for d in detections], dtype=np.float64),
         intrinsics_std={k: float(v) for k, v in dict(res.std).items()},
         view_corners={i: d.corners for i, d in enumerate(detections) if d.corners is not None})
+    result.notes.extend(raw_note)
     if not target.moving:
         _handeye(recording, result, detections, cfg)
     lasers = _sorted_images([m for m in recording.laser_frames if m.frame_id == frame_id])

@@ -320,7 +320,9 @@ def apply_calibration(recording, calib: CalibrationFile | str | os.PathLike[str]
     -------
     Recording
         A new recording (the input is not changed) whose ``calibrations`` entry for the
-        camera is the calibrated model, whose static ``flange -> camera`` and ``camera ->
+        camera is the calibrated model (which describes the raw images, as the calibrate
+        stage estimates it from them: a ``rational_polynomial`` camera's images are then
+        no longer rectified), whose static ``flange -> camera`` and ``camera ->
         laser`` links are the calibrated ones (replaced, not added), and whose metadata
         record ``robo3d.calibration`` says which file they came from (:func:`calibration_note`).
 
@@ -356,7 +358,9 @@ def apply_calibration(recording, calib: CalibrationFile | str | os.PathLike[str]
     metadata = dict(recording.metadata)
     metadata[CALIBRATION_METADATA] = {**calibration_note(calib), "camera": key,
                                       "replaced": " ".join(["intrinsics"] + replaced)}
-    return replace(recording, calibrations=cams, tf=buf, metadata=metadata)
+    rectifiers = {fid: r for fid, r in recording.rectifiers.items() if fid != key}
+    return replace(recording, calibrations=cams, tf=buf, metadata=metadata,
+                   rectifiers=rectifiers)
 
 
 def calibration_note(calib: CalibrationFile | str | os.PathLike[str]) -> dict[str, str]:

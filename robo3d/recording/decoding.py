@@ -53,14 +53,15 @@ Calibrations
 ------------
 Keyed by ``frame_id``; when a frame is calibrated more than once with different values,
 the last calibration is kept and a warning says so. ``distortion_model``: ``plumb_bob``
-(4 or 5 coefficients), ``rational_polynomial`` (k4..k6 must be zero: kept as plumb_bob,
-else unsupported), or empty with an empty or all-zero ``D`` (no distortion; an empty
-model with 5 coefficients is read as plumb_bob with a warning, as some ROS drivers leave
-the name empty). ``R`` and ``P`` are ignored: images are the raw (distorted,
-unrectified) images that ``K`` and ``D`` describe. A ROS ``CameraInfo`` with binning or
-a region of interest (REP 104: ``K`` of the full sensor, the image its binned ROI) is
-read as the camera of the recorded image (:func:`_binned_k`); a frame whose ROI changes
-between images is not (the last calibration is kept, with the warning above).
+(4 or 5 coefficients), ``rational_polynomial`` (8 coefficients; with k4..k6 zero it is
+plumb_bob, else the frame's images are resampled to a pinhole camera as they are
+decoded, :class:`~robo3d.camera.Rectifier`), or empty with an empty or all-zero ``D``
+(no distortion; an empty model with 5 coefficients is read as plumb_bob with a warning,
+as some ROS drivers leave the name empty). ``R`` and ``P`` are ignored: images are the
+raw (distorted, unrectified) images that ``K`` and ``D`` describe. A ROS ``CameraInfo``
+with binning or a region of interest (REP 104: ``K`` of the full sensor, the image its
+binned ROI) is read as the camera of the recorded image (:func:`_binned_k`); a frame
+whose ROI changes between images is not (the last calibration is kept, with the warning above).
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ from typing import Any
 import numpy as np
 from mcap.records import Schema as McapSchema
 
-from ..camera import CameraModel
+from ..camera import CameraModel, Rectifier
 from ..errors import CalibrationError, ImageDecodeError, RecordingError, TransformError
 from .framing import MAX_STAMP, Channel, Scan
 from .images import READ_RAW_ENCODINGS, normalize_encoding, raw_bytes_per_channel
@@ -260,6 +261,10 @@ class MessageDecoder:
         ``(topic, parent, child)`` -> :class:`TfSamples`, in order of first appearance.
     calibs : dict
         ``frame_id`` -> ``(CameraModel, topic, stamp)``: the kept calibration of each frame.
+    rectifiers : dict
+        ``frame_id`` -> :class:`~robo3d.camera.Rectifier` of the frames whose kept
+        calibration is ``rational_polynomial`` with non-zero ``k4..k6`` (their
+        ``calibs`` camera is the rectified pinhole camera).
     images : dict
         Topic -> :class:`~.model.ImageMessage` list, in file order.
     joints : list
@@ -284,6 +289,7 @@ class MessageDecoder:
         self.warnings: list[str] = []
         self.tf_links: dict[tuple[str, str, str], TfSamples] = {}
         self.calibs: dict[str, tuple[CameraModel, str, int]] = {}
+        self.rectifiers: dict[str, Rectifier] = {}
         self.images: dict[str, list[ImageMessage]] = {}
         self.no_stamp: dict[str, int] = {}
         self.joints: list[tuple[int, list[str], list[float]]] = []
@@ -389,16 +395,19 @@ class MessageDecoder:
             elif d.size not in (4, 5):
                 raise fail(f"plumb_bob needs 5 coefficients (k1 k2 p1 p2 k3), got {d.size}")
         elif model == "rational_polynomial":
-            if d.size < 5 or np.any(d[5:] != 0):
-                raise fail(f"distortion_model rational_polynomial with non-zero k4..k6 "
-                           f"(D={d.tolist()}) is unsupported; robo3d models plumb_bob "
-                           f"(k1 k2 p1 p2 k3)")
-            d = d[:5]
+            if d.size not in (5, 8):
+                raise fail(f"rational_polynomial needs 8 coefficients (k1 k2 p1 p2 k3 k4 "
+                           f"k5 k6), got {d.size}")
         else:
             raise fail(f"distortion_model {model!r} is unsupported (plumb_bob, "
-                       f"rational_polynomial with k4..k6 = 0, or empty for none)")
+                       f"rational_polynomial, or empty for none)")
+        rect = None
         try:
-            cam = CameraModel(fid, width, height, k.reshape(3, 3), d)
+            if d.size == 8 and np.any(d[5:] != 0):  # resampled to a pinhole camera
+                rect = Rectifier(fid, width, height, k.reshape(3, 3), d)
+                cam = rect.camera
+            else:
+                cam = CameraModel(fid, width, height, k.reshape(3, 3), d[:5])
         except CalibrationError as exc:
             raise fail(exc.reason) from None
         old = self.calibs.get(fid)
@@ -411,6 +420,10 @@ class MessageDecoder:
                 if st < old[2]:
                     return
         self.calibs[fid] = (cam, topic, st)
+        if rect is not None:
+            self.rectifiers[fid] = rect
+        else:
+            self.rectifiers.pop(fid, None)
 
     def _add_image(self, topic: str, st: int, log_time: int, fid: str, compressed: bool,
                    encoding: str, data: bytes, width: int = 0, height: int = 0,

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import CameraModel
+from ..camera import CameraModel, Rectifier
 from ..errors import CalibrationError, RecordingError, TransformError
 from ..transforms import TransformBuffer
 from .images import decode_checked, decode_image
@@ -146,6 +146,7 @@ class Recording:
     path: str
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     calibrations: dict[str, CameraModel] = field(default_factory=dict)
+    rectifiers: dict[str, Rectifier] = field(default_factory=dict)
     tf: TransformBuffer = field(default_factory=TransformBuffer)
     views: list[ImageMessage] = field(default_factory=list)
     laser_frames: list[ImageMessage] = field(default_factory=list)
@@ -193,12 +194,21 @@ class Recording:
         return cam
 
     def decode(self, msg: ImageMessage) -> np.ndarray:
-        """Decode an image and check its size against its calibration.
+        """Decode an image and check its size against its calibration; the image of a
+        ``rational_polynomial`` camera (:attr:`rectifiers`) resampled to the pinhole
+        camera that :meth:`camera_for` gives.
 
         Returns ``(H, W)`` or ``(H, W, 3)`` RGB uint8/uint16 with ``(H, W)`` the size of
         :meth:`camera_for`; raises :class:`~robo3d.errors.CalibrationError` (no
         calibration) or :class:`~robo3d.errors.ImageDecodeError` (bad bytes, wrong size).
         """
+        img = decode_checked(msg, self.camera_for(msg))
+        rect = self.rectifiers.get(msg.frame_id)
+        return img if rect is None else rect(img)
+
+    def decode_raw(self, msg: ImageMessage) -> np.ndarray:
+        """:meth:`decode` without the rectification: the image as recorded (the calibrate
+        stage estimates its own lens model from the raw images)."""
         return decode_checked(msg, self.camera_for(msg))
 
     def camera_poses(self, msgs: list[ImageMessage]) -> np.ndarray:

@@ -169,6 +169,8 @@ def read_recording(path: str | os.PathLike[str], *, topics: TopicMap = DEFAULT_T
         _check_complete(rec, scans, topics, role_topics)
     for w in rec.warnings:
         _log.warning("%s: %s", spath, w)
+    for r in rec.rectifiers.values():
+        _log.info("%s: %s", spath, r.describe())
     return rec
 
 
@@ -205,6 +207,7 @@ def _assemble(path: str, files: list[str], scans: list[Scan], dec: MessageDecode
         attachments.update(scan.attachments)
     return Recording(path=path, metadata=metadata,
                      calibrations={fid: c[0] for fid, c in dec.calibs.items()}, tf=tf,
+                     rectifiers=dict(dec.rectifiers),
                      views=_sorted_images(dec, topics.views) if "views" in roles else [],
                      laser_frames=(_sorted_images(dec, topics.laser) if "laser" in roles
                                    else []),

@@ -61,11 +61,16 @@ def media_type(encoding: str) -> str | None:
     return {"png": "image/png", "jpeg": "image/jpeg"}.get(encoding)
 
 
-def log_image_camera(stream, entity, msg, camera, T, **kw) -> None:
+def log_image_camera(stream, entity, msg, camera, T, decode=None, **kw) -> None:
+    """The image of ``msg`` at its camera: its recorded bytes where they are PNG or JPEG,
+    else (or with ``decode``, the recording's :meth:`~robo3d.recording.model.Recording.
+    decode` for a rectified camera, whose recorded bytes are the raw image) decoded."""
     from ..viz import log_camera
 
     mt = media_type(msg.encoding)
-    if mt is not None:
+    if decode is not None:
+        log_camera(stream, entity, camera, T, image=decode(msg), **kw)
+    elif mt is not None:
         log_camera(stream, entity, camera, T, encoded=(msg.data, mt), **kw)
     else:
         log_camera(stream, entity, camera, T, image=msg.decode(), **kw)

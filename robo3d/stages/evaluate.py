@@ -264,7 +264,10 @@ def _mask_evaluation(inputs: Mapping[str, str], rec, has_true_masks: bool,
         metrics["skipped"]["mask_iou"] = f"{sil_path} does not load: {exc}"
         return
     masks = [sil["masks"][i, : c.height, : c.width] for i, c in enumerate(cams)]
-    result = silhouette_iou(masks, rec.attachments)
+    # a rational_polynomial camera's views were segmented rectified: so is their truth
+    rects = [rec.rectifiers.get(c.frame_id) for c in cams]
+    result = silhouette_iou(masks, rec.attachments,
+                            rectify=rects if any(r is not None for r in rects) else None)
     left_out = {r["view"] for r in metrics.get("views_left_out", [])
                 if isinstance(r, dict) and "view" in r}
     for v in result["per_view"]:

@@ -113,13 +113,16 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     report = _report(per_view, ws, t0)
     report["silhouettes_failed"] = given_up
     report["views_failed"] = [v["index"] for v in per_view if v.get("failed")]
+    if rec.rectifiers:  # the views segmented as resampled to the pinhole camera
+        report["rectified"] = {fid: r.describe() for fid, r in rec.rectifiers.items()}
     Silhouettes.from_views(masks, poses, [m.timestamp_ns for m in views], cameras,
                            [bool(v["qa"]["flags"]) for v in per_view], ws
                            ).save(outputs["npz"])
     if outputs.get("masks"):
         _write_mask_pngs(outputs["masks"], masks)
     _log_rerun(outputs["rrd"], rec_name, ws, views, cameras, poses, masks, report,
-               int(cfg["rerun"]["max_images"]))
+               int(cfg["rerun"]["max_images"]),
+               decode=rec.decode if rec.rectifiers else None)
     write_json(outputs["report"], report)
     summary.info("segmented %d views in %.1f s; %d touch the image border, %d their region's",
              len(views), report["seconds"], report["n_touching_image_border"],
@@ -200,7 +203,7 @@ def _report(per_view: list[dict], ws, t0: float) -> dict[str, Any]:
 
 
 def _log_rerun(path: str, rec_name: str, ws, views: list, cameras: list, poses: np.ndarray,
-               masks: list[np.ndarray], report: dict, max_images: int) -> None:
+               masks: list[np.ndarray], report: dict, max_images: int, decode=None) -> None:
     """The workspace box; a few evenly spaced views, each with its mask over it, at its
     camera as one entity (``base/silhouettes/camera``) along the ``view`` and ``time``
     timelines, so the viewer shows the current one; the report."""
@@ -212,7 +215,7 @@ def _log_rerun(path: str, rec_name: str, ws, views: list, cameras: list, poses: 
         for i in spaced_indices(len(views), max_images):
             set_image_time(rr_stream, views[i].timestamp_ns, view=int(i))
             log_image_camera(rr_stream, "base/silhouettes/camera", views[i], cameras[i],
-                             poses[i], mask=masks[i], static=False)
+                             poses[i], decode=decode, mask=masks[i], static=False)
         log_report(rr_stream, "reports/silhouettes", report)
 
 

@@ -80,6 +80,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          "the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
+    if rec.rectifiers:  # searched in the raw frames, the centres moved to the pinhole camera
+        report["rectified"] = {fid: r.describe() for fid, r in rec.rectifiers.items()}
     if readout_s > 0:
         report["rolling_shutter"] = {"readout_s": readout_s,
                                      "frames_end_pose_extrapolated": n_extrapolated}
@@ -92,7 +94,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                    "seconds": round(time.perf_counter() - t0, 3)})
     stripes.save(outputs["npz"])
     _log_rerun(outputs["rrd"], rec_name, frames, cameras, poses, found, report,
-               cfg["rerun"]["max_images"], sweeps_of([m.timestamp_ns for m in frames], cfg))
+               cfg["rerun"]["max_images"], sweeps_of([m.timestamp_ns for m in frames], cfg),
+               rec.decode)
     write_json(outputs["report"], report)
     summary.info("stripes: %d points in %d frames on %d threads (%.1f s; decoding %.1f s, "
              "detection %.1f s of CPU)", report["n_points"], len(frames), n_threads,
@@ -139,7 +142,7 @@ def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
     laser-off frames."""
     sc = cfg["stripes"]
     if not (sc.get("laser_off_topic") and frames):
-        return (lambda i, image: None), 0
+        return (lambda i, image, raw=False: None), 0
     topic = str(sc["laser_off_topic"])
     cfg_off = {**cfg, "topics": {**dict(cfg.get("topics") or {}), "laser": topic}}
     rec_off = open_recording(path, cfg_off, roles=("laser",), require=False)
@@ -153,11 +156,12 @@ def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
     j1 = np.minimum(j + 1, len(t_off) - 1)
     pair = np.where(np.abs(t_off[j1] - t_on) < np.abs(t_on - t_off[j]), j1, j)
 
-    def background(i: int, image: np.ndarray) -> np.ndarray:
+    def background(i: int, image: np.ndarray, raw: bool = False) -> np.ndarray:
         # subtracted pixel by pixel: another camera's topic, or mono beside RGB, is a
-        # configuration error, named before the detector sees it
+        # configuration error, named before the detector sees it; ``raw``: as recorded,
+        # for a laser frame searched unrectified
         off = off_frames[pair[i]]
-        bg = rec_off.decode(off)
+        bg = rec_off.decode_raw(off) if raw else rec_off.decode(off)
         if bg.shape != image.shape:
             raise StageError(f"{path}: stripes.laser_off_topic {topic}: its image at t="
                              f"{off.timestamp_ns} ns is {_shape(bg)}, the laser frame it "
@@ -279,12 +283,22 @@ def _detect(rec, frames: list, background: Callable, roi: Callable,
 
     def work(i: int):
         ta = time.perf_counter()
-        image = rec.decode(frames[i])
-        bg = background(i, image)
+        # a rational_polynomial camera's stripe is found in the raw image and its centres
+        # moved to the rectified camera exactly (robo3d.camera.Rectifier): resampling the
+        # frame first would lower a narrow stripe's peak and shift its centre
+        rect = rec.rectifiers.get(frames[i].frame_id)
+        image = rec.decode(frames[i]) if rect is None else rec.decode_raw(frames[i])
+        bg = background(i, image, raw=rect is not None)
+        region = roi(i)
+        if rect is not None and region is not None:
+            region = rect.raw_mask(region)
         tb = time.perf_counter()
         try:
-            sp = extract_stripe_centres(image, background=bg, roi=roi(i),
+            sp = extract_stripe_centres(image, background=bg, roi=region,
                                         options=by_axis.get(axes[i], options))
+            if rect is not None and len(sp):
+                uv = rect.raw_to_rectified(sp.pixels_uv)
+                sp = dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1])
         except ValueError as exc:  # the frame itself (or its laser-off frame): named
             raise StageError(f"{path}: topic {frames[i].topic}, frame {i} (t="
                              f"{frames[i].timestamp_ns} ns"
@@ -355,7 +369,8 @@ def _report(stripes: Stripes, sc: Mapping[str, Any], options: StripeOptions, col
 
 
 def _log_rerun(path: str, rec_name: str, frames: list, cameras: list, poses: np.ndarray,
-               found: list, report: dict, max_images: int, sweep_of: np.ndarray) -> None:
+               found: list, report: dict, max_images: int, sweep_of: np.ndarray,
+               decode) -> None:
     """The laser camera (``base/stripes/camera``) on a few evenly spaced frames that hold a
     stripe, each with its image (brightened for the screen: laser frames are dim) and its
     stripe pixels over it (the faint search's in :data:`robo3d.viz.FAINT_STRIPE_RGB`),
@@ -379,7 +394,7 @@ def _log_rerun(path: str, rec_name: str, frames: list, cameras: list, poses: np.
     with_stripe = np.array([i for i, sp in enumerate(found) if len(sp.pixels_uv)], dtype=int)
     pool = with_stripe if len(with_stripe) else np.arange(len(frames))
     chosen = pool[spaced_indices(len(pool), max_images)]
-    images = {int(i): frames[i].decode() for i in chosen}
+    images = {int(i): decode(frames[i]) for i in chosen}  # rectified where the camera is
     gain = display_gain(list(images.values()))
     with rerun_log(path, rec_name) as rr_stream:
         for i, sp in enumerate(found):

@@ -12,9 +12,9 @@ Choices:
 * The lens model is ROS's ``plumb_bob`` (``k1 k2 p1 p2 k3``). A ``rational_polynomial``
   calibration (``k1 k2 p1 p2 k3 k4 k5 k6``, radial ``(1 + k1 r^2 + k2 r^4 + k3 r^6) /
   (1 + k4 r^2 + k5 r^4 + k6 r^6)``) whose ``k4..k6`` are zero is plumb_bob; with any of
-  them non-zero its images are resampled to a pinhole camera as they are decoded
-  (:class:`Rectifier`, what ROS's ``image_proc`` does), and every stage sees that
-  pinhole camera.
+  them non-zero, and an ``equidistant`` (fisheye) one, its images are rectified to a
+  pinhole camera as they are decoded (:class:`Rectifier`, what ROS's ``image_proc``
+  does), and every stage sees that pinhole camera.
 * Undistortion is OpenCV's fixed-point iteration (``undistortPoints``), vectorised;
   OpenCV is the independent oracle of the tests.
 * Beyond the radius where the radial term stops being monotonic
@@ -232,15 +232,19 @@ _UNDISTORT_CRITERIA = (3, 100, 1e-12)  # cv2.TERM_CRITERIA_COUNT | EPS, steps, e
 
 
 class Rectifier:
-    """Raw images of a ``rational_polynomial`` camera resampled to a pinhole camera.
+    """Raw images of a lens model beyond plumb_bob resampled to a pinhole camera.
 
-    The 8-coefficient model's images are remapped once per image as they are decoded
-    (OpenCV's ``initUndistortRectifyMap`` and ``remap``, bilinear, the border replicated:
-    ROS's ``image_proc`` does the same), and the pipeline sees :attr:`camera`, a pinhole
-    camera without distortion of the same size whose ``K`` is OpenCV's
-    ``getOptimalNewCameraMatrix`` with ``alpha = 0``: every pixel of the rectified image
-    has a source pixel in the raw one (no invented border, which the carve would read as
-    background), at the cost of the raw image's outer rim (:attr:`kept_fraction`).
+    ROS's ``rational_polynomial`` (8 coefficients ``k1 k2 p1 p2 k3 k4 k5 k6``) and
+    ``equidistant`` (the fisheye model, 4 coefficients ``k1 k2 k3 k4``, OpenCV's
+    ``cv2.fisheye``). The images are remapped once per image as they are decoded (OpenCV's
+    ``initUndistortRectifyMap`` and ``remap``, bilinear, the border replicated: ROS's
+    ``image_proc`` does the same), and the pipeline sees :attr:`camera`, a pinhole camera
+    without distortion of the same size whose ``K`` is OpenCV's
+    ``getOptimalNewCameraMatrix`` with ``alpha = 0`` (fisheye:
+    ``estimateNewCameraMatrixForUndistortRectify`` with ``balance = 0``): every pixel of
+    the rectified image has a source pixel in the raw one (no invented border, which the
+    carve would read as background), at the cost of the raw image's outer rim
+    (:attr:`kept_fraction`).
 
     Parameters
     ----------
@@ -249,28 +253,46 @@ class Rectifier:
         The raw (and rectified) image size.
     K : (3, 3) float64
         The raw camera matrix.
-    D : (8,) float64
-        ``k1 k2 p1 p2 k3 k4 k5 k6``.
+    D : (8,) or (4,) float64
+        The model's coefficients.
+    model : {"rational_polynomial", "equidistant"}
     """
 
+    MODELS = {"rational_polynomial": (8, "k1 k2 p1 p2 k3 k4 k5 k6"),
+              "equidistant": (4, "k1 k2 k3 k4")}
+
     def __init__(self, frame_id: str, width: int, height: int, K: np.ndarray,
-                 D: np.ndarray) -> None:
+                 D: np.ndarray, model: str = "rational_polynomial") -> None:
         import cv2
 
+        if model not in self.MODELS:
+            raise CalibrationError(f"camera {frame_id!r}: no rectification for lens model "
+                                   f"{model!r} ({', '.join(self.MODELS)})")
+        n, names = self.MODELS[model]
         k = np.asarray(K, dtype=np.float64).reshape(3, 3)
         d = np.asarray(D, dtype=np.float64).reshape(-1)
-        if d.size != 8:
-            raise CalibrationError(f"camera {frame_id!r}: rational_polynomial needs 8 "
-                                   f"coefficients (k1 k2 p1 p2 k3 k4 k5 k6), got {d.size}")
+        if d.size != n:
+            raise CalibrationError(f"camera {frame_id!r}: {model} needs {n} "
+                                   f"coefficients ({names}), got {d.size}")
         if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
             raise CalibrationError(f"camera {frame_id!r}: K or D is not finite")
         self.frame_id, self.width, self.height = frame_id, int(width), int(height)
-        self.K_raw, self.D_raw = k, d
+        self.K_raw, self.D_raw, self.model = k, d, model
+        self.fisheye = model == "equidistant"
         size = (self.width, self.height)
-        k_new, _ = cv2.getOptimalNewCameraMatrix(k, d, size, 0.0, size)
+        try:
+            if self.fisheye:
+                k_new = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
+                    k, d, size, np.eye(3), balance=0.0, new_size=size)
+            else:
+                k_new, _ = cv2.getOptimalNewCameraMatrix(k, d, size, 0.0, size)
+        except cv2.error as exc:
+            raise CalibrationError(f"camera {frame_id!r}: the {model} lens model "
+                                   f"(D={d.tolist()}) has no rectified camera: {exc}") from None
+        k_new = np.asarray(k_new, dtype=np.float64)
         if not (np.all(np.isfinite(k_new)) and k_new[0, 0] > 0 and k_new[1, 1] > 0):
-            raise CalibrationError(f"camera {frame_id!r}: the rational_polynomial lens "
-                                   f"model (D={d.tolist()}) has no valid rectified "
+            raise CalibrationError(f"camera {frame_id!r}: the {model} lens model "
+                                   f"(D={d.tolist()}) has no valid rectified "
                                    f"camera (K' = {k_new.tolist()})")
         k_new[0, 1] = 0.0
         self.camera = CameraModel(frame_id, self.width, self.height, k_new, np.zeros(5))
@@ -285,9 +307,13 @@ class Rectifier:
 
         with self._lock:
             if self._maps is None:
-                self._maps = cv2.initUndistortRectifyMap(
-                    self.K_raw, self.D_raw, None, self.camera.K, (self.width, self.height),
-                    cv2.CV_16SC2)
+                size = (self.width, self.height)
+                if self.fisheye:
+                    self._maps = cv2.fisheye.initUndistortRectifyMap(
+                        self.K_raw, self.D_raw, np.eye(3), self.camera.K, size, cv2.CV_16SC2)
+                else:
+                    self._maps = cv2.initUndistortRectifyMap(
+                        self.K_raw, self.D_raw, None, self.camera.K, size, cv2.CV_16SC2)
             return self._maps
 
     @property
@@ -308,6 +334,10 @@ class Rectifier:
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         if not len(uv):
             return uv.copy()
+        if self.fisheye:
+            return cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), self.K_raw, self.D_raw,
+                                               R=np.eye(3), P=self.camera.K,
+                                               criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
         return cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K_raw, self.D_raw,
                                    P=self.camera.K, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
 
@@ -346,9 +376,11 @@ class Rectifier:
         return cv2.remap(image, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def describe(self) -> str:
-        k4, k5, k6 = self.D_raw[5:]
-        return (f"frame {self.frame_id!r}: rational_polynomial (k4..k6 = {k4:g}, {k5:g}, "
-                f"{k6:g}) rectified to a pinhole camera, fx {self.camera.fx:.1f}, "
+        what = (f"rational_polynomial (k4..k6 = {', '.join(f'{x:g}' for x in self.D_raw[5:])})"
+                if not self.fisheye else
+                f"equidistant (fisheye, k1..k4 = {', '.join(f'{x:g}' for x in self.D_raw)})")
+        return (f"frame {self.frame_id!r}: {what} rectified to a pinhole camera, "
+                f"fx {self.camera.fx:.1f}, "
                 f"fy {self.camera.fy:.1f}, cx {self.camera.cx:.1f}, cy {self.camera.cy:.1f} "
                 f"(raw fx {self.K_raw[0, 0]:.1f}), which shows {100 * self.kept_fraction:.1f} "
                 "% of the raw image's area: views are resampled to it, stripe centres are "

@@ -336,10 +336,10 @@ def _calibrations(rec: Recording) -> list[dict[str, Any]]:
     out = []
     images = rec.views + rec.laser_frames
     for fid, cam in sorted(rec.calibrations.items()):
-        rect = rec.rectifiers.get(fid)  # a rational_polynomial camera: its rectified one
+        rect = rec.rectifiers.get(fid)  # a rational_polynomial or fisheye camera: rectified
         dist = "plumb_bob" if np.any(cam.D) else "none"
         if rect is not None:
-            dist = (f"none: rectified from rational_polynomial D = "
+            dist = (f"none: rectified from {rect.model} D = "
                     f"{np.round(rect.D_raw, 6).tolist()} (raw fx {rect.K_raw[0, 0]:.1f}), "
                     f"{100 * rect.kept_fraction:.1f} % of the raw image kept")
         out.append({"frame_id": fid, "width": cam.width, "height": cam.height,

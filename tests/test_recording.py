@@ -571,11 +571,12 @@ def test_image_outside_pose_stream_names_topic_and_time(reference: dict[str, Pat
 
 @pytest.mark.parametrize(("model", "D", "ok"), [
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.0, 0.0, 0.0], True),
-    # with k4..k6: rectified to a pinhole camera (tests/test_rational_polynomial.py)
+    # with k4..k6: rectified to a pinhole camera (tests/test_rectified_lenses.py)
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0, 0.0], "rectified"),
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0], False),
     ("kannala_brandt", [0.1, 0.01, 0.0, 0.0], False),
-    ("equidistant", [0.0, 0.0, 0.0, 0.0], False),
+    ("equidistant", [0.0, 0.0, 0.0, 0.0], "rectified"),  # ROS's fisheye model
+    ("equidistant", [0.1, 0.0, 0.0, 0.0, 0.0], False),
     ("plumb_bob", [0.1, np.nan, 0.0, 0.0, 0.0], False),
     ("plumb_bob", [0.1, 0.0, 0.0], False),
     ("", [], True),

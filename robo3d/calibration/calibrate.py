@@ -210,9 +210,10 @@ def calibrate_recording(recording, cfg: Mapping[str, Any], name: str | None = No
                              "calibration recordings are calibrated from", path=recording.path)
     target = target_from_recording(recording)
     # the lens model is estimated from the images as recorded: a published
-    # rational_polynomial camera's images are not rectified here (robo3d.camera.Rectifier)
+    # rational_polynomial or fisheye camera's images are not rectified here
+    # (robo3d.camera.Rectifier)
     raw_note = ([f"the images of {', '.join(sorted(recording.rectifiers))} are read as "
-                 "recorded (not rectified from the published rational_polynomial model): "
+                 "recorded (not rectified from the published lens model): "
                  "the calibrated plumb_bob model describes the raw images"]
                 if recording.rectifiers else [])
     recording = replace(recording, rectifiers={})

@@ -54,8 +54,9 @@ Calibrations
 Keyed by ``frame_id``; when a frame is calibrated more than once with different values,
 the last calibration is kept and a warning says so. ``distortion_model``: ``plumb_bob``
 (4 or 5 coefficients), ``rational_polynomial`` (8 coefficients; with k4..k6 zero it is
-plumb_bob, else the frame's images are resampled to a pinhole camera as they are
-decoded, :class:`~robo3d.camera.Rectifier`), or empty with an empty or all-zero ``D``
+plumb_bob, else the frame's images are rectified to a pinhole camera as they are
+decoded, :class:`~robo3d.camera.Rectifier`), ``equidistant`` (ROS's fisheye model, 4
+coefficients, always rectified), or empty with an empty or all-zero ``D``
 (no distortion; an empty model with 5 coefficients is read as plumb_bob with a warning,
 as some ROS drivers leave the name empty). ``R`` and ``P`` are ignored: images are the
 raw (distorted, unrectified) images that ``K`` and ``D`` describe. A ROS ``CameraInfo``
@@ -398,13 +399,18 @@ class MessageDecoder:
             if d.size not in (5, 8):
                 raise fail(f"rational_polynomial needs 8 coefficients (k1 k2 p1 p2 k3 k4 "
                            f"k5 k6), got {d.size}")
+        elif model == "equidistant":  # ROS's fisheye model: always rectified
+            if d.size != 4:
+                raise fail(f"equidistant (fisheye) needs 4 coefficients (k1 k2 k3 k4), got "
+                           f"{d.size}")
         else:
             raise fail(f"distortion_model {model!r} is unsupported (plumb_bob, "
-                       f"rational_polynomial, or empty for none)")
+                       f"rational_polynomial, equidistant, or empty for none)")
         rect = None
         try:
-            if d.size == 8 and np.any(d[5:] != 0):  # resampled to a pinhole camera
-                rect = Rectifier(fid, width, height, k.reshape(3, 3), d)
+            if model == "equidistant" or (d.size == 8 and np.any(d[5:] != 0)):
+                # resampled to a pinhole camera (views) or mapped to it (stripe centres)
+                rect = Rectifier(fid, width, height, k.reshape(3, 3), d, model)
                 cam = rect.camera
             else:
                 cam = CameraModel(fid, width, height, k.reshape(3, 3), d[:5])

@@ -290,14 +290,19 @@ class Rectifier:
             raise CalibrationError(f"camera {frame_id!r}: the {model} lens model "
                                    f"(D={d.tolist()}) has no rectified camera: {exc}") from None
         k_new = np.asarray(k_new, dtype=np.float64)
-        if not (np.all(np.isfinite(k_new)) and k_new[0, 0] > 0 and k_new[1, 1] > 0):
+        # a lens that sees beyond what a pinhole camera can show (a fisheye of 180 degrees
+        # and more) gets a focal length near 0 from OpenCV: refused, not shrunk to a dot
+        if not (np.all(np.isfinite(k_new)) and k_new[0, 0] > 0.2 * k[0, 0]
+                and k_new[1, 1] > 0.2 * k[1, 1]):
             raise CalibrationError(f"camera {frame_id!r}: the {model} lens model "
-                                   f"(D={d.tolist()}) has no valid rectified "
-                                   f"camera (K' = {k_new.tolist()})")
+                                   f"(D={d.tolist()}) has no usable pinhole camera to "
+                                   f"rectify to (K' = {np.round(k_new, 3).tolist()}: its "
+                                   "field of view is too wide for one)")
         k_new[0, 1] = 0.0
         self.camera = CameraModel(frame_id, self.width, self.height, k_new, np.zeros(5))
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
         self._raw_index: np.ndarray | None = None
+        self._kept: float | None = None
         self._lock = threading.Lock()
 
     @property
@@ -318,13 +323,16 @@ class Rectifier:
 
     @property
     def kept_fraction(self) -> float:
-        """The share of the raw image's area that the rectified image shows."""
-        u, v = np.meshgrid(np.arange(0.0, self.width, 4.0), np.arange(0.0, self.height, 4.0))
-        uv = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
-        q = self.raw_to_rectified(uv)
-        inside = ((q[:, 0] >= -0.5) & (q[:, 0] < self.width - 0.5)
-                  & (q[:, 1] >= -0.5) & (q[:, 1] < self.height - 0.5))
-        return float(inside.mean())
+        """The share of the raw image's area that the rectified image shows (every 4th
+        pixel's, computed once)."""
+        if self._kept is None:
+            u, v = np.meshgrid(np.arange(0.0, self.width, 4.0),
+                               np.arange(0.0, self.height, 4.0))
+            q = self.raw_to_rectified(np.stack([u.ravel(), v.ravel()], 1))
+            inside = ((q[:, 0] >= -0.5) & (q[:, 0] < self.width - 0.5)
+                      & (q[:, 1] >= -0.5) & (q[:, 1] < self.height - 0.5))
+            self._kept = float(inside.mean())
+        return self._kept
 
     def raw_to_rectified(self, uv: np.ndarray) -> np.ndarray:
         """Raw pixels ``(N, 2)`` where the rectified camera sees the same rays (exact, the

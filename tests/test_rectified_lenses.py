@@ -85,6 +85,15 @@ def test_rectifier_needs_the_models_finite_coefficients() -> None:
         Rectifier("camera", 640, 480, K, np.r_[D8[:7], np.nan])
     with pytest.raises(CalibrationError, match="no rectification for lens model"):
         Rectifier("camera", 640, 480, K, D_FISHEYE, "kannala_brandt")
+    # a fisheye seeing 240 degrees across: no pinhole camera shows it
+    wide = np.array([[150.0, 0.0, 319.5], [0.0, 150.0, 239.5], [0.0, 0.0, 1.0]])
+    with pytest.raises(CalibrationError, match="field of view is too wide"):
+        Rectifier("camera", 640, 480, wide, np.zeros(4), "equidistant")
+    # a wide one that a pinhole camera still shows, with much of its frame cut (the reader
+    # warns below 60 %)
+    k250 = np.array([[250.0, 0.0, 319.5], [0.0, 250.0, 239.5], [0.0, 0.0, 1.0]])
+    assert 0.6 < Rectifier("camera", 640, 480, k250, np.zeros(4),
+                           "equidistant").kept_fraction < 0.8  # measured 0.727
 
 
 # ------------------------------------------------------------------------------ a ROS bag

@@ -170,7 +170,8 @@ def read_recording(path: str | os.PathLike[str], *, topics: TopicMap = DEFAULT_T
     for w in rec.warnings:
         _log.warning("%s: %s", spath, w)
     for r in rec.rectifiers.values():
-        _log.info("%s: %s", spath, r.describe())
+        # a wide lens loses much of its frame to a pinhole camera without invented border
+        (_log.warning if r.kept_fraction < 0.6 else _log.info)("%s: %s", spath, r.describe())
     return rec
 
 

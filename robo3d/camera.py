@@ -253,13 +253,16 @@ class Rectifier:
         The raw (and rectified) image size.
     K : (3, 3) float64
         The raw camera matrix.
-    D : (8,) or (4,) float64
-        The model's coefficients.
+    D : (8,), (12,), (14,) or (4,) float64
+        The model's coefficients (:attr:`MODELS`).
     model : {"rational_polynomial", "equidistant"}
     """
 
-    MODELS = {"rational_polynomial": (8, "k1 k2 p1 p2 k3 k4 k5 k6"),
-              "equidistant": (4, "k1 k2 k3 k4")}
+    #: each model's coefficient counts and names: rational_polynomial as ROS has it (8),
+    #: or with OpenCV's thin-prism (12) and tilt (14) terms, which some drivers publish
+    MODELS = {"rational_polynomial": ((8, 12, 14), "k1 k2 p1 p2 k3 k4 k5 k6 [s1 s2 s3 s4 "
+                                                   "[tau_x tau_y]]"),
+              "equidistant": ((4,), "k1 k2 k3 k4")}
 
     def __init__(self, frame_id: str, width: int, height: int, K: np.ndarray,
                  D: np.ndarray, model: str = "rational_polynomial") -> None:
@@ -271,9 +274,10 @@ class Rectifier:
         n, names = self.MODELS[model]
         k = np.asarray(K, dtype=np.float64).reshape(3, 3)
         d = np.asarray(D, dtype=np.float64).reshape(-1)
-        if d.size != n:
-            raise CalibrationError(f"camera {frame_id!r}: {model} needs {n} "
-                                   f"coefficients ({names}), got {d.size}")
+        if d.size not in n:
+            raise CalibrationError(f"camera {frame_id!r}: {model} needs "
+                                   f"{' or '.join(str(x) for x in n)} coefficients ({names}), "
+                                   f"got {d.size}")
         if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
             raise CalibrationError(f"camera {frame_id!r}: K or D is not finite")
         self.frame_id, self.width, self.height = frame_id, int(width), int(height)
@@ -384,7 +388,7 @@ class Rectifier:
         return cv2.remap(image, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def describe(self) -> str:
-        what = (f"rational_polynomial (k4..k6 = {', '.join(f'{x:g}' for x in self.D_raw[5:])})"
+        what = (f"rational_polynomial (k4.. = {', '.join(f'{x:g}' for x in self.D_raw[5:])})"
                 if not self.fisheye else
                 f"equidistant (fisheye, k1..k4 = {', '.join(f'{x:g}' for x in self.D_raw)})")
         return (f"frame {self.frame_id!r}: {what} rectified to a pinhole camera, "

@@ -574,6 +574,10 @@ def test_image_outside_pose_stream_names_topic_and_time(reference: dict[str, Pat
     # with k4..k6: rectified to a pinhole camera (tests/test_rectified_lenses.py)
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0, 0.0], "rectified"),
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0], False),
+    # OpenCV's 14 (thin prism, tilt): rectified; with only zeros past k3, plumb_bob
+    ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3] + [0.0] * 7 + [0.001],
+     "rectified"),
+    ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002] + [0.0] * 9, True),
     ("kannala_brandt", [0.1, 0.01, 0.0, 0.0], False),
     ("equidistant", [0.0, 0.0, 0.0, 0.0], "rectified"),  # ROS's fisheye model
     ("equidistant", [0.1, 0.0, 0.0, 0.0, 0.0], False),

@@ -24,7 +24,11 @@ from robo3d.errors import CalibrationError
 K = np.array([[600.0, 0.0, 322.5], [0.0, 605.0, 241.0], [0.0, 0.0, 1.0]])
 D8 = np.array([-0.25, 0.08, 0.001, -0.0008, 0.01, 0.3, 0.05, 0.002])
 D_FISHEYE = np.array([-0.1, 0.02, -0.004, 0.001])
-LENSES = {"rational_polynomial": D8, "equidistant": D_FISHEYE}
+#: OpenCV's full model: the rational terms, thin prism s1..s4 and a tilted sensor
+D14 = np.r_[D8, 0.002, -0.001, 0.001, 0.0005, 0.003, -0.002]
+LENSES = {"rational_polynomial": ("rational_polynomial", D8),
+          "rational_polynomial, 14 coefficients": ("rational_polynomial", D14),
+          "equidistant": ("equidistant", D_FISHEYE)}
 
 
 def _points(n: int, seed: int = 0) -> np.ndarray:
@@ -32,22 +36,23 @@ def _points(n: int, seed: int = 0) -> np.ndarray:
     return np.c_[rng.uniform(-0.28, 0.28, (n, 2)), np.full(n, 0.5)]
 
 
-def _raw_pixels(p: np.ndarray, model: str) -> np.ndarray:
+def _raw_pixels(p: np.ndarray, model: str, d: np.ndarray) -> np.ndarray:
     """OpenCV's projection of camera-frame points through the lens."""
     if model == "equidistant":
         return cv2.fisheye.projectPoints(p.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
-                                         D_FISHEYE)[0].reshape(-1, 2)
-    return cv2.projectPoints(p, np.zeros(3), np.zeros(3), K, D8)[0].reshape(-1, 2)
+                                         d)[0].reshape(-1, 2)
+    return cv2.projectPoints(p, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
 
 
-@pytest.mark.parametrize("model", sorted(LENSES))
-def test_rectifier_moves_raw_pixels_exactly_and_resamples_images(model: str) -> None:
-    rect = Rectifier("camera", 640, 480, K, LENSES[model], model)
+@pytest.mark.parametrize("lens", sorted(LENSES))
+def test_rectifier_moves_raw_pixels_exactly_and_resamples_images(lens: str) -> None:
+    model, d = LENSES[lens]
+    rect = Rectifier("camera", 640, 480, K, d, model)
     cam = rect.camera
     assert not cam.has_distortion and (cam.width, cam.height) == (640, 480)
     assert 0.5 < rect.kept_fraction < 1.0  # alpha 0: the raw image's rim is cut, no border
     p = _points(400)
-    raw = _raw_pixels(p, model)
+    raw = _raw_pixels(p, model, d)
     inside = (raw[:, 0] > 0) & (raw[:, 0] < 639) & (raw[:, 1] > 0) & (raw[:, 1] < 479)
     want, _ = cam.project(p)
     np.testing.assert_allclose(rect.raw_to_rectified(raw[inside]), want[inside], atol=1e-5)
@@ -77,7 +82,7 @@ def test_rectifier_moves_raw_pixels_exactly_and_resamples_images(model: str) -> 
 
 
 def test_rectifier_needs_the_models_finite_coefficients() -> None:
-    with pytest.raises(CalibrationError, match="needs 8 coefficients"):
+    with pytest.raises(CalibrationError, match="needs 8 or 12 or 14 coefficients"):
         Rectifier("camera", 640, 480, K, D8[:7])
     with pytest.raises(CalibrationError, match="needs 4 coefficients"):
         Rectifier("camera", 640, 480, K, D8[:5], "equidistant")

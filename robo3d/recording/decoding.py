@@ -395,10 +395,11 @@ class MessageDecoder:
                 d = np.zeros(5)
             elif d.size not in (4, 5):
                 raise fail(f"plumb_bob needs 5 coefficients (k1 k2 p1 p2 k3), got {d.size}")
-        elif model == "rational_polynomial":
-            if d.size not in (5, 8):
+        elif model == "rational_polynomial":  # 8, or OpenCV's 12 / 14 (thin prism, tilt)
+            if d.size not in (5, 8, 12, 14):
                 raise fail(f"rational_polynomial needs 8 coefficients (k1 k2 p1 p2 k3 k4 "
-                           f"k5 k6), got {d.size}")
+                           f"k5 k6; 12 or 14 with OpenCV's thin-prism and tilt terms), got "
+                           f"{d.size}")
         elif model == "equidistant":  # ROS's fisheye model: always rectified
             if d.size != 4:
                 raise fail(f"equidistant (fisheye) needs 4 coefficients (k1 k2 k3 k4), got "
@@ -408,7 +409,7 @@ class MessageDecoder:
                        f"rational_polynomial, equidistant, or empty for none)")
         rect = None
         try:
-            if model == "equidistant" or (d.size == 8 and np.any(d[5:] != 0)):
+            if model == "equidistant" or (d.size > 5 and np.any(d[5:] != 0)):
                 # resampled to a pinhole camera (views) or mapped to it (stripe centres)
                 rect = Rectifier(fid, width, height, k.reshape(3, 3), d, model)
                 cam = rect.camera

@@ -249,3 +249,30 @@ def test_a_fisheye_camera_is_rectified_and_measures_as_its_lens_is(
     # the stripe shows here)
     assert np.median(fish) < 0.05 and np.percentile(fish, 95) < 0.2, (np.median(fish),)
     assert np.percentile(ctrl, 95) > 2.5 * np.percentile(fish, 95), (np.percentile(ctrl, 95),)
+
+
+def test_centres_the_lens_cannot_invert_are_dropped_with_their_attributes(caplog) -> None:
+    """A stripe centre whose ray the lens model gives no inverse for (NaN from OpenCV,
+    beyond a fisheye's reach) is dropped with everything measured about it, and said."""
+    from types import SimpleNamespace
+
+    from robo3d.stages.stripes import _rectified
+    from robo3d.stripes import StripePoints
+
+    sp = StripePoints(u=np.array([10.0, 320.0, 600.0]), v=np.array([10.0, 240.0, 470.0]),
+                      axis="rows", confidence=np.array([0.9, 0.8, 0.7]),
+                      peak=np.array([30.0, 40.0, 50.0]))
+    nan_middle = SimpleNamespace(model="equidistant", frame_id="camera",
+                                 raw_to_rectified=lambda uv: np.where(
+                                     np.arange(len(uv))[:, None] == 1, np.nan, uv + 0.5))
+    out = _rectified(sp, nan_middle)
+    np.testing.assert_array_equal(out.u, [10.5, 600.5])
+    np.testing.assert_array_equal(out.confidence, [0.9, 0.7])
+    np.testing.assert_array_equal(out.peak, [30.0, 50.0])
+    np.testing.assert_array_equal(out.line, [10, 470])
+    assert "1 of 3 centres" in caplog.text
+    # a fisheye's own inversion: every centre of the image is finite and kept
+    rect = Rectifier("camera", 640, 480, np.array([[300.0, 0.0, 319.5], [0.0, 300.0, 239.5],
+                                                   [0.0, 0.0, 1.0]]), np.zeros(4),
+                     "equidistant")
+    assert len(_rectified(sp, rect)) == 3

@@ -173,6 +173,22 @@ def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
     return background, len(off_frames)
 
 
+def _rectified(sp, rect):
+    """The stripe centres found in a raw frame, moved to the rectified pinhole camera
+    (:meth:`robo3d.camera.Rectifier.raw_to_rectified`); a centre whose ray the lens model
+    cannot invert (beyond a fisheye's reach) is dropped, with a warning."""
+    uv = rect.raw_to_rectified(sp.pixels_uv)
+    ok = np.all(np.isfinite(uv), axis=1)
+    if ok.all():
+        return dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1])
+    log.warning("stripes: %d of %d centres of a frame lie where the %s lens model of %r has "
+                "no inverse; dropped", int((~ok).sum()), len(ok), rect.model, rect.frame_id)
+    return dataclasses.replace(
+        sp, u=uv[ok, 0], v=uv[ok, 1], confidence=sp.confidence[ok], peak=sp.peak[ok],
+        width_px=sp.width_px[ok], line=sp.line[ok], skew_px=sp.skew_px[ok],
+        faint=sp.faint[ok])
+
+
 def _shape(image: np.ndarray) -> str:
     h, w = image.shape[:2]
     return f"{w} x {h} " + ("mono" if image.ndim == 2 or image.shape[2] == 1 else
@@ -297,8 +313,7 @@ def _detect(rec, frames: list, background: Callable, roi: Callable,
             sp = extract_stripe_centres(image, background=bg, roi=region,
                                         options=by_axis.get(axes[i], options))
             if rect is not None and len(sp):
-                uv = rect.raw_to_rectified(sp.pixels_uv)
-                sp = dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1])
+                sp = _rectified(sp, rect)
         except ValueError as exc:  # the frame itself (or its laser-off frame): named
             raise StageError(f"{path}: topic {frames[i].topic}, frame {i} (t="
                              f"{frames[i].timestamp_ns} ns"

@@ -607,6 +607,28 @@ def test_distortion_models(tmp_path: Path, model: str, D: list[float], ok: bool)
             "coefficients" in str(ei.value)
 
 
+def test_a_calibration_published_with_every_image_makes_one_rectifier(
+        tmp_path: Path, monkeypatch) -> None:
+    """ROS drivers publish CameraInfo with every image; a rational_polynomial camera is
+    rectified once, not once per message (each Rectifier costs tens of milliseconds)."""
+    import robo3d.recording.decoding as dec
+
+    made = []
+    real = dec.Rectifier
+
+    def counting(*a, **k):
+        made.append(a[0])
+        return real(*a, **k)
+
+    monkeypatch.setattr(dec, "Rectifier", counting)
+    D = [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3, 0.0, 0.0]  # noqa: N806
+    msgs = [("/camera/calibration", _calib_msg(T0 + i, model="rational_polynomial", D=D))
+            for i in range(50)] + [("/camera/image", _img_msg(T0))]
+    rec = read_recording(craft(tmp_path / "many.mcap", msgs, calib=False), roles=("views",))
+    assert made == ["camera"] and rec.warnings == []
+    assert rec.calibrations["camera"] is rec.rectifiers["camera"].camera
+
+
 def test_non_finite_or_uncalibrated_K(tmp_path: Path) -> None:  # noqa: N802
     k = list(CAMERA.K.reshape(-1))
     k[2] = np.inf

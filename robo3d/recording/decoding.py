@@ -291,6 +291,7 @@ class MessageDecoder:
         self.tf_links: dict[tuple[str, str, str], TfSamples] = {}
         self.calibs: dict[str, tuple[CameraModel, str, int]] = {}
         self.rectifiers: dict[str, Rectifier] = {}
+        self._rectifier_cache: dict[tuple, Rectifier] = {}
         self.images: dict[str, list[ImageMessage]] = {}
         self.no_stamp: dict[str, int] = {}
         self.joints: list[tuple[int, list[str], list[float]]] = []
@@ -410,8 +411,14 @@ class MessageDecoder:
         rect = None
         try:
             if model == "equidistant" or (d.size > 5 and np.any(d[5:] != 0)):
-                # resampled to a pinhole camera (views) or mapped to it (stripe centres)
-                rect = Rectifier(fid, width, height, k.reshape(3, 3), d, model)
+                # resampled to a pinhole camera (views) or mapped to it (stripe centres);
+                # one per distinct calibration: ROS drivers publish CameraInfo with every
+                # image, and each Rectifier costs tens of milliseconds to make
+                key = (fid, width, height, model, k.tobytes(), d.tobytes())
+                rect = self._rectifier_cache.get(key)
+                if rect is None:
+                    rect = self._rectifier_cache[key] = Rectifier(
+                        fid, width, height, k.reshape(3, 3), d, model)
                 cam = rect.camera
             else:
                 cam = CameraModel(fid, width, height, k.reshape(3, 3), d[:5])

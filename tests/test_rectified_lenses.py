@@ -270,6 +270,7 @@ def test_centres_the_lens_cannot_invert_are_dropped_with_their_attributes(caplog
     np.testing.assert_array_equal(out.confidence, [0.9, 0.7])
     np.testing.assert_array_equal(out.peak, [30.0, 50.0])
     np.testing.assert_array_equal(out.line, [10, 470])
+    assert out.rejected["outside_roi"] == 1
     assert "1 of 3 centres" in caplog.text
     # a fisheye's own inversion: every centre of the image is finite and kept
     rect = Rectifier("camera", 640, 480, np.array([[300.0, 0.0, 319.5], [0.0, 300.0, 239.5],

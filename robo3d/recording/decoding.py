@@ -53,16 +53,17 @@ Calibrations
 ------------
 Keyed by ``frame_id``; when a frame is calibrated more than once with different values,
 the last calibration is kept and a warning says so. ``distortion_model``: ``plumb_bob``
-(4 or 5 coefficients), ``rational_polynomial`` (8 coefficients; with k4..k6 zero it is
-plumb_bob, else the frame's images are rectified to a pinhole camera as they are
-decoded, :class:`~robo3d.camera.Rectifier`), ``equidistant`` (ROS's fisheye model, 4
-coefficients, always rectified), or empty with an empty or all-zero ``D``
-(no distortion; an empty model with 5 coefficients is read as plumb_bob with a warning,
-as some ROS drivers leave the name empty). ``R`` and ``P`` are ignored: images are the
-raw (distorted, unrectified) images that ``K`` and ``D`` describe. A ROS ``CameraInfo``
-with binning or a region of interest (REP 104: ``K`` of the full sensor, the image its
-binned ROI) is read as the camera of the recorded image (:func:`_binned_k`); a frame
-whose ROI changes between images is not (the last calibration is kept, with the warning above).
+(4 or 5 coefficients), ``rational_polynomial`` (8 coefficients, or OpenCV's 12 or 14;
+with only zeros past k3 it is plumb_bob, else the frame's images are rectified to a
+pinhole camera as they are decoded, :class:`~robo3d.camera.Rectifier`), ``equidistant``
+(ROS's fisheye model, 4 coefficients, always rectified), or empty with an empty or
+all-zero ``D`` (no distortion; an empty model with 5 coefficients is read as plumb_bob
+with a warning, as some ROS drivers leave the name empty). ``R`` and ``P`` are ignored:
+images are the raw (distorted, unrectified) images that ``K`` and ``D`` describe. A ROS
+``CameraInfo`` with binning or a region of interest (REP 104: ``K`` of the full sensor,
+the image its binned ROI) is read as the camera of the recorded image
+(:func:`_binned_k`); a frame whose ROI changes between images is not (the last
+calibration is kept, with the warning above).
 """
 
 from __future__ import annotations

@@ -202,7 +202,7 @@ class Recording:
         :meth:`camera_for`; raises :class:`~robo3d.errors.CalibrationError` (no
         calibration) or :class:`~robo3d.errors.ImageDecodeError` (bad bytes, wrong size).
         """
-        img = decode_checked(msg, self.camera_for(msg))
+        img = self.decode_raw(msg)
         rect = self.rectifiers.get(msg.frame_id)
         return img if rect is None else rect(img)
 

@@ -176,17 +176,17 @@ def _laser_off_frames(path: str, cfg: Mapping[str, Any], frames: list
 def _rectified(sp, rect):
     """The stripe centres found in a raw frame, moved to the rectified pinhole camera
     (:meth:`robo3d.camera.Rectifier.raw_to_rectified`); a centre whose ray the lens model
-    cannot invert (beyond a fisheye's reach) is dropped, with a warning."""
+    cannot invert (beyond a fisheye's reach) is dropped, with a warning, and counted as
+    outside the region the frame is searched in (``robo3d.stripes._subset``)."""
+    from ..stripes import _subset
+
     uv = rect.raw_to_rectified(sp.pixels_uv)
     ok = np.all(np.isfinite(uv), axis=1)
-    if ok.all():
-        return dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1])
-    log.warning("stripes: %d of %d centres of a frame lie where the %s lens model of %r has "
-                "no inverse; dropped", int((~ok).sum()), len(ok), rect.model, rect.frame_id)
-    return dataclasses.replace(
-        sp, u=uv[ok, 0], v=uv[ok, 1], confidence=sp.confidence[ok], peak=sp.peak[ok],
-        width_px=sp.width_px[ok], line=sp.line[ok], skew_px=sp.skew_px[ok],
-        faint=sp.faint[ok])
+    if not ok.all():
+        log.warning("stripes: %d of %d centres of a frame lie where the %s lens model of %r "
+                    "has no inverse; dropped", int((~ok).sum()), len(ok), rect.model,
+                    rect.frame_id)
+    return _subset(dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1]), ok, "outside_roi")
 
 
 def _shape(image: np.ndarray) -> str:

@@ -578,8 +578,10 @@ def test_image_outside_pose_stream_names_topic_and_time(reference: dict[str, Pat
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.3] + [0.0] * 7 + [0.001],
      "rectified"),
     ("rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002] + [0.0] * 9, True),
-    ("kannala_brandt", [0.1, 0.01, 0.0, 0.0], False),
     ("equidistant", [0.0, 0.0, 0.0, 0.0], "rectified"),  # ROS's fisheye model
+    ("kannala_brandt", [0.1, 0.01, 0.0, 0.0], "rectified"),  # Foxglove's name for it
+    ("kannala_brandt", [0.1, 0.01, 0.0, 0.0, 0.0], False),
+    ("fisheye62", [0.1, 0.01, 0.0, 0.0, 0.0, 0.0], False),  # Project Aria's: no OpenCV model
     ("equidistant", [0.1, 0.0, 0.0, 0.0, 0.0], False),
     ("plumb_bob", [0.1, np.nan, 0.0, 0.0, 0.0], False),
     ("plumb_bob", [0.1, 0.0, 0.0], False),
@@ -605,6 +607,23 @@ def test_distortion_models(tmp_path: Path, model: str, D: list[float], ok: bool)
         assert ei.value.topic == "/camera/calibration"
         assert "unsupported" in str(ei.value) or "finite" in str(ei.value) or \
             "coefficients" in str(ei.value)
+
+
+def test_kannala_brandt_is_read_as_the_equidistant_fisheye(tmp_path: Path) -> None:
+    """Foxglove's CameraCalibration names OpenCV's fisheye model ``kannala_brandt``, ROS
+    names it ``equidistant``: the same lens, the same pinhole camera and pixels."""
+    recs = {}
+    for model in ("kannala_brandt", "equidistant"):
+        msgs = [("/camera/calibration", _calib_msg(T0, model=model, D=[0.1, 0.01, 0.0, 0.0])),
+                ("/camera/image", _img_msg(T0))]
+        recs[model] = read_recording(craft(tmp_path / f"{model}.mcap", msgs, calib=False),
+                                     roles=("views",))
+    kb, eq = recs["kannala_brandt"], recs["equidistant"]
+    assert kb.rectifiers["camera"].fisheye and kb.rectifiers["camera"].model == "equidistant"
+    np.testing.assert_array_equal(kb.calibrations["camera"].K, eq.calibrations["camera"].K)
+    np.testing.assert_array_equal(kb.decode(kb.views[0]), eq.decode(eq.views[0]))
+    # the fisheye moved the pixels: the rectified image is not the raw one
+    assert not np.array_equal(kb.decode(kb.views[0]), kb.decode_raw(kb.views[0]))
 
 
 def test_a_calibration_published_with_every_image_makes_one_rectifier(

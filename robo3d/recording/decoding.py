@@ -56,7 +56,8 @@ the last calibration is kept and a warning says so. ``distortion_model``: ``plum
 (4 or 5 coefficients), ``rational_polynomial`` (8 coefficients, or OpenCV's 12 or 14;
 with only zeros past k3 it is plumb_bob, else the frame's images are rectified to a
 pinhole camera as they are decoded, :class:`~robo3d.camera.Rectifier`), ``equidistant``
-(ROS's fisheye model, 4 coefficients, always rectified), or empty with an empty or
+(ROS's fisheye model, 4 coefficients, always rectified; ``kannala_brandt``, Foxglove's
+name for the same OpenCV model, is read as it), or empty with an empty or
 all-zero ``D`` (no distortion; an empty model with 5 coefficients is read as plumb_bob
 with a warning, as some ROS drivers leave the name empty). ``R`` and ``P`` are ignored:
 images are the raw (distorted, unrectified) images that ``K`` and ``D`` describe. A ROS
@@ -375,6 +376,8 @@ class MessageDecoder:
         except (TypeError, ValueError) as exc:
             raise fail(f"K and D must be numbers ({exc})") from None
         model = model.strip()
+        if model == "kannala_brandt":  # Foxglove's name for OpenCV's fisheye model
+            model = "equidistant"
         if not fid:
             raise fail("frame_id is empty")
         fid = self.frame(fid)
@@ -408,7 +411,8 @@ class MessageDecoder:
                            f"{d.size}")
         else:
             raise fail(f"distortion_model {model!r} is unsupported (plumb_bob, "
-                       f"rational_polynomial, equidistant, or empty for none)")
+                       f"rational_polynomial, equidistant or kannala_brandt, or empty for "
+                       f"none)")
         rect = None
         try:
             if model == "equidistant" or (d.size > 5 and np.any(d[5:] != 0)):

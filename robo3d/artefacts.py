@@ -190,7 +190,7 @@ class Silhouettes:
 _STRIPES_ARRAYS = ("u", "v", "confidence", "peak", "width_px", "line", "offsets", "axis",
                    "angle_deg", "colour", "s", "n_lines", "rejected", "rejection_reasons",
                    "stamps_ns", "T_base_camera", "T_camera_laser", "skew_px", "faint",
-                   "T_base_camera_end")
+                   "T_base_camera_end", "v_sensor")
 _STRIPES_REQUIRED = ("u", "v", "confidence", "offsets", "stamps_ns", "T_base_camera")
 
 
@@ -243,6 +243,10 @@ class Stripes:
         With a rolling shutter (``timing.rolling_shutter_s``): the camera's pose when each
         frame's last row was exposed (``T_base_camera`` is the first row's); None for a
         global shutter.
+    v_sensor : (N,) float64 or None, pixels
+        Each centre's row on the sensor, where a rectified camera's centre was found (the
+        raw frame; :attr:`robo3d.stripes.StripePoints.v_sensor`): a rolling shutter's
+        time of the point. None when every camera is read as recorded (``v`` is it).
 
     The fields that may be None are absent from files written by older versions; the file
     holds one array per field under its name, the cameras as in :class:`Silhouettes`.
@@ -270,6 +274,7 @@ class Stripes:
     skew_px: np.ndarray | None = None
     faint: np.ndarray | None = None
     T_base_camera_end: np.ndarray | None = None
+    v_sensor: np.ndarray | None = None
 
     @classmethod
     def from_frames(cls, found: Sequence[StripePoints], stamps_ns: Sequence[int],
@@ -302,7 +307,10 @@ class Stripes:
                    n_lines=np.array([sp.n_lines for sp in found], dtype=np.int64),
                    rejected=rejected, rejection_reasons=np.array(REJECTION_REASONS),
                    workspace=workspace, skew_px=cat("skew_px", np.float32),
-                   faint=cat("faint", np.bool_), T_base_camera_end=T_base_camera_end)
+                   faint=cat("faint", np.bool_), T_base_camera_end=T_base_camera_end,
+                   v_sensor=(np.concatenate([sp.v if sp.v_sensor is None else sp.v_sensor
+                                             for sp in found]).astype(np.float64)
+                             if any(sp.v_sensor is not None for sp in found) else None))
 
     @property
     def counts(self) -> np.ndarray:

@@ -432,6 +432,11 @@ class StripePoints:
         search left without one (a faint stripe in a noisy frame: module docstring,
         step 9); the rejection counts are the first search's (and ``textured``). All
         false when not given.
+    v_sensor : (N,) float64 or None, pixels
+        The row on the sensor where each centre was found, where it is not ``v``: a
+        rectified camera's centres are found in the raw frame and moved to the pinhole
+        camera (``robo3d.camera.Rectifier``), and a rolling shutter exposes the raw rows
+        one after the other. None: ``v`` is the sensor's row.
     """
 
     u: np.ndarray
@@ -448,6 +453,7 @@ class StripePoints:
     colour: str = ""
     skew_px: np.ndarray | None = None
     faint: np.ndarray | None = None
+    v_sensor: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=np.float64).reshape(-1)
@@ -478,6 +484,8 @@ class StripePoints:
                       else np.asarray(self.faint, dtype=np.bool_).reshape(-1))
         if self.faint.size != n:
             raise ValueError(f"faint must have {n} entries like u, got {self.faint.size}")
+        if self.v_sensor is not None:
+            self.v_sensor = _vec(self.v_sensor, np.nan, "v_sensor")
         if self.line is None:
             along = self.u if self.axis == "columns" else self.v
             self.line = np.rint(along).astype(np.int64) if n else np.zeros(0, np.int64)
@@ -2658,7 +2666,8 @@ def _subset(sp: StripePoints, keep: np.ndarray, reason: str) -> StripePoints:
                         peak=sp.peak[keep], width_px=sp.width_px[keep],
                         skew_px=sp.skew_px[keep], line=sp.line[keep],
                         axis=sp.axis, s=sp.s, n_lines=sp.n_lines, rejected=rejected,
-                        colour=sp.colour, angle_deg=sp.angle_deg, faint=sp.faint[keep])
+                        colour=sp.colour, angle_deg=sp.angle_deg, faint=sp.faint[keep],
+                        v_sensor=None if sp.v_sensor is None else sp.v_sensor[keep])
 
 
 def _faint_kernels(taps: int, along_u: bool) -> list[np.ndarray]:

@@ -1179,7 +1179,8 @@ def triangulate_sweep(
         A rolling shutter: the camera pose when each frame's last row was exposed
         (``T_base_camera`` being the first row's). Each point then takes the pose of its
         row, interpolated (translation linearly, rotation along the geodesic) at
-        ``v / (H - 1)``: the camera and the laser move together, so the point is right
+        ``v / (H - 1)``, ``v`` the sensor's row (``StripePoints.v_sensor`` where set):
+        the camera and the laser move together, so the point is right
         in the camera and only its place in ``base`` moves (:func:`rows_poses`).
 
     Returns
@@ -1213,8 +1214,10 @@ def triangulate_sweep(
         if tb_end.shape != tb.shape or not np.all(np.isfinite(tb_end)):
             raise ValueError(f"T_base_camera_end must be finite {tb.shape}, got "
                              f"{tb_end.shape}")
-        R, origin = rows_poses(tb, tb_end, frame_pos,
-                               uv[:, 1] / max(camera.height - 1, 1))
+        # the sensor's row (a rectified camera's centres were found in the raw frame)
+        rows = (np.concatenate([s.v if s.v_sensor is None else s.v_sensor for s in stripes])
+                if len(uv) else uv[:, 1])
+        R, origin = rows_poses(tb, tb_end, frame_pos, rows / max(camera.height - 1, 1))
     pts_base = np.einsum("nij,nj->ni", R, np.nan_to_num(pts_cam)) + origin
     outside = np.zeros_like(keep)
     in_box = keep

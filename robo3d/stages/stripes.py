@@ -182,11 +182,14 @@ def _rectified(sp, rect):
 
     uv = rect.raw_to_rectified(sp.pixels_uv)
     ok = np.all(np.isfinite(uv), axis=1)
+    # the raw row stays: a rolling shutter exposes the sensor's rows, not the rectified
+    sensor_v = sp.v if sp.v_sensor is None else sp.v_sensor
     if not ok.all():
         log.warning("stripes: %d of %d centres of a frame lie where the %s lens model of %r "
                     "has no inverse; dropped", int((~ok).sum()), len(ok), rect.model,
                     rect.frame_id)
-    return _subset(dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1]), ok, "outside_roi")
+    return _subset(dataclasses.replace(sp, u=uv[:, 0], v=uv[:, 1], v_sensor=sensor_v), ok,
+                   "outside_roi")
 
 
 def _shape(image: np.ndarray) -> str:

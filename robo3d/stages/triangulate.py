@@ -26,7 +26,7 @@ def _stripes_of_frame(s: Mapping[str, np.ndarray], i: int):
         opt["axis"] = str(s["axis"][i])
     if "line" in s:
         opt["line"] = s["line"][a:b]
-    for key in ("peak", "width_px", "skew_px", "faint"):
+    for key in ("peak", "width_px", "skew_px", "faint", "v_sensor"):
         if key in s:
             opt[key] = s[key][a:b]
     if "rejected" in s:

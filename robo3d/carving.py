@@ -75,6 +75,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -91,6 +92,8 @@ __all__ = [
     "VoxelGrid",  # re-exported: its home is robo3d.grid
     "make_grid",  # likewise
     "box_from_silhouettes",
+    "laser_box",
+    "support_height",
     "carve_dense",
     "carve_visual_hull",
     "CarveOptions",
@@ -156,6 +159,195 @@ def table_height(points: np.ndarray, normals: np.ndarray, footprint_min: np.ndar
     if int(near.sum()) < min_points:
         return None
     return float(np.median(z[near]))
+
+
+def support_height(points: np.ndarray, normals: np.ndarray, *, max_tilt_deg: float = 20.0,
+                   bin_m: float = 0.0005, min_points: int = 200, min_share: float = 0.3
+                   ) -> float | None:
+    """The height (``z`` in ``base``) of the table an object stands on, from laser points
+    alone (no footprint known): among the points on surfaces facing up or down (normal
+    within ``max_tilt_deg`` of ``z``), the ``bin_m`` slabs of their heights that hold at
+    least ``min_share`` of the most populated slab's points (and ``min_points``), the
+    lowest, refined to the median of the points within two bins of it. The lowest, not
+    the most populated: a bracket's plate or a box's lid can hold more of the laser's
+    points than the table beside it, never lie below it. None without such a slab."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    flat = np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)
+    z = p[flat & np.all(np.isfinite(p), axis=1), 2]
+    if len(z) < min_points:
+        return None
+    k = np.floor((z - z.min()) / bin_m).astype(np.int64)
+    counts = np.bincount(k)
+    # a slab and its neighbours: a table tilted by a fraction of a degree spreads over two
+    near = np.convolve(counts, np.ones(5, np.int64), mode="same")
+    ok = np.flatnonzero(near >= max(min_points, min_share * near.max()))
+    if not len(ok):
+        return None
+    first = int(ok[0])  # the lowest such slab: its most populated bin
+    top = first + int(np.argmax(counts[first:first + 5]))
+    sel = np.abs(k - top) <= 2
+    return float(np.median(z[sel])) if int(sel.sum()) >= min_points else None
+
+
+def _table_plane(p: np.ndarray, n: np.ndarray, tol_m: float = 0.001
+                 ) -> tuple[np.ndarray, float] | None:
+    """The plane ``z = a x + b y + c`` of the table in one sweep's points (its
+    :func:`support_height`, refined by least squares over the up-facing points within
+    ``tol_m`` of it, twice), and the robust spread of those points about it (1.4826 x
+    their median absolute residual); None without a table."""
+    z0 = support_height(p, n)
+    if z0 is None:
+        return None
+    flat = np.abs(n[:, 2]) >= np.cos(np.radians(20.0)) * np.linalg.norm(n, axis=1)
+    coef = np.array([0.0, 0.0, z0])
+    for _ in range(2):
+        res = p[:, 2] - (p[:, 0] * coef[0] + p[:, 1] * coef[1] + coef[2])
+        sel = flat & (np.abs(res) <= tol_m)
+        if int(sel.sum()) < 3:
+            break
+        A = np.c_[p[sel, :2], np.ones(int(sel.sum()))]
+        coef = np.linalg.lstsq(A, p[sel, 2], rcond=None)[0]
+    res = p[:, 2] - (p[:, 0] * coef[0] + p[:, 1] * coef[1] + coef[2])
+    sel = flat & (np.abs(res) <= tol_m)
+    spread = 1.4826 * float(np.median(np.abs(res[sel]))) if sel.any() else 0.0
+    return coef, spread
+
+
+def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
+              sweeps: np.ndarray | None = None, *, margin: float = 0.05,
+              min_margin_m: float = 0.002, floor_m: float = 0.0005,
+              above_table_m: float = 0.001, min_cell_m: float = 0.002,
+              max_cell_m: float = 0.008, min_points: int = 50, dense_share: float = 0.2,
+              link_share: float = 0.25) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
+    """A workspace box for laser points without one and without views: the object the
+    laser measured, standing on the table it measured beside it.
+
+    1. The table, in each sweep's own points (a sweep's robot error lifts or tilts its
+       table by as much as a millimetre against the others'): the plane through its
+       lowest wide horizontal surface (:func:`support_height`, refined by least
+       squares). Only points more than ``above_table_m`` (or 5 times the table points'
+       spread about their plane) above their sweep's table are the object's candidates.
+    2. The candidates are binned into cells of ``max(min_cell_m, 1.5 x`` the profiles'
+       spacing ``)`` (:func:`robo3d.fusion.profile_spacing` from ``frames``), so that
+       consecutive profiles of a surface touch. A cell is occupied where at least
+       ``dense_share`` of a typical point's cell count lies (a surface crosses it), not
+       where a few stray points do (the laser's reflections off a glossy object land on
+       the table as sparse points above it). The occupied cells are split into
+       26-connected components (``scipy.ndimage.label``); the object is the component
+       with the most points, with any other that has most of its points in its box (a
+       part the laser's gaps cut off): the laser's line on a wall is another component.
+    3. The object's points' box, grown by ``margin`` times its largest side (at least
+       ``min_margin_m``), its floor ``floor_m`` above the table (the sweeps' median
+       height under the box), as a recording's box has it.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) float64
+        The laser points (and their normals) in ``base``, metres.
+    frames : (N,) int
+        Each point's laser frame (its profile), for the profiles' spacing.
+    sweeps : (N,) int, optional
+        Each point's sweep (one sweep when not given).
+
+    Returns
+    -------
+    (lo, hi, info) or None
+        The box and what it was made from (``table_z_m``, ``cell_m``, ``components``,
+        ``object_points``, ``candidates``); None when fewer than ``min_points`` points
+        are left for the object.
+    """
+    from scipy import ndimage
+
+    from .fusion import profile_spacing
+
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(frames).reshape(-1)
+    s = np.zeros(len(p), np.int64) if sweeps is None else np.asarray(sweeps).reshape(-1)
+    if not (len(p) == len(n) == len(f) == len(s)):
+        raise ValueError(f"points, normals, frames and sweeps must have the same length, "
+                         f"got {len(p)}, {len(n)}, {len(f)}, {len(s)}")
+    finite = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1)
+    p, n, f, s = p[finite], n[finite], f[finite], s[finite]
+    cand = np.ones(len(p), bool)
+    on_table = np.zeros(len(p), bool)
+    planes = {}
+    for k in np.unique(s):  # a few sweeps
+        m = s == k
+        got = _table_plane(p[m], n[m])
+        if got is None:
+            continue
+        coef, spread = got
+        planes[int(k)] = coef
+        h = p[m, 2] - (p[m, 0] * coef[0] + p[m, 1] * coef[1] + coef[2])
+        cand[m] = h > max(float(above_table_m), 5.0 * spread)
+        on_table[m] = np.abs(h) <= max(float(above_table_m), 5.0 * spread)
+    q, fq = p[cand], f[cand]
+    if len(q) < min_points:
+        return None
+    spacing = profile_spacing([q], [fq[:, None]])
+    cell = min(max(float(min_cell_m), 1.5 * spacing if spacing is not None else 0.0),
+               float(max_cell_m))
+    lo = q.min(axis=0)
+    idx = np.floor((q - lo) / cell).astype(np.int64)
+    shape = idx.max(axis=0) + 1
+    if int(np.prod(shape)) > 200_000_000:  # a scene metres wide at a fine cell: coarser
+        cell *= float((np.prod(shape) / 200_000_000) ** (1 / 3)) * 1.01
+        idx = np.floor((q - lo) / cell).astype(np.int64)
+        shape = idx.max(axis=0) + 1
+    shape_t = tuple(int(x) for x in shape)
+    flat_idx = np.ravel_multi_index(idx.T, shape_t)
+    cells, inv, per_cell = np.unique(flat_idx, return_inverse=True, return_counts=True)
+    dense = per_cell >= max(2.0, dense_share * float(np.median(per_cell[inv])))
+    occ = np.zeros(shape_t, dtype=bool)
+    occ.reshape(-1)[cells[dense]] = True
+    labels, n_comp = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
+    lab = labels.reshape(-1)[flat_idx]
+    counts = np.bincount(lab, minlength=n_comp + 1)
+    counts[0] = 0
+    if n_comp == 0:
+        return None
+    # the others with most of their points in the largest one's box, grown by a quarter
+    # of its largest side: the parts that the laser's gaps cut off (a cup's rim from its
+    # inside) join; the laser's line on a wall, long and mostly beyond, does not, nor do
+    # most of the stray points on the table (a dark marker's edge biases the stripe)
+    # the object's core: the largest component over the middle of the table the laser
+    # saw (the median of its points: the sweeps are planned around the object, and a
+    # turntable turns it about its middle; all the points without a table), else the
+    # largest
+    c_lo = np.full((n_comp + 1, 2), np.iinfo(np.int64).max, dtype=np.int64)
+    c_hi = np.full((n_comp + 1, 2), -1, dtype=np.int64)
+    for a in range(2):
+        np.minimum.at(c_lo[:, a], lab, idx[:, a])
+        np.maximum.at(c_hi[:, a], lab, idx[:, a])
+    around = p[on_table] if on_table.any() else p
+    mid = np.floor((np.median(around[:, :2], axis=0) - lo[:2]) / cell).astype(np.int64)
+    over = np.all((c_lo - 1 <= mid) & (c_hi + 1 >= mid), axis=1)
+    over[0] = False
+    main = int(np.argmax(np.where(over, counts, -1))) if over.any() else int(np.argmax(counts))
+    m_idx = idx[lab == main]
+    m_lo, m_hi = m_idx.min(axis=0), m_idx.max(axis=0)
+    link = max(2, int(np.ceil(link_share * float((m_hi - m_lo).max() + 1))))
+    inside = np.all((idx >= m_lo - link) & (idx <= m_hi + link), axis=1)
+    share = np.bincount(lab, weights=inside, minlength=n_comp + 1) / np.maximum(counts, 1)
+    member = share >= 0.5
+    member[0] = False
+    obj = q[member[lab]]
+    if len(obj) < min_points:
+        return None
+    b_lo, b_hi = obj.min(axis=0), obj.max(axis=0)
+    grow = max(float(margin) * float((b_hi - b_lo).max()), float(min_margin_m))
+    centre = 0.5 * (b_lo + b_hi)
+    table = (float(np.median([c[0] * centre[0] + c[1] * centre[1] + c[2]
+                              for c in planes.values()])) if planes else None)
+    b_lo, b_hi = b_lo - grow, b_hi + grow
+    if table is not None:
+        b_lo[2] = table + floor_m
+    info = {"table_z_m": table, "sweeps_with_table": len(planes), "cell_m": cell,
+            "components": int(n_comp), "object_components": int(member.sum()),
+            "object_points": int(len(obj)), "candidates": int(len(q)), "points": int(len(p))}
+    return b_lo, b_hi, info
 
 
 def box_from_silhouettes(

@@ -217,8 +217,8 @@ def inspect_recording(path: str | os.PathLike[str], *, topics: TopicMap = _DEFAU
 def _workspace(rec) -> dict[str, Any]:
     """The workspace box and where the pipeline gets it: the recording's metadata, or,
     without one, the views' hull standing on the table the laser saw
-    (``alignment.workspace_from_hull``), or nothing (laser frames alone: every laser
-    point is kept, the table and the wall with the object)."""
+    (``alignment.workspace_from_hull``), or without views the object the laser measured
+    (``alignment.workspace_from_laser``)."""
     if rec.workspace is not None:
         return {"box": [rec.workspace[0].tolist(), rec.workspace[1].tolist()],
                 "source": "the recording's metadata"}
@@ -227,8 +227,9 @@ def _workspace(rec) -> dict[str, Any]:
                 "visual hull's box, standing on the table the laser saw "
                 "(alignment.workspace_from_hull)"}
     if rec.laser_frames:
-        return {"box": None, "source": "none, and no views to take one from: every laser "
-                "point is kept (the table and the wall with the object)"}
+        return {"box": None, "source": "none, and no views to take one from: the alignment "
+                "takes the box of the object the laser measured, standing on the table it "
+                "measured beside it (alignment.workspace_from_laser)"}
     return {"box": None, "source": "none in the recording (the carve places its box from "
             "the silhouettes)"}
 

@@ -168,7 +168,11 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
     if region is None and ali is not None:
         # no box in the recording: the one the alignment took from the hull and the table
         region = clouds_workspace(ali)
-        region_source = "the visual hull's box (align.json workspace_from_hull)"
+        source = next(((c.report or {}).get("workspace_source") for c in ali
+                       if (c.report or {}).get("workspace_source")), "visual hull")
+        region_source = ("the box of the object the laser measured (align.json "
+                         "workspace_from_hull.laser)" if source == "laser" else
+                         "the visual hull's box (align.json workspace_from_hull)")
     scored = None
     if region is not None:
         scored = (np.asarray(region[0], dtype=np.float64).copy(),

@@ -95,6 +95,11 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
                    default=None, help="printed pattern on the table (cell scene; default "
                                       "aruco)")
     r.add_argument("--no-wall", action="store_true", help="cell scene without the wall")
+    r.add_argument("--turntable", action="store_true",
+                   help="a turntable rig: camera and laser fixed in the room (the sheet "
+                        "upright, at --sweep-elevation), the object and its plate turning "
+                        "under them, the wall and the light staying in the room; each sweep "
+                        "one revolution")
     r.add_argument("--object-mesh", metavar="FILE", default=None,
                    help="a mesh file (STL, PLY, OBJ) as the object, placed standing on the "
                         "table at the workspace centre")
@@ -222,6 +227,8 @@ def _run_simulate(args: argparse.Namespace) -> int:
         overrides["sweeps"] = 0
     if args.laser_off:
         overrides["laser_off"] = True
+    if args.turntable:
+        overrides["turntable"] = True
     if args.object_mesh:
         overrides["object_mesh"] = args.object_mesh
     if args.mesh_unit:

@@ -106,6 +106,7 @@ from .sim.rig import (
     default_hand_eye,
     default_laser_mount,
     drift_error,
+    look_at,
     random_drift,
     random_rigid_error,
     sweep_poses,
@@ -235,6 +236,19 @@ class SimulationParams:
         (:func:`load_object_mesh`).
     mesh_unit : str
         Unit of ``object_mesh``'s coordinates (:data:`MESH_UNITS`).
+    turntable : bool
+        A turntable rig instead of a robot: the camera and the laser stand still in the
+        room, looking at the object from ``sweep_elevation_deg`` (the laser beside the
+        upright camera, its sheet upright through the turntable's axis: the stripe runs
+        down the image), while the object and the
+        table (its plate, 0.04 m wider than the object on every side) turn about the
+        vertical axis through the object's centre. ``base`` turns with the object, so the
+        camera circles it in ``base``; the wall and the directional light stay in the
+        room and turn in ``base``. Each sweep is one revolution (``sweep_frames``
+        frames, or one every ``sweep_spacing`` at the object's rim), the sweeps' start
+        angles interleaved; the views are taken on the turntable too (their rings'
+        elevations, the camera moved between rings). The rig's error is drawn as the
+        robot's (``sweep_error_*`` per revolution).
     laser_off : bool
         After each laser frame, a laser-off frame on :data:`LASER_OFF_TOPIC`, 1 ms later
         and at the same pose (a strobed laser or a robot that holds still for the pair),
@@ -298,6 +312,7 @@ class SimulationParams:
     rolling_shutter_ms: float = 0.0
     object_mesh: str | None = None
     mesh_unit: str = "m"
+    turntable: bool = False
     laser_off: bool = False
 
     @classmethod
@@ -411,7 +426,7 @@ CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
                                    vignetting=0.25)
 _NEW_FIELDS = frozenset({"laser_off", "vignetting", "robot_error", "drift_mm", "drift_deg",
                          "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
-                         "object_mesh", "mesh_unit", "rolling_shutter_ms"})
+                         "object_mesh", "mesh_unit", "rolling_shutter_ms", "turntable"})
 #: rows of a rolling-shutter laser frame rendered at one pose (``rolling_shutter_ms``): a
 #: 960-row frame with a 30 ms readout at 20 mm/s moves 5 micrometres within a band
 ROLLING_BAND_ROWS = 8
@@ -713,7 +728,14 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
         mesh = load_object_mesh(p.object_mesh, p.mesh_unit)
     else:
         mesh = object_mesh(object_name, p.mesh_voxel, p.mesh_faces)
-    scene = SimScene(mesh, p.appearance, threads=threads)
+    lo, hi = mesh.bounds
+    target = 0.5 * (lo + hi)
+    if p.turntable:  # the plate turns with the object; the wall and the light stay
+        plate = float(np.max(np.abs(np.r_[lo[:2], hi[:2]]))) + 0.04
+        scene = SimScene(mesh, p.appearance, table_half_size=plate, threads=threads,
+                         turntable=True)
+    else:
+        scene = SimScene(mesh, p.appearance, threads=threads)
     off_scene = None
     if p.laser_off:  # the same scene and room light, the laser dark
         off_scene = copy.copy(scene)
@@ -721,10 +743,12 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     camera = default_camera(p.width, p.height)
     t_flange_camera = default_hand_eye()
     t_camera_laser = default_laser_mount(p.baseline, p.crossing)
+    if p.turntable:  # the laser beside the upright camera, its sheet upright
+        turn = np.eye(4)
+        turn[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+        t_camera_laser = turn @ t_camera_laser
     t_flange_laser = t_flange_camera @ t_camera_laser
     t_camera_flange = invert_transform(t_flange_camera)
-    lo, hi = mesh.bounds
-    target = 0.5 * (lo + hi)
     t0 = int(p.start_time_ns)
     ms = 1_000_000
     drift = p.robot_error == "drift"
@@ -736,6 +760,7 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     fast_noise = p.appearance.laser_ambient_fraction is not None
 
     # ---------------------------------------------------------------- views
+    # (a turntable's views are these too: the camera's rings about the object in base)
     view_cams = (view_poses(p.views, target, p.view_distance, p.view_elevations_deg,
                             np.random.default_rng([p.seed, 1]), p.view_jitter)
                  if p.views else np.zeros((0, 4, 4)))
@@ -768,32 +793,53 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     frames_per_sweep: list[int] = []
     error_span: list[dict[str, float]] = []
     for k, (az, el, roll) in enumerate(plan):
-        t_start_cam, direction, length = sweep_poses(az, el, target, p.crossing, t_camera_laser,
-                                                     lo, hi, p.sweep_spacing, p.sweep_margin,
-                                                     roll_deg=roll)
-        if p.sweep_frames is not None:
-            n = int(p.sweep_frames)
-        else:
-            n = int(round(length / p.sweep_spacing)) + 1
-        spacing = length / (n - 1) if p.sweep_frames is not None else p.sweep_spacing
-        frame_period = int(round(spacing / p.sweep_speed * 1e9))
         ts = t_next
+        if p.turntable:  # one revolution: the camera circles the object in base
+            rim = float(np.max(np.linalg.norm(np.array(
+                [[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]) - target[:2],
+                axis=1)))
+            n = (int(p.sweep_frames) if p.sweep_frames is not None
+                 else int(np.ceil(2 * np.pi * rim / p.sweep_spacing)))
+            frame_period = int(round(2 * np.pi * rim / n / p.sweep_speed * 1e9))
+            omega = 2 * np.pi / (n * frame_period * 1e-9)  # rad/s
+            start = 2 * np.pi * k / (n * max(len(plan), 1))  # the sweeps interleaved
+
+            def pose_at(t_ns: int, _s=start, _w=omega, _ts=ts) -> np.ndarray:
+                return _turntable_camera(target, p.crossing, p.sweep_elevation_deg,
+                                         _s + _w * (int(t_ns) - _ts) * 1e-9)
+
+            def velocity_at(cam: np.ndarray, _w=omega) -> np.ndarray:
+                r = cam[:3, 3] - target
+                return _w * np.array([-r[1], r[0], 0.0])
+        else:
+            t_start_cam, direction, length = sweep_poses(
+                az, el, target, p.crossing, t_camera_laser, lo, hi, p.sweep_spacing,
+                p.sweep_margin, roll_deg=roll)
+            if p.sweep_frames is not None:
+                n = int(p.sweep_frames)
+            else:
+                n = int(round(length / p.sweep_spacing)) + 1
+            spacing = length / (n - 1) if p.sweep_frames is not None else p.sweep_spacing
+            frame_period = int(round(spacing / p.sweep_speed * 1e9))
+
+            def pose_at(t_ns: int, _c=t_start_cam, _d=direction, _ts=ts) -> np.ndarray:
+                cam = _c.copy()  # nanoseconds as integers: exact differences
+                cam[:3, 3] += _d * p.sweep_speed * (int(t_ns) - _ts) * 1e-9
+                return cam
+
+            def velocity_at(cam: np.ndarray, _d=direction) -> np.ndarray:
+                return _d * p.sweep_speed
         frame_t = ts + np.arange(n, dtype=np.int64) * frame_period
         # /tf from 40 ms before the first frame to 40 ms after the last, on a grid a
         # third of a period off the frames' (so every image falls between two samples)
         tf_t = np.arange(ts - 40 * ms - tf_period // 3, frame_t[-1] + 40 * ms, tf_period,
                          dtype=np.int64)
         for j, tj in enumerate(frame_t):
-            cam = t_start_cam.copy()
             # a late camera clock: the image stamped tj was taken lag_ns later
-            cam[:3, 3] += direction * p.sweep_speed * (tj + lag_ns - ts) * 1e-9
+            cam = pose_at(int(tj) + lag_ns)
             laser_frames.append((int(tj), k, j, cam))
-            laser_velocity.append(direction * p.sweep_speed)
-        trues = []
-        for tj in tf_t:
-            cam = t_start_cam.copy()
-            cam[:3, 3] += direction * p.sweep_speed * (tj - ts) * 1e-9
-            trues.append(cam @ t_camera_flange)
+            laser_velocity.append(velocity_at(cam))
+        trues = [pose_at(int(tj)) @ t_camera_flange for tj in tf_t]
         if drift:
             frac = (tf_t - tf_t[0]) / max(int(tf_t[-1] - tf_t[0]), 1)
             d_k = random_drift(rng_drift, tuple(np.array(p.drift_mm) * 1e-3), p.drift_deg)
@@ -867,6 +913,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             if kind == 0:
                 w.write_transforms("/tf", stamp, [("base", "flange", tf_reported[i][1])])
             elif kind == 1:
+                if p.turntable:
+                    scene.set_room_pose(_room_pose(view_cams[i], target))
                 signal, sil = render_view(scene, camera, view_cams[i], return_silhouette=True)
                 if vig is not None:
                     signal = signal * vig[..., None]
@@ -880,6 +928,10 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                                      "image/png")
             else:
                 _, k, j, cam = laser_frames[i]
+                if p.turntable:
+                    scene.set_room_pose(_room_pose(cam, target))
+                    if off_scene is not None:
+                        off_scene.set_room_pose(_room_pose(cam, target))
                 img = _laser_image(scene, camera, cam, t_camera_laser, p, vig,
                                    np.random.default_rng([p.seed, 11, k, j]), fast_noise,
                                    laser_velocity[i])
@@ -896,6 +948,31 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                             sweep_errors=sweep_err, view_errors=view_err,
                             T_flange_camera=t_flange_camera, T_flange_laser=t_flange_laser,
                             size_bytes=path.stat().st_size, seconds=0.0)
+
+
+def _turntable_camera(target: np.ndarray, distance: float, elevation_deg: float,
+                      azimuth: float) -> np.ndarray:
+    """``T_base_camera`` of a turntable rig's camera when the turntable has turned by
+    ``-azimuth`` radians: at ``distance`` from ``target`` (where the laser's sheet
+    crosses the optical axis) at ``elevation_deg``, looking at it, upright (the laser
+    beside it, its sheet upright through the turntable's axis)."""
+    e = np.radians(elevation_deg)
+    eye = np.asarray(target, np.float64) + distance * np.array(
+        [np.cos(e) * np.cos(azimuth), np.cos(e) * np.sin(azimuth), np.sin(e)])
+    return look_at(eye, target)
+
+
+def _room_pose(T_base_camera: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``T_base_room`` of a turntable scene: the room (its wall and its light, the
+    camera at azimuth 0 in it) turned about the vertical axis through ``target`` by the
+    camera's azimuth in ``base``."""
+    r = T_base_camera[:3, 3] - target
+    a = float(np.arctan2(r[1], r[0]))
+    c, s = np.cos(a), np.sin(a)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    T[:2, 3] = target[:2] - T[:2, :2] @ target[:2]
+    return T
 
 
 def _laser_image(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: np.ndarray,

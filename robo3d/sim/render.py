@@ -52,7 +52,7 @@ pictures. SIGGRAPH '77.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -426,10 +426,19 @@ class SimScene:
         The table is the square ``|x|, |y| <= table_half_size`` at ``z = 0``.
     threads : int
         Ray-casting threads (0: all cores). Results do not depend on it.
+    turntable : bool
+        The object and the table turn on a turntable (``base`` turns with them) while
+        the wall and the directional light stay in the room: the wall is placed in the
+        room's frame, which :meth:`set_room_pose` moves in ``base`` frame by frame
+        (identity: the room is ``base``, as without a turntable).
     """
 
+    #: the wall's geometry id when it stands in the room (turntable), not in Open3D's scene
+    _ROOM_WALL_ID = 1 << 30
+
     def __init__(self, mesh: TriangleMesh, appearance: Appearance | None = None,
-                 table_half_size: float = 0.6, threads: int = 1) -> None:
+                 table_half_size: float = 0.6, threads: int = 1,
+                 turntable: bool = False) -> None:
         import open3d as o3d
 
         self.mesh = mesh
@@ -448,22 +457,60 @@ class SimScene:
         self._wall_id: int | None = None
         self._wall_normal = np.zeros(3)
         self._wall_tangent = np.zeros(3)
+        self._room: tuple[np.ndarray, np.ndarray] | None = None  # (R, t): room -> base
+        self._room_wall: dict[str, Any] | None = None
         if a.wall_distance is not None:  # a vertical quad facing the origin
             az = np.radians(a.wall_azimuth_deg)
             out = np.array([np.cos(az), np.sin(az), 0.0])
             tangent = np.array([-out[1], out[0], 0.0])
             c = a.wall_distance * out
-            wv = np.array([c - s * tangent, c + s * tangent,
-                           c + s * tangent + [0, 0, a.wall_height],
-                           c - s * tangent + [0, 0, a.wall_height]], dtype=np.float32)
-            self._wall_id = self._scene.add_triangles(o3d.core.Tensor(wv), o3d.core.Tensor(tf))
             self._wall_normal = -out
             self._wall_tangent = tangent
+            if turntable:  # in the room, down past the turntable's plate, cast by hand
+                self._wall_id = self._ROOM_WALL_ID
+                self._room_wall = {"centre": c, "normal": -out, "tangent": tangent,
+                                   "half_width": s, "z": (-0.5, a.wall_height)}
+            else:
+                wv = np.array([c - s * tangent, c + s * tangent,
+                               c + s * tangent + [0, 0, a.wall_height],
+                               c - s * tangent + [0, 0, a.wall_height]], dtype=np.float32)
+                self._wall_id = self._scene.add_triangles(o3d.core.Tensor(wv),
+                                                          o3d.core.Tensor(tf))
+        self.turntable = bool(turntable)
         lo, hi = mesh.bounds
         self._keep_out = (lo[:2] - a.marker_clearance, hi[:2] + a.marker_clearance)
         self._vertex_normals = mesh.vertex_normals()
         self._faces = mesh.faces
         self._ray_cache: dict[tuple, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ the room
+    def set_room_pose(self, T_base_room: np.ndarray | None) -> None:
+        """Where the room (the wall and the directional light of a turntable scene)
+        stands in ``base`` for the frames rendered next: ``T_base_room`` (4, 4), the
+        turntable's turn undone; None for the room at rest in ``base``."""
+        if T_base_room is None:
+            self._room = None
+        else:
+            T = np.asarray(T_base_room, dtype=np.float64)
+            self._room = (T[:3, :3].copy(), T[:3, 3].copy())
+        if self._room_wall is not None:
+            R = np.eye(3) if self._room is None else self._room[0]
+            self._wall_normal = R @ self._room_wall["normal"]
+            self._wall_tangent = R @ self._room_wall["tangent"]
+
+    def light_direction(self) -> np.ndarray:
+        """Unit direction toward the directional light in ``base`` (the room's light,
+        turned with the room on a turntable)."""
+        light = np.asarray(self.appearance.light_dir, dtype=np.float64)
+        if self.turntable and self._room is not None:
+            light = self._room[0] @ light
+        return light / np.linalg.norm(light)
+
+    def _to_room(self, points: np.ndarray) -> np.ndarray:
+        if self._room is None:
+            return points
+        R, t = self._room
+        return (points - t) @ R
 
     # ------------------------------------------------------------------ casting
     def _cast_raw(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
@@ -471,7 +518,23 @@ class SimScene:
         rays[:, :3] = origins
         rays[:, 3:] = dirs
         out = self._scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.threads)
-        return {k: v.numpy() for k, v in out.items()}
+        out = {k: v.numpy() for k, v in out.items()}
+        if self._room_wall is not None:  # the room's wall: a plane, bounded, by hand
+            w = self._room_wall
+            o = self._to_room(np.broadcast_to(np.asarray(origins, np.float64), dirs.shape))
+            d = np.asarray(dirs, np.float64) if self._room is None else \
+                np.asarray(dirs, np.float64) @ self._room[0]
+            dn = d @ w["normal"]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = ((w["centre"] - o) @ w["normal"]) / dn
+            x = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+            inside = (np.isfinite(t) & (t > 0) & (dn < 0)
+                      & (np.abs((x - w["centre"]) @ w["tangent"]) <= w["half_width"])
+                      & (x[:, 2] >= w["z"][0]) & (x[:, 2] <= w["z"][1]))
+            hit = inside & (t < out["t_hit"])
+            out["t_hit"] = np.where(hit, t, out["t_hit"]).astype(out["t_hit"].dtype)
+            out["geometry_ids"] = np.where(hit, self._ROOM_WALL_ID, out["geometry_ids"])
+        return out
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray, normals: bool = True) -> Hits:
         """First hits of rays.
@@ -560,8 +623,11 @@ class SimScene:
             out[table[ink]] = a.marker_albedo
         wall = hits.kind == WALL
         if self._wall_id is not None and np.any(wall):
-            pw = hits.points[wall]
-            st = np.stack([pw @ self._wall_tangent, pw[:, 2]], axis=1)
+            pw = self._to_room(hits.points[wall]) if self._room_wall is not None else \
+                hits.points[wall]
+            tangent = (self._room_wall["tangent"] if self._room_wall is not None
+                       else self._wall_tangent)
+            st = np.stack([pw @ tangent, pw[:, 2]], axis=1)
             plaster = a.wall_albedo * (1 + 0.08 * _table_pattern(0.3 * st))
             out[wall] = plaster[:, None] * np.asarray(a.wall_tint)
         return out
@@ -674,8 +740,7 @@ def _shade(scene: SimScene, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.nd
     ``origin`` under the views' light, and their hits."""
     a = scene.appearance
     hits = scene.cast(origin, dirs)
-    light = np.asarray(a.light_dir, dtype=np.float64)
-    light = light / np.linalg.norm(light)
+    light = scene.light_direction()
     hit = hits.kind != MISS
     shade = np.maximum(hits.normals @ light, 0.0)  # zero on a miss (zero normal)
     lit_idx = np.flatnonzero(shade > 0)

@@ -10,7 +10,13 @@ A. **Background sample.** Pixels known to be background: those outside the ROI (
    projected workspace box), taken in a frame around it a quarter of the ROI's size wide
    (the table and wall next to the object, not clutter far off), when they are at least
    2 % of the image; else (the box covers the whole view, or there is none) the image's
-   outer ring, 2 % of its size wide (``Silhouette.background_sample``).
+   outer ring, 2 % of its size wide (``Silhouette.background_sample``). With a box, the
+   ROI's own pixels outside the box's projected outline (:func:`region_from_box`, the
+   convex hull of its projected edges grown by the ROI's margin) join the sample and are
+   never object: seen from above, a box projects to a hexagon whose corners leave the
+   table right next to the object inside the ROI's rectangle, and a small turntable's
+   plate before a dark room may lie there only (measured: a red cup on a turntable, its
+   views' worst IoU 0.387 -> 0.948; DTU scan 24's masks unchanged).
 B. **Colour modes.** The sample's CIE L*a*b* colours (after the blur of step 3) are
    clustered by k-means (6 modes, k-means++ seeding, fixed seed); each mode keeps its
    mean and covariance plus a noise floor of (2 Lab units)² — a saturated white table has
@@ -186,6 +192,7 @@ from .options import Options
 from .transforms import invert_transform
 
 __all__ = ["Silhouette", "SegmentOptions", "segment_silhouette", "segment_view", "roi_from_box",
+           "region_from_box",
            "find_roi", "to_grey", "to_lab", "colour_difference", "refine_with_grabcut",
            "silhouette_qa", "QA_FLAGS"]
 
@@ -1243,6 +1250,7 @@ def segment_silhouette(
     roi: tuple[int, int, int, int] | None = None,
     background: np.ndarray | None = None,
     options: SegmentOptions = SegmentOptions(),
+    region: np.ndarray | None = None,
 ) -> Silhouette:
     """Segment the object's silhouette in one view (seed §3.2).
 
@@ -1258,6 +1266,11 @@ def segment_silhouette(
     options : SegmentOptions
         Polarity, threshold, blur, speck and hole rules, refinements (its ``roi_*``
         fields are :func:`segment_view`'s). Default: the project's defaults.
+    region : (H, W) bool, optional
+        Where the object can be within the ROI (:func:`region_from_box`: the workspace
+        box's projected outline): the ROI's pixels outside it are background, join the
+        background's sample (the table next to the object, which the rectangle's frame
+        may hardly reach) and are never object.
 
     Returns
     -------
@@ -1285,11 +1298,26 @@ def segment_silhouette(
         u0, v0, u1, v1 = _check_roi(roi, width, height)
     box = (u0, v0, u1, v1)
     sample, sample_kind = _sure_background((height, width), box)
+    outside = None
+    if region is not None:
+        region = np.asarray(region, dtype=bool)
+        if region.shape != (height, width):
+            raise ValueError(f"region must be {height} x {width} like the image, got "
+                             f"{region.shape}")
+        outside = ~region
+        outside[:v0, :] = outside[v1:, :] = False
+        outside[:, :u0] = outside[:, u1:] = False
+        if not outside.any():
+            outside = None
+        elif sample_kind == "outside roi":  # the box's own surroundings inside the ROI
+            sample = sample | outside
     f, mode, difference, model = _feature(image, grey, background, box, sample, sample_kind,
                                            o)
     s, level, local = _threshold(f, box, sample, mode, o)
     fg_roi, dropped = _foreground(f[v0:v1, u0:u1], s, local, mode, sample_kind, model, box,
                                   o.blur_sigma_px)
+    if outside is not None:
+        fg_roi &= ~outside[v0:v1, u0:u1]
     where = f"(threshold s={s:.2f}, polarity {mode}, roi {box})"
     n_fg = int(np.count_nonzero(fg_roi))
     if n_fg == 0:
@@ -1308,10 +1336,14 @@ def segment_silhouette(
         if dropped is not None:
             known_bg = np.zeros_like(mask)
             known_bg[v0:v1, u0:u1] = dropped
+        if outside is not None:
+            known_bg = outside.copy() if known_bg is None else known_bg | outside
         refined = refine_with_grabcut(image, mask, box, background=known_bg) if o.grabcut \
             else mask
         if o.edge_refine_px > 0:
             refined = refine_edges(image, refined, box, reach_px=int(o.edge_refine_px))
+        if outside is not None:
+            refined = refined & ~outside
         try:
             mask = _clean(refined, f, s_bg, hole_mode, o, where)[0]
         except StageError:  # the refinement lost the object: keep the thresholded mask
@@ -1483,6 +1515,40 @@ def roi_from_box(
     return u0, v0, u1, v1
 
 
+def region_from_box(
+    box_min: np.ndarray,
+    box_max: np.ndarray,
+    camera: CameraModel,
+    T_base_camera: np.ndarray,
+    margin_px: int = 10,
+) -> np.ndarray | None:
+    """Where a workspace box can appear in a view: the convex hull of its projected edges
+    (with distortion, 9 points an edge), grown by ``margin_px``; ``(H, W)`` bool. None
+    when part of the box lies behind the camera or beyond the radius where the lens
+    model is monotonic (its image is unbounded). :func:`roi_from_box` is its bounding
+    rectangle; a box seen from above projects to a hexagon whose corners leave much of
+    that rectangle to the table around the object."""
+    lo, hi = _check_box(box_min, box_max)
+    T = np.asarray(T_base_camera, dtype=np.float64)
+    pts = _edge_samples(lo, hi)
+    uv, in_front = project_points(pts, camera, T)
+    if not np.all(in_front):
+        return None
+    t_cb = invert_transform(T)
+    pc = pts @ t_cb[:3, :3].T + t_cb[:3, 3]
+    if np.any((pc[:, 0] ** 2 + pc[:, 1] ** 2) / pc[:, 2] ** 2 >= _distortion_limit_r2(camera)):
+        return None
+    if not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e6:
+        return None
+    hull = cv2.convexHull(np.round(uv).astype(np.int32).reshape(-1, 1, 2))
+    region = np.zeros((int(camera.height), int(camera.width)), np.uint8)
+    cv2.fillConvexPoly(region, hull, 1)
+    if margin_px > 0:
+        k = 2 * int(margin_px) + 1
+        region = cv2.dilate(region, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return region.astype(bool)
+
+
 # ---------------------------------------------------------------------- one view, a recording
 def segment_view(
     image: np.ndarray,
@@ -1519,15 +1585,18 @@ def segment_view(
     roi_source : str
         ``"workspace box"``, ``"automatic"`` or ``"image"``.
     """
-    roi, roi_source = None, "image"
+    roi, roi_source, region = None, "image", None
     if workspace is not None and options.roi_from_workspace:
         roi = roi_from_box(workspace[0], workspace[1], camera, T_base_camera,
                            margin_px=options.roi_margin_px)
+        region = region_from_box(workspace[0], workspace[1], camera, T_base_camera,
+                                 margin_px=options.roi_margin_px)
         roi_source = "workspace box"
     elif options.roi_auto:
         roi = find_roi(image, background=background, options=options)
         roi_source = "automatic"
-    sil = segment_silhouette(image, roi=roi, background=background, options=options)
+    sil = segment_silhouette(image, roi=roi, background=background, options=options,
+                             region=region)
     return sil, roi_source
 
 

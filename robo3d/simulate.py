@@ -247,8 +247,9 @@ class SimulationParams:
         room and turn in ``base``. Each sweep is one revolution (``sweep_frames``
         frames, or one every ``sweep_spacing`` at the object's rim), the sweeps' start
         angles interleaved; the views are taken on the turntable too (their rings'
-        elevations, the camera moved between rings). The rig's error is drawn as the
-        robot's (``sweep_error_*`` per revolution).
+        elevations, the camera moved between rings). The rig's error (``sweep_error_*``
+        per revolution, ``view_error_*`` per view) is a rigid error in ``base`` (the
+        turntable's angle read off, the object nudged on its plate), not in the flange.
     laser_off : bool
         After each laser frame, a laser-off frame on :data:`LASER_OFF_TOPIC`, 1 ms later
         and at the same pose (a strobed laser or a robot that holds still for the pair),
@@ -777,7 +778,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
         t_true = view_cams[i] @ t_camera_flange
         for off in (-27, -7, 13, 33):  # stop-and-go: a few samples around the image
             tf_true.append((int(view_stamps[i]) + off * ms, t_true))
-            tf_reported.append((int(view_stamps[i]) + off * ms, t_true @ view_err[i]))
+            tf_reported.append((int(view_stamps[i]) + off * ms,
+                                _reported(t_true, view_err[i], p.turntable)))
     t_next = int(view_stamps[-1]) + 1000 * ms if p.views else t0 + 1000 * ms
 
     # ---------------------------------------------------------------- sweeps
@@ -856,7 +858,7 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
             errs = np.broadcast_to(sweep_err[k], (len(tf_t), 4, 4))
         for tj, t_true, e in zip(tf_t, trues, errs, strict=True):
             tf_true.append((int(tj), t_true))
-            tf_reported.append((int(tj), t_true @ e))
+            tf_reported.append((int(tj), _reported(t_true, e, p.turntable)))
         frames_per_sweep.append(n)
         t_next = int(tf_t[-1]) + int(p.sweep_gap_s * 1e9)
 
@@ -948,6 +950,15 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                             sweep_errors=sweep_err, view_errors=view_err,
                             T_flange_camera=t_flange_camera, T_flange_laser=t_flange_laser,
                             size_bytes=path.stat().st_size, seconds=0.0)
+
+
+def _reported(t_true: np.ndarray, error: np.ndarray, turntable: bool) -> np.ndarray:
+    """The reported ``base -> flange`` of a true one with a rig error: a robot's error
+    lies in its flange (``T @ E``); a turntable's in ``base`` (``E @ T``: the turntable's
+    angle read off by a fraction of a degree, the object nudged on its plate between
+    revolutions), which moves a revolution's points rigidly, as a robot's error moves a
+    straight sweep's."""
+    return error @ t_true if turntable else t_true @ error
 
 
 def _turntable_camera(target: np.ndarray, distance: float, elevation_deg: float,

@@ -422,7 +422,9 @@ def _frame_pose_errors(rec, clouds, aligned, stamps: np.ndarray, stripes_path: P
         f = np.asarray(c.frame_index, dtype=np.int64)
         first = np.unique(f, return_index=True)[1]
         C = np.tile(np.eye(4), (len(T_rep), 1, 1))
-        C[f[first]] = [correction_at(o, R, t) for o in c.sensor_origin_base[first]]
+        about = model.get("about")  # a turning sweep, corrected as a rigid body
+        C[f[first]] = [correction_at(o if about is None else np.asarray(about, float), R, t)
+                       for o in c.sensor_origin_base[first]]
         # the aligned cloud may have fewer points (those outside a silhouette dropped)
         fa = np.asarray(a.frame_index, dtype=np.int64)
         d0, r0 = frame_displacement(c.points_base, f, T_rep, T_true)

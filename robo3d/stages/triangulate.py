@@ -15,6 +15,18 @@ from ..errors import StageError
 from .common import cameras_from, log, summary, sweep_color, sweeps_of, workspace_from
 
 
+def _turn_deg(T: np.ndarray) -> float:
+    """The largest angle (degrees) between a sweep's camera orientations and its middle
+    frame's."""
+    from ..transforms import rotation_angle_deg
+
+    R = np.asarray(T, dtype=np.float64)[:, :3, :3]
+    if not len(R):
+        return 0.0
+    rel = np.einsum("ji,njk->nik", R[len(R) // 2], R)  # R_mid^T R_f
+    return round(float(np.max(rotation_angle_deg(rel))), 4)
+
+
 def _stripes_of_frame(s: Mapping[str, np.ndarray], i: int):
     """The :class:`~robo3d.stripes.StripePoints` of frame ``i`` of a ``stripes.npz``
     (older files without axis, line or rejections are read too)."""
@@ -96,6 +108,10 @@ def stage_triangulate(inputs: Mapping[str, str], outputs: Mapping[str, str],
             cloud.report = {**(getattr(cloud, "report", None) or {}),
                             "workspace": [np.asarray(ws[0], float).tolist(),
                                           np.asarray(ws[1], float).tolist()]}
+        # how far the camera turned during the sweep (a turntable's revolution, a robot's
+        # arc): the alignment's motion model depends on it
+        cloud.report = {**(getattr(cloud, "report", None) or {}),
+                        "sensor_turn_deg": _turn_deg(s["T_base_camera"][idx])}
         clouds.append(cloud)
         per_sweep.append({"sweep": int(k), "frames": len(idx), "points": len(cloud.points_base),
                           **getattr(cloud, "report", {})})

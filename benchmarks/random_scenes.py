@@ -12,7 +12,8 @@ torus in millimetres, written here with Open3D), the demo or the cell scene, 320
 640 x 480, 2-12 views, 1-4 sweeps of 20-60 frames, every laser colour, nine object
 colours, four textures, four table patterns, with and without the wall, a drifting robot
 error, a camera clock 2-10 ms late, PNG / JPEG views, PNG / mono / JPEG laser frames,
-laser-only and photo-only recordings. Each is run through the Snakemake workflow with the
+laser-only and photo-only recordings; from scene 460 on, turntable rigs and recordings
+without a workspace box too. Each is run through the Snakemake workflow with the
 DEFAULT configuration, ``--cores 2``, in a fresh work folder.
 
 The one target is that every scene completes (``completed`` = ``n_scenes``); the figures
@@ -102,6 +103,12 @@ def scene(k: int) -> tuple[str, list[str]]:
         a[a.index("--views") + 1] = rnd.choice(["2", "3"])
     if rnd.random() < 0.2:
         a[a.index("--width") + 1], a[a.index("--height") + 1] = "640", "480"
+    if k >= 460:  # stop 52: turntable rigs and recordings without a box (the scenes
+        # before keep their draws)
+        if rnd.random() < 0.3:
+            a += ["--turntable", "--sweep-elevation", str(rnd.choice([15, 25, 40]))]
+        if rnd.random() < 0.25:
+            a += ["--no-box"]
     return obj, a
 
 

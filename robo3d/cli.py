@@ -95,6 +95,8 @@ def _add_simulate(p: argparse.ArgumentParser) -> None:
                    default=None, help="printed pattern on the table (cell scene; default "
                                       "aruco)")
     r.add_argument("--no-wall", action="store_true", help="cell scene without the wall")
+    r.add_argument("--no-box", action="store_true",
+                   help="no workspace box in the recording's metadata (a ROS bag has none)")
     r.add_argument("--turntable", action="store_true",
                    help="a turntable rig: camera and laser fixed in the room (the sheet "
                         "upright, at --sweep-elevation), the object and its plate turning "
@@ -229,6 +231,8 @@ def _run_simulate(args: argparse.Namespace) -> int:
         overrides["laser_off"] = True
     if args.turntable:
         overrides["turntable"] = True
+    if args.no_box:
+        overrides["workspace_box"] = False
     if args.object_mesh:
         overrides["object_mesh"] = args.object_mesh
     if args.mesh_unit:

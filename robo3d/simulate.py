@@ -250,6 +250,9 @@ class SimulationParams:
         elevations, the camera moved between rings). The rig's error (``sweep_error_*``
         per revolution, ``view_error_*`` per view) is a rigid error in ``base`` (the
         turntable's angle read off, the object nudged on its plate), not in the flange.
+    workspace_box : bool
+        Write the workspace box into the recording's metadata (False: none, as a ROS
+        bag has none; the truth attachments stay).
     laser_off : bool
         After each laser frame, a laser-off frame on :data:`LASER_OFF_TOPIC`, 1 ms later
         and at the same pose (a strobed laser or a robot that holds still for the pair),
@@ -314,6 +317,7 @@ class SimulationParams:
     object_mesh: str | None = None
     mesh_unit: str = "m"
     turntable: bool = False
+    workspace_box: bool = True
     laser_off: bool = False
 
     @classmethod
@@ -427,7 +431,8 @@ CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
                                    vignetting=0.25)
 _NEW_FIELDS = frozenset({"laser_off", "vignetting", "robot_error", "drift_mm", "drift_deg",
                          "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
-                         "object_mesh", "mesh_unit", "rolling_shutter_ms", "turntable"})
+                         "object_mesh", "mesh_unit", "rolling_shutter_ms", "turntable",
+                         "workspace_box"})
 #: rows of a rolling-shutter laser frame rendered at one pose (``rolling_shutter_ms``): a
 #: 960-row frame with a 30 ms readout at 20 mm/s moves 5 micrometres within a band
 ROLLING_BAND_ROWS = 8
@@ -872,11 +877,15 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
     ws_lo = lo - p.workspace_margin
     ws_hi = hi + p.workspace_margin
     ws_lo[2] = p.workspace_floor
-    info = {"kind": "scan", "object": object_name, "units": "m",
-            "workspace_min": " ".join(f"{x:.4f}" for x in ws_lo),
-            "workspace_max": " ".join(f"{x:.4f}" for x in ws_hi)}
+    info = {"kind": "scan", "object": object_name, "units": "m"}
+    if p.workspace_box:
+        info.update({"workspace_min": " ".join(f"{x:.4f}" for x in ws_lo),
+                     "workspace_max": " ".join(f"{x:.4f}" for x in ws_hi)})
     model = ("T_base_flange_reported = T_base_flange_true @ E "
              "(E constant per sweep / per view)")
+    if p.turntable:
+        model = ("T_base_flange_reported = E @ T_base_flange_true (E rigid in base, "
+                 "constant per revolution / per view: a turntable)")
     if drift:
         model = ("T_base_flange_reported = T_base_flange_true @ E(t), E(t) = E_k @ D_k(s) "
                  "@ P(x): E_k constant per sweep (sweep_errors), D_k a smooth drift within "

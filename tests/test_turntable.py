@@ -140,3 +140,20 @@ def test_a_turntables_revolutions_are_aligned_as_rigid_bodies(tmp_path: Path) ->
     # measured: the aligned points' median distance to the truth (those within 1 mm)
     # 0.088 mm as rigid bodies, 0.160 mm with the straight sweep's model
     assert med["rigid"] < 0.8 * med["sensor"], med
+
+
+def test_simulate_without_a_workspace_box(tmp_path: Path) -> None:
+    """``--no-box``: the recording's metadata has no box (a ROS bag has none); the rest is
+    the boxed recording's."""
+    from robo3d.recording import read_recording
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    recs = {}
+    for box in (True, False):
+        p = tmp_path / f"{box}.mcap"
+        simulate_recording(p, "sphere", params=SimulationParams.small(
+            views=2, sweeps=1, sweep_frames=4, workspace_box=box))
+        recs[box] = read_recording(p)
+    assert recs[True].workspace is not None and recs[False].workspace is None
+    assert len(recs[False].laser_frames) == len(recs[True].laser_frames) == 4
+    assert "robo3d.simulation" in recs[False].metadata

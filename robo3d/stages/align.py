@@ -31,7 +31,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
     """
     from ..artefacts import in_clouds_workspace, load_clouds_npz, save_clouds_npz
     from ..meshio import write_point_cloud
-    from ..registration import AlignOptions, align_sweeps, correction_at
+    from ..registration import AlignOptions, align_sweeps
     from ..viz import log_points, log_report, rerun_log
 
     t0 = time.perf_counter()
@@ -78,6 +78,51 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
         align_report = {"workspace_from_hull": hull_ws,
                         "skipped": "alignment disabled in the config" if not ac["enabled"]
                         else "a single sweep and no views: nothing to align it to"}
+    corrections = _apply_corrections(clouds, result, centres)
+    ws_check = _crop_to_workspace(clouds)
+    hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)
+    skew_check, skewed = _drop_skewed(clouds, ac)
+    report = {"n_sweeps": len(clouds), **align_report,
+              "corrections": [C.tolist() for C in corrections],
+              "outside_workspace": ws_check,
+              "outside_hull": hull_check,
+              "skewed_centres": skew_check,
+              "seconds": round(time.perf_counter() - t0, 3)}
+    save_clouds_npz(outputs["npz"], clouds)
+    write_point_cloud(outputs["ply"], np.concatenate([c.points_base for c in clouds]),
+                      normals=np.concatenate([c.normals_base for c in clouds]),
+                      attributes={"sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
+                                                           for c in clouds]).astype(np.int32)})
+    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
+        for c in clouds:  # each sweep in its colour (the legend: reports/summary)
+            log_points(rr_stream, f"base/align/sweep_{c.sweep:02d}", c.points_base,
+                       colors=sweep_color(c.sweep))
+        if len(rejected):  # dropped: outside a view's silhouette
+            log_points(rr_stream, "base/align/rejected", rejected, colors=[255, 0, 255])
+        if len(skewed):  # dropped: the stripe's centre pulled off it
+            log_points(rr_stream, "base/align/skewed", skewed, colors=[255, 140, 0])
+        log_report(rr_stream, "reports/align", report)
+    write_json(outputs["report"], report)
+    flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
+    starts = (align_report.get("refinement") or {}).get("starts")
+    summary.info("aligned %d sweeps (gauge: %s, %.1f s)%s%s", len(clouds),
+                 align_report.get("gauge", "-"), report["seconds"],
+                 f"; flagged and kept at the robot's pose: {flagged}" if flagged else "",
+                 "" if not starts else (
+                     f"; refined from the {starts['taken'].replace('_', ' ')}'s start "
+                     f"(silhouette RMS {_px(starts['pose_graph_rim_rms_px'])} px from the "
+                     f"pose graph's, {_px(starts['robot_rim_rms_px'])} px from the robot's)"))
+    return report
+
+
+def _apply_corrections(clouds: list, result, centres: list) -> list[np.ndarray]:
+    """Correct each cloud in place (points, sensor origins, normals) by the alignment's
+    result (None: no alignment, the identity), keep the correction in its report
+    (``correction`` at the sweep's middle frame, ``correction_model``, ``flagged``), and
+    return the corrections at the middle frames. A turning sweep (``centres[k]`` not
+    None) is corrected as a rigid body about its centre (:func:`_turning_centres`)."""
+    from ..transforms import correction_at
+
     corrections = []
     for k, c in enumerate(clouds):
         mid = int(np.median(c.frame_index)) if len(c.frame_index) else 0
@@ -120,40 +165,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
             # labels the surface it measured (``flagged_sweep``)
             c.report["flagged"] = bool(result.per_sweep[k].get("flagged"))
         c.points_base, c.sensor_origin_base, c.normals_base = p, o, n
-    ws_check = _crop_to_workspace(clouds)
-    hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)
-    skew_check, skewed = _drop_skewed(clouds, ac)
-    report = {"n_sweeps": len(clouds), **align_report,
-              "corrections": [C.tolist() for C in corrections],
-              "outside_workspace": ws_check,
-              "outside_hull": hull_check,
-              "skewed_centres": skew_check,
-              "seconds": round(time.perf_counter() - t0, 3)}
-    save_clouds_npz(outputs["npz"], clouds)
-    write_point_cloud(outputs["ply"], np.concatenate([c.points_base for c in clouds]),
-                      normals=np.concatenate([c.normals_base for c in clouds]),
-                      attributes={"sweep": np.concatenate([np.full(len(c.points_base), c.sweep)
-                                                           for c in clouds]).astype(np.int32)})
-    with rerun_log(outputs["rrd"], rec_name) as rr_stream:
-        for c in clouds:  # each sweep in its colour (the legend: reports/summary)
-            log_points(rr_stream, f"base/align/sweep_{c.sweep:02d}", c.points_base,
-                       colors=sweep_color(c.sweep))
-        if len(rejected):  # dropped: outside a view's silhouette
-            log_points(rr_stream, "base/align/rejected", rejected, colors=[255, 0, 255])
-        if len(skewed):  # dropped: the stripe's centre pulled off it
-            log_points(rr_stream, "base/align/skewed", skewed, colors=[255, 140, 0])
-        log_report(rr_stream, "reports/align", report)
-    write_json(outputs["report"], report)
-    flagged = [p["sweep"] for p in align_report.get("per_sweep", []) if p.get("flagged")]
-    starts = (align_report.get("refinement") or {}).get("starts")
-    summary.info("aligned %d sweeps (gauge: %s, %.1f s)%s%s", len(clouds),
-                 align_report.get("gauge", "-"), report["seconds"],
-                 f"; flagged and kept at the robot's pose: {flagged}" if flagged else "",
-                 "" if not starts else (
-                     f"; refined from the {starts['taken'].replace('_', ' ')}'s start "
-                     f"(silhouette RMS {_px(starts['pose_graph_rim_rms_px'])} px from the "
-                     f"pose graph's, {_px(starts['robot_rim_rms_px'])} px from the robot's)"))
-    return report
+    return corrections
 
 
 def _turning_centres(clouds: list, max_turn_deg: float) -> list[np.ndarray | None]:

@@ -979,3 +979,27 @@ def test_the_workflow_tells_the_carve_whether_the_scan_has_laser_frames(tmp_path
                               threads=1, params=params, config=cfg)
         pipeline.run_from_snakemake("carve", smk)
         assert seen[-1] is want
+
+
+def test_stage_carve_without_a_box_and_one_usable_view(tmp_path, sphere_views):
+    """No box in the recording and one mask left (the others empty: their segmentation
+    failed): no carving box can be placed (seed §3.4 needs two views). An error in a
+    photo set; in a scan with laser frames an empty hull, so that the laser goes on
+    (random scene 463 of stop 52 failed the whole recording here)."""
+    from robo3d.config import load_config
+    from robo3d.errors import StageError
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks = sphere_views
+    few = [masks[0]] + [np.zeros_like(m) for m in masks[1:4]]
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts[:4], few)
+    out = {"npz": str(tmp_path / "hull.npz"), "ply": str(tmp_path / "hull.ply"),
+           "report": str(tmp_path / "carve.json"), "rrd": str(tmp_path / "carve.rrd")}
+    cfg = load_config(overrides={"carving": {"resolution": 32}})
+    with pytest.raises(StageError, match="at least 2 views"):
+        stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s")
+    report = stage_carve({"silhouettes": str(tmp_path / "silhouettes.npz")}, out, cfg, "s",
+                         has_laser=True)
+    assert report["empty"] and "no carving box" in report["reason"]
+    grid = VoxelGrid.load_npz(out["npz"])
+    assert grid.n_occupied == 0

@@ -38,7 +38,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
     clouds = load_clouds_npz(inputs["clouds"])
     ac = cfg["alignment"]
     hull_ws = _workspace_from_hull(clouds, inputs, cfg)
-    if hull_ws is not None and "skipped" in hull_ws and not inputs.get("hull"):
+    if hull_ws is not None and "skipped" in hull_ws:  # no views, or no hull from them
         hull_ws = {**hull_ws, "laser": _workspace_from_laser(clouds, cfg)}
     centres = _turning_centres(clouds, float(ac["rigid_turn_deg"]))
     views = None
@@ -211,7 +211,7 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     became measured surface, the measured surface's median 33.6 mm from the truth
     (0.24 mm with the recording's box; ``benchmarks/README.md``, stop 40)."""
     from ..artefacts import clouds_workspace
-    from ..carving import VoxelGrid, hull_box, table_height
+    from ..carving import VoxelGrid, hull_box, support_height, table_height
 
     if clouds_workspace(clouds) is not None:
         return None
@@ -228,12 +228,19 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     # the floor: where no view sees under the object the hull runs below the table, and
     # closing the surface from it would add a skirt down there; the table the laser saw
     # beside the box is the floor, as a recording's box has it (half a millimetre up)
-    table = table_height(np.concatenate([c.points_base for c in clouds]),
-                         np.concatenate([c.normals_base for c in clouds]), box[0], box[1])
+    pts = np.concatenate([c.points_base for c in clouds])
+    nrm = np.concatenate([c.normals_base for c in clouds])
+    table = table_height(pts, nrm, box[0], box[1])
+    beside = "from the laser points beside the box"
+    if table is None:  # no point beside a box as wide as the scene (bad masks): the
+        # lowest wide horizontal surface the laser saw (random scene 466 of stop 52: the
+        # table fused as measured surface, 23.9 mm from the object at the median)
+        table = support_height(pts, nrm)
+        beside = "the lowest wide horizontal surface the laser saw"
     floor = "the hull's"
     if table is not None and box[0][2] < table < 0.5 * (box[0][2] + box[1][2]):
         box = (np.array([box[0][0], box[0][1], table + 0.0005]), box[1])
-        floor = f"the table's (z = {table:.4f} m, from the laser points beside the box)"
+        floor = f"the table's (z = {table:.4f} m, {beside})"
     for c in clouds:
         c.report = {**(c.report or {}), "workspace": [box[0].tolist(), box[1].tolist()],
                     "workspace_source": "visual hull", "workspace_margin_m": margin_m}
@@ -247,7 +254,8 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
 
 def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any]:
     """A recording without a workspace box and without views (laser frames alone, a ROS
-    bag of a laser cell): the box of the object the laser measured, standing on the table
+    bag of a laser cell), or whose views gave no hull (too few could be segmented): the
+    box of the object the laser measured, standing on the table
     it measured beside it (:func:`robo3d.carving.laser_box`), becomes the clouds'
     workspace (``workspace_source: "laser"``), as the hull's does with views. What it
     was, or why there is none.

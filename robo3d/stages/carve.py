@@ -45,7 +45,8 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     watertight marching-cubes mesh, the report the box, the agreement scores, the
     resolution check (eq. 7–8), the volume and the hull's bounding box (``bbox_min``,
     ``bbox_max``: the outer faces of the occupied voxels, metres). Silhouettes that leave
-    nothing to carve, or carve every voxel, are an error, except in a scan with laser
+    nothing to carve, or carve every voxel, or (without a box in the recording) leave too
+    few views to place the carving box, are an error, except in a scan with laser
     frames (``has_laser``, the rule's ``params.has_laser``): there the hull is empty
     (``empty`` and ``reason`` in the report and ``hull.npz``), and fusion closes nothing.
     """
@@ -74,9 +75,12 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     empty = [i for i in range(len(cameras)) if not masks[i].any()]
     if cameras and len(empty) == len(cameras):
         return no_hull(f"no view is left to carve: all {len(cameras)} masks are empty")
-    box_min, box_max, box_report = _carving_box(
-        ws, masks, cameras, poses, cc,
-        [i for i in range(len(cameras)) if i not in empty] if empty else None)
+    try:
+        box_min, box_max, box_report = _carving_box(
+            ws, masks, cameras, poses, cc,
+            [i for i in range(len(cameras)) if i not in empty] if empty else None)
+    except StageError as exc:  # no box in the recording, too few masks to place one
+        return no_hull(f"no carving box: {exc}")
     agreement = _view_agreement_check(inputs["silhouettes"], sil, masks, cameras, poses,
                                       box_min, box_max, cc)
     n_views = len(cameras)
@@ -94,7 +98,11 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         return no_hull(f"no view is left to carve: {n_views} views, all with empty or "
                        "disagreeing masks", **views_kw)
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
-        box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
+        try:
+            box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
+        except StageError as exc:  # random scene 463 of stop 52: one view left, no box
+            return no_hull(f"no carving box from the {len(used)} view(s) left: {exc}",
+                           **views_kw)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
     grid, carve_report = carve_visual_hull(grid, [masks[i] for i in used],
                                            [cameras[i] for i in used], poses[used], opts)

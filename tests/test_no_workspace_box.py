@@ -77,6 +77,7 @@ def test_the_hull_box_takes_the_place_of_the_recordings(cell, tmp_path: Path) ->
     run_up_to_align(bare, tmp_path / "hull", cfg, "hull")
     off = default_config()
     off["alignment"]["workspace_from_hull"] = False
+    off["alignment"]["workspace_from_laser"] = False  # else the laser's box steps in
     run_up_to_align(bare, tmp_path / "off", off, "off")
     rep = json.loads((tmp_path / "hull" / "reports" / "align.json").read_text())
     ws = rep["workspace_from_hull"]

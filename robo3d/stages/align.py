@@ -283,9 +283,10 @@ def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any
                     "workspace_source": "laser", "workspace_margin_m": margin_m}
     floor = (f"the table's (z = {info['table_z_m']:.4f} m)"
              if info["table_z_m"] is not None else "the object's lowest point (no table seen)")
-    log.warning("alignment: the recording has no workspace box and no views; the box of "
-                "the object the laser measured, %s .. %s m (floor: %s; %d of %d points "
-                "above the table in it), takes its place: points outside it are dropped",
+    log.warning("alignment: the recording has no workspace box, nor do its views give "
+                "one; the box of the object the laser measured, %s .. %s m (floor: %s; %d "
+                "of %d points above the table in it), takes its place: points outside it "
+                "are dropped",
                 np.round(lo, 4).tolist(), np.round(hi, 4).tolist(), floor,
                 info["object_points"], info["candidates"])
     return {"box_min": lo.tolist(), "box_max": hi.tolist(), "floor": floor,

@@ -194,13 +194,29 @@ def _laser_only(rec: Path, res: Path, cfg, name: str) -> None:
                 stage_outputs(res, "align", npz="aligned.npz", ply="aligned.ply"), cfg, name)
 
 
+def laser_three_ways(boxed: Path, tmp_path: Path) -> dict[str, tuple[float, int]]:
+    """Laser frames alone through stripes, triangulate and align, three ways: with the
+    recording's box (``box``), without it (``laser``: the laser's own box) and without it
+    with ``alignment.workspace_from_laser`` off (``off``). Per way, the share of aligned
+    points more than 1 mm from the object and their count (:func:`_far_fraction`)."""
+    from robo3d.config import default_config
+
+    bare = _without_box(boxed, tmp_path / "bare.mcap")
+    cfg = default_config()
+    _laser_only(boxed, tmp_path / "box", cfg, "box")
+    _laser_only(bare, tmp_path / "laser", cfg, "laser")
+    off = default_config()
+    off["alignment"]["workspace_from_laser"] = False
+    _laser_only(bare, tmp_path / "off", off, "off")
+    return {k: _far_fraction(boxed, tmp_path / k) for k in ("box", "laser", "off")}
+
+
 def test_laser_frames_alone_without_a_box_keep_the_object_not_the_table(
         tmp_path: Path) -> None:
     """No box and no views (a laser cell's ROS bag): the box of the object the laser
     measured takes the recording's place (``alignment.workspace_from_laser``)."""
     import json
 
-    from robo3d.config import default_config
     from robo3d.recording import read_recording
     from robo3d.simulate import SimulationParams, simulate_recording
 
@@ -208,13 +224,7 @@ def test_laser_frames_alone_without_a_box_keep_the_object_not_the_table(
     simulate_recording(boxed, "bumpy_blob", seed=4, params=SimulationParams.cell(
         laser="green", object_color="orange", markers="aruco", small=True, sweeps=2,
         sweep_frames=30, views=0))
-    bare = _without_box(boxed, tmp_path / "laser_nobox.mcap")
-    cfg = default_config()
-    _laser_only(boxed, tmp_path / "box", cfg, "box")
-    _laser_only(bare, tmp_path / "laser", cfg, "laser")
-    off = default_config()
-    off["alignment"]["workspace_from_laser"] = False
-    _laser_only(bare, tmp_path / "off", off, "off")
+    far = laser_three_ways(boxed, tmp_path)
     ws = json.loads((tmp_path / "laser" / "reports" / "align.json").read_text())[
         "workspace_from_hull"]["laser"]
     lo, hi = np.array(ws["box_min"]), np.array(ws["box_max"])
@@ -230,7 +240,6 @@ def test_laser_frames_alone_without_a_box_keep_the_object_not_the_table(
     # points: the table and the wall); with it 752 (35 %), with the recording's own box
     # 387 (22 %: the table in the box's margin, kept for the alignment); the laser's box
     # is the wider, with more of the table's stray points in it
-    far = {k: _far_fraction(boxed, tmp_path / k) for k in ("box", "laser", "off")}
     n_far = {k: f * n for k, (f, n) in far.items()}
     assert far["off"][0] > 0.5, far
     assert n_far["laser"] < 0.15 * n_far["off"] and n_far["laser"] < 2.5 * n_far["box"], far

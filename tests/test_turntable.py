@@ -84,20 +84,9 @@ def test_a_turntable_scan_without_a_box_keeps_the_object(laser_scan: Path,
     """Laser frames alone and no workspace box (a desktop scanner's converted scan): the
     box of the object the laser measured (``alignment.workspace_from_laser``) drops the
     plate and the wall behind, as the recording's own box does."""
-    from mcap_copy import copy_recording
-    from test_no_workspace_box import _far_fraction, _laser_only
+    from test_no_workspace_box import laser_three_ways
 
-    from robo3d.config import default_config
-
-    bare = copy_recording(laser_scan, tmp_path / "bare.mcap", metadata=lambda name, md: {
-        k: v for k, v in md.items() if not k.startswith("workspace_")})
-    cfg = default_config()
-    _laser_only(laser_scan, tmp_path / "box", cfg, "box")
-    _laser_only(bare, tmp_path / "laser", cfg, "laser")
-    off = default_config()
-    off["alignment"]["workspace_from_laser"] = False
-    _laser_only(bare, tmp_path / "off", off, "off")
-    far = {k: _far_fraction(laser_scan, tmp_path / k) for k in ("box", "laser", "off")}
+    far = laser_three_ways(laser_scan, tmp_path)
     # measured: points more than 1 mm off the object, 1.5 % (6,854 points) with the
     # laser's box, 1.6 % (6,862) with the recording's, 35.5 % (10,472) without a box
     assert far["off"][0] > 0.3, far

@@ -134,6 +134,11 @@ def hull_box(hull: VoxelGrid, margin: float = 0.05, min_margin_m: float = 0.002
     return lo - grow, hi + grow
 
 
+def _facing_z(n: np.ndarray, max_tilt_deg: float) -> np.ndarray:
+    """Which normals ``(N, 3)`` lie within ``max_tilt_deg`` of ``+z`` or ``-z``."""
+    return np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)
+
+
 def table_height(points: np.ndarray, normals: np.ndarray, footprint_min: np.ndarray,
                  footprint_max: np.ndarray, *, max_tilt_deg: float = 20.0,
                  bin_m: float = 0.0005, min_points: int = 200) -> float | None:
@@ -148,7 +153,7 @@ def table_height(points: np.ndarray, normals: np.ndarray, footprint_min: np.ndar
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     lo, hi = np.asarray(footprint_min, float), np.asarray(footprint_max, float)
     outside = ~np.all((p[:, :2] >= lo[:2]) & (p[:, :2] <= hi[:2]), axis=1)
-    flat = np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)
+    flat = _facing_z(n, max_tilt_deg)
     z = p[outside & flat & (p[:, 2] < hi[2]), 2]
     if len(z) < min_points:
         return None
@@ -173,8 +178,7 @@ def support_height(points: np.ndarray, normals: np.ndarray, *, max_tilt_deg: flo
     points than the table beside it, never lie below it. None without such a slab."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    flat = np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)
-    z = p[flat & np.all(np.isfinite(p), axis=1), 2]
+    z = p[_facing_z(n, max_tilt_deg) & np.all(np.isfinite(p), axis=1), 2]
     if len(z) < min_points:
         return None
     k = np.floor((z - z.min()) / bin_m).astype(np.int64)
@@ -190,6 +194,11 @@ def support_height(points: np.ndarray, normals: np.ndarray, *, max_tilt_deg: flo
     return float(np.median(z[sel])) if int(sel.sum()) >= min_points else None
 
 
+def _height_above(p: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Heights of points ``(N, 3)`` above the plane ``z = a x + b y + c``."""
+    return p[:, 2] - (p[:, 0] * coef[0] + p[:, 1] * coef[1] + coef[2])
+
+
 def _table_plane(p: np.ndarray, n: np.ndarray, tol_m: float = 0.001
                  ) -> tuple[np.ndarray, float] | None:
     """The plane ``z = a x + b y + c`` of the table in one sweep's points (its
@@ -199,16 +208,15 @@ def _table_plane(p: np.ndarray, n: np.ndarray, tol_m: float = 0.001
     z0 = support_height(p, n)
     if z0 is None:
         return None
-    flat = np.abs(n[:, 2]) >= np.cos(np.radians(20.0)) * np.linalg.norm(n, axis=1)
+    flat = _facing_z(n, 20.0)
     coef = np.array([0.0, 0.0, z0])
     for _ in range(2):
-        res = p[:, 2] - (p[:, 0] * coef[0] + p[:, 1] * coef[1] + coef[2])
-        sel = flat & (np.abs(res) <= tol_m)
+        sel = flat & (np.abs(_height_above(p, coef)) <= tol_m)
         if int(sel.sum()) < 3:
             break
         A = np.c_[p[sel, :2], np.ones(int(sel.sum()))]
         coef = np.linalg.lstsq(A, p[sel, 2], rcond=None)[0]
-    res = p[:, 2] - (p[:, 0] * coef[0] + p[:, 1] * coef[1] + coef[2])
+    res = _height_above(p, coef)
     sel = flat & (np.abs(res) <= tol_m)
     spread = 1.4826 * float(np.median(np.abs(res[sel]))) if sel.any() else 0.0
     return coef, spread
@@ -234,9 +242,11 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
        ``dense_share`` of a typical point's cell count lies (a surface crosses it), not
        where a few stray points do (the laser's reflections off a glossy object land on
        the table as sparse points above it). The occupied cells are split into
-       26-connected components (``scipy.ndimage.label``); the object is the component
-       with the most points, with any other that has most of its points in its box (a
-       part the laser's gaps cut off): the laser's line on a wall is another component.
+       26-connected components (``scipy.ndimage.label``); the object is the largest
+       component over the middle of the table (the median of the table's points; the
+       largest of all when none is), with any other that has most of its points in its
+       box grown by a quarter (a part the laser's gaps cut off): the laser's line on a
+       wall is another component.
     3. The object's points' box, grown by ``margin`` times its largest side (at least
        ``min_margin_m``), its floor ``floor_m`` above the table (the sweeps' median
        height under the box), as a recording's box has it.
@@ -280,9 +290,9 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
             continue
         coef, spread = got
         planes[int(k)] = coef
-        h = p[m, 2] - (p[m, 0] * coef[0] + p[m, 1] * coef[1] + coef[2])
-        cand[m] = h > max(float(above_table_m), 5.0 * spread)
-        on_table[m] = np.abs(h) <= max(float(above_table_m), 5.0 * spread)
+        h, cut = _height_above(p[m], coef), max(float(above_table_m), 5.0 * spread)
+        cand[m] = h > cut
+        on_table[m] = np.abs(h) <= cut
     q, fq = p[cand], f[cand]
     if len(q) < min_points:
         return None
@@ -308,10 +318,6 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
     counts[0] = 0
     if n_comp == 0:
         return None
-    # the others with most of their points in the largest one's box, grown by a quarter
-    # of its largest side: the parts that the laser's gaps cut off (a cup's rim from its
-    # inside) join; the laser's line on a wall, long and mostly beyond, does not, nor do
-    # most of the stray points on the table (a dark marker's edge biases the stripe)
     # the object's core: the largest component over the middle of the table the laser
     # saw (the median of its points: the sweeps are planned around the object, and a
     # turntable turns it about its middle; all the points without a table), else the
@@ -326,6 +332,10 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
     over = np.all((c_lo - 1 <= mid) & (c_hi + 1 >= mid), axis=1)
     over[0] = False
     main = int(np.argmax(np.where(over, counts, -1))) if over.any() else int(np.argmax(counts))
+    # with the others that have most of their points in its box grown by a quarter of
+    # its largest side: the parts that the laser's gaps cut off (a cup's rim from its
+    # inside) join; the laser's line on a wall, long and mostly beyond, does not, nor do
+    # most of the stray points on the table (a dark marker's edge biases the stripe)
     m_idx = idx[lab == main]
     m_lo, m_hi = m_idx.min(axis=0), m_idx.max(axis=0)
     link = max(2, int(np.ceil(link_share * float((m_hi - m_lo).max() + 1))))
@@ -339,7 +349,7 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
     b_lo, b_hi = obj.min(axis=0), obj.max(axis=0)
     grow = max(float(margin) * float((b_hi - b_lo).max()), float(min_margin_m))
     centre = 0.5 * (b_lo + b_hi)
-    table = (float(np.median([c[0] * centre[0] + c[1] * centre[1] + c[2]
+    table = (float(np.median([-_height_above(np.r_[centre[:2], 0.0][None], c)[0]
                               for c in planes.values()])) if planes else None)
     b_lo, b_hi = b_lo - grow, b_hi + grow
     if table is not None:

@@ -1450,6 +1450,26 @@ def _edge_samples(box_min: np.ndarray, box_max: np.ndarray, n: int = 9) -> np.nd
     return box_min + unit * (box_max - box_min)
 
 
+def _projected_box_edges(lo: np.ndarray, hi: np.ndarray, camera: CameraModel,
+                         T: np.ndarray) -> np.ndarray | None:
+    """The box's edges (:func:`_edge_samples`) projected with distortion, (12 n, 2)
+    pixels; None when its image is unbounded (part of it behind the camera, or beyond
+    the radius where the lens model is monotonic). StageError when all of it lies
+    behind the camera."""
+    pts = _edge_samples(lo, hi)
+    uv, in_front = project_points(pts, camera, T)
+    if not np.any(in_front):
+        raise StageError(f"workspace box {lo}..{hi} is entirely behind camera "
+                         f"{camera.frame_id!r}")
+    if not np.all(in_front):
+        return None
+    t_cb = invert_transform(T)
+    pc = pts @ t_cb[:3, :3].T + t_cb[:3, 3]
+    if np.any((pc[:, 0] ** 2 + pc[:, 1] ** 2) / pc[:, 2] ** 2 >= _distortion_limit_r2(camera)):
+        return None
+    return uv
+
+
 def roi_from_box(
     box_min: np.ndarray,
     box_max: np.ndarray,
@@ -1491,17 +1511,8 @@ def roi_from_box(
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"T_base_camera must be a finite (4, 4) transform, got {T.shape}")
     full = (0, 0, int(camera.width), int(camera.height))
-    pts = _edge_samples(lo, hi)
-    uv, in_front = project_points(pts, camera, T)
-    if not np.any(in_front):
-        raise StageError(f"workspace box {lo}..{hi} is entirely behind camera "
-                         f"{camera.frame_id!r}")
-    if not np.all(in_front):
-        return full
-    t_cb = invert_transform(T)
-    pc = pts @ t_cb[:3, :3].T + t_cb[:3, 3]
-    r2 = (pc[:, 0] ** 2 + pc[:, 1] ** 2) / pc[:, 2] ** 2
-    if np.any(r2 >= _distortion_limit_r2(camera)):
+    uv = _projected_box_edges(lo, hi, camera, T)
+    if uv is None:
         return full
     u0 = int(np.floor(uv[:, 0].min() + 0.5)) - int(margin_px)
     v0 = int(np.floor(uv[:, 1].min() + 0.5)) - int(margin_px)
@@ -1525,20 +1536,13 @@ def region_from_box(
     """Where a workspace box can appear in a view: the convex hull of its projected edges
     (with distortion, 9 points an edge), grown by ``margin_px``; ``(H, W)`` bool. None
     when part of the box lies behind the camera or beyond the radius where the lens
-    model is monotonic (its image is unbounded). :func:`roi_from_box` is its bounding
-    rectangle; a box seen from above projects to a hexagon whose corners leave much of
-    that rectangle to the table around the object."""
+    model is monotonic (its image is unbounded); StageError when all of it lies behind
+    the camera. :func:`roi_from_box` is its bounding rectangle; a box seen from above
+    projects to a hexagon whose corners leave much of that rectangle to the table around
+    the object."""
     lo, hi = _check_box(box_min, box_max)
-    T = np.asarray(T_base_camera, dtype=np.float64)
-    pts = _edge_samples(lo, hi)
-    uv, in_front = project_points(pts, camera, T)
-    if not np.all(in_front):
-        return None
-    t_cb = invert_transform(T)
-    pc = pts @ t_cb[:3, :3].T + t_cb[:3, 3]
-    if np.any((pc[:, 0] ** 2 + pc[:, 1] ** 2) / pc[:, 2] ** 2 >= _distortion_limit_r2(camera)):
-        return None
-    if not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e6:
+    uv = _projected_box_edges(lo, hi, camera, np.asarray(T_base_camera, dtype=np.float64))
+    if uv is None or not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e6:
         return None
     hull = cv2.convexHull(np.round(uv).astype(np.int32).reshape(-1, 1, 2))
     region = np.zeros((int(camera.height), int(camera.width)), np.uint8)

@@ -134,6 +134,46 @@ def hull_box(hull: VoxelGrid, margin: float = 0.05, min_margin_m: float = 0.002
     return lo - grow, hi + grow
 
 
+def reference_box(grid: VoxelGrid, masks: Sequence[np.ndarray],
+                  cameras: CameraModel | Sequence[CameraModel], T_base_cameras: np.ndarray,
+                  views: Sequence[int], *, margin: float = 0.1, min_seen: float = 0.5
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box of the hull that ``views``' silhouettes carve on ``grid``: a box that
+    holds the object where those views agree, for segmenting a view that does not.
+
+    The hull is carved (seed §3.1.2, every voxel kept outside a view's image) by
+    ``views`` alone; only the voxels inside the image of at least ``min_seen`` of all
+    the views (at least two) count, since voxels beyond most frames are kept for want
+    of evidence, not for being object; of those, the largest 26-connected component is
+    the object. Its box is grown by ``margin`` (:func:`hull_box`). None when nothing is
+    left.
+    """
+    from scipy import ndimage
+
+    masks, cams, poses = check_views(masks, cameras, T_base_cameras)
+    views = [int(v) for v in views]
+    if not views:
+        return None
+    carved, _ = carve_dense(grid, [masks[v] for v in views], [cams[v] for v in views],
+                            poses[views], outside_image="keep", warn=False)
+    ijk = np.nonzero(carved.occupancy)
+    if not len(ijk[0]):
+        return None
+    seen = np.zeros(len(ijk[0]), np.int32)
+    for cam, T in zip(cams, poses, strict=True):
+        seen += _project_indices(ijk, grid, cam, invert_transform(T),
+                                 distortion_limit_r2(cam))[1]
+    keep = seen >= max(2, int(np.ceil(min_seen * len(cams))))
+    occ = np.zeros(grid.shape, bool)
+    occ[tuple(a[keep] for a in ijk)] = True
+    labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
+    if n == 0:
+        return None
+    largest = 1 + int(np.argmax(np.bincount(labels.reshape(-1))[1:]))
+    return hull_box(VoxelGrid(grid.origin, grid.voxel_size, labels == largest, grid.frame),
+                    margin=margin)
+
+
 def _facing_z(n: np.ndarray, max_tilt_deg: float) -> np.ndarray:
     """Which normals ``(N, 3)`` lie within ``max_tilt_deg`` of ``+z`` or ``-z``."""
     return np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)
@@ -524,6 +564,7 @@ def carve_dense(
     behind_camera: str = "carve",
     min_views_background: int = 1,
     chunk_voxels: int = 1 << 19,
+    warn: bool = True,
 ) -> tuple[VoxelGrid, dict]:
     """Carve a voxel grid with silhouettes: the visual hull (seed §3.1.2, §3.4, eq. 1–6).
 
@@ -553,6 +594,9 @@ def carve_dense(
         object away, at the price of a fatter hull where few views disagree.
     chunk_voxels : int
         Voxels per processing chunk (bounds the memory).
+    warn : bool
+        Warn about views that keep most voxels only because they lie outside the image
+        (False where that is expected, as on a box much wider than the views).
 
     Returns
     -------
@@ -610,7 +654,7 @@ def carve_dense(
     report = {**carve_counts(grid, out), "outside_image": outside_image,
               "behind_camera": behind_camera, "min_views_background": int(k_bg),
               "n_views": int(n_views), "views": views, "time_s": float(elapsed)}
-    for v in views:
+    for v in views if warn else ():
         if v["tested"] and v["kept_outside_image"] > 0.5 * v["tested"]:
             _log.warning("carve: view %d kept %d of %d voxels only because they project "
                          "outside its image", v["view"], v["kept_outside_image"], v["tested"])

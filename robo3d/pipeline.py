@@ -304,7 +304,7 @@ def _setup_logging(log_path: str | None, rec: str = "", stage: str = "") -> None
 #: The config sections each stage reads (its rule passes them as ``params``, so that
 #: changing one re-runs exactly the stages that read it, and those after them).
 STAGE_CONFIG: dict[str, tuple[str, ...]] = {
-    "silhouettes": ("segmentation", "topics", "frames", "timing", "rerun", "seed"),
+    "silhouettes": ("segmentation", "carving", "topics", "frames", "timing", "rerun", "seed"),
     "carve": ("carving", "topics", "frames", "timing", "rerun", "seed"),
     "stripes": ("stripes", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
     "triangulate": ("triangulation", "topics", "frames", "timing", "rerun", "seed"),

@@ -179,7 +179,9 @@ of multi-view stereo reconstruction algorithms", CVPR 2006 (templeSparseRing).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -192,7 +194,7 @@ from .options import Options
 from .transforms import invert_transform
 
 __all__ = ["Silhouette", "SegmentOptions", "segment_silhouette", "segment_view", "roi_from_box",
-           "region_from_box",
+           "region_from_box", "resegment_spurious_views",
            "find_roi", "to_grey", "to_lab", "colour_difference", "refine_with_grabcut",
            "silhouette_qa", "QA_FLAGS"]
 
@@ -1604,6 +1606,142 @@ def segment_view(
     return sil, roi_source
 
 
+def resegment_spurious_views(
+    masks: list[np.ndarray],
+    cameras: list[CameraModel],
+    T_base_cameras: np.ndarray,
+    workspace: tuple[np.ndarray, np.ndarray] | None,
+    segment: Callable[[int, tuple[np.ndarray, np.ndarray]], np.ndarray | None],
+    *,
+    carving_cfg: Mapping[str, Any],
+    exclude: Sequence[int] = (),
+) -> tuple[dict[int, np.ndarray], dict[str, Any]]:
+    """Segment again, inside the box of the other views' hull, the views whose foreground
+    the other views rule out.
+
+    A view segmented against its image border alone (no workspace box in the recording)
+    takes whatever differs from that border as object: a turntable's plate seen whole
+    from above, the table under a camera looking down. The other views, which saw the
+    plate reach their border or end beside the object, carve it away. Each view is
+    scored against the others' hull on the agreement check's coarse grid
+    (:func:`robo3d.carving.flag_disagreeing_views`, the config's ``carving.qa_*``, the
+    carving box as the carve places it). A view flagged because more than
+    ``qa_max_spurious`` of its foreground lies outside that hull, and that misses no more
+    than ``qa_max_missing`` of it, is segmented again by ``segment(view, box)`` with the
+    box of the hull of the views not flagged (:func:`robo3d.carving.reference_box`, grown
+    by ``carving.box_margin``; within the recording's box when there is one). A box
+    restricts and cannot add, so a view flagged for missing part of the object is left
+    to the carve's check. The new mask replaces the old one only when less of it lies
+    outside the others' hull and it misses no more than the threshold.
+
+    Parameters
+    ----------
+    masks, cameras, T_base_cameras
+        The first segmentation's masks (empty where it failed) and the views' cameras and
+        poses in ``base``.
+    workspace : ((3,), (3,)) or None
+        The recording's workspace box.
+    segment : callable
+        ``segment(view, (box_min, box_max))``: the view's mask segmented with that box
+        as its workspace, or None when the segmentation failed.
+    carving_cfg : mapping
+        The config's ``carving`` section.
+    exclude : sequence of int
+        Views already suspect (the segmentation's own QA flags): not in the reference.
+
+    Returns
+    -------
+    new_masks : dict
+        View -> the mask that replaces its first one.
+    report : dict
+        ``checked`` (False with ``why_not`` when fewer than four views have a mask, the
+        check is off, or no box can be placed), ``candidates`` (per flagged view:
+        ``spurious_before`` / ``missing_before``, ``spurious_after`` / ``missing_after``,
+        ``accepted``), ``box`` (the reference hull's box), ``time_s``.
+    """
+    import time
+
+    from .carving import (
+        AgreementOptions,
+        CarveOptions,
+        box_from_silhouettes,
+        flag_disagreeing_views,
+        reference_box,
+        view_agreement,
+    )
+    from .grid import make_grid
+
+    t0 = time.perf_counter()
+    agreement = AgreementOptions.from_config(carving_cfg)
+    carve = CarveOptions.from_config(carving_cfg).replace(min_views_background=1)
+    report: dict[str, Any] = {"checked": False, "candidates": {}, "box": None}
+    n = len(masks)
+    with_mask = [i for i in range(n) if masks[i].any()]
+    if agreement.qa_resolution == 0 or len(with_mask) < 4:
+        report["why_not"] = ("carving.qa_resolution is 0" if agreement.qa_resolution == 0
+                             else f"{len(with_mask)} views with a mask: too few")
+        return {}, report
+    if workspace is not None:
+        lo, hi = workspace
+    else:
+        try:
+            lo, hi, _ = box_from_silhouettes(None, [masks[i] for i in with_mask],
+                                             [cameras[i] for i in with_mask],
+                                             T_base_cameras[with_mask],
+                                             margin=float(carving_cfg["box_margin"]))
+        except StageError as exc:
+            report["why_not"] = f"no carving box: {exc}"
+            return {}, report
+    grid = make_grid(lo, hi, resolution=min(agreement.qa_resolution,
+                                            int(carving_cfg["resolution"])))
+    suspect = {int(e) for e in exclude}
+    empty = set(range(n)) - set(with_mask)
+    suspect = (suspect if len(suspect) <= n // 2 else set()) | empty
+    qa = flag_disagreeing_views(grid, masks, cameras, T_base_cameras, options=agreement,
+                                carve=carve, exclude=sorted(suspect))
+    report["checked"] = True
+    max_sp, max_mi = agreement.qa_max_spurious, agreement.qa_max_missing
+    cand = [s for s in qa["views"] if s["flagged"] and s["spurious_fraction"] is not None
+            and s["spurious_fraction"] > max_sp and s["missing_fraction"] is not None
+            and s["missing_fraction"] <= max_mi]
+    reference = [v for v in range(n) if v not in set(qa["flagged"]) | suspect]
+    box = reference_box(grid, masks, cameras, T_base_cameras, reference,
+                        margin=float(carving_cfg["box_margin"])) if cand else None
+    if box is not None and workspace is not None:
+        box = (np.maximum(box[0], workspace[0]), np.minimum(box[1], workspace[1]))
+        box = box if np.all(box[1] > box[0]) else None
+    report["box"] = None if box is None else [box[0].tolist(), box[1].tolist()]
+    tried: dict[int, np.ndarray] = {}
+    for s in cand if box is not None else ():
+        m = segment(s["view"], box)
+        if m is not None and m.any():
+            tried[s["view"]] = m
+    new: dict[int, np.ndarray] = {}
+    if tried:
+        trial = [tried.get(i, masks[i]) for i in range(n)]
+        after = view_agreement(grid, trial, cameras, T_base_cameras, reference=reference,
+                               carve=carve, min_observers=agreement.qa_min_observers)
+        for s in cand:
+            v = s["view"]
+            a = after[v] if v in tried else {}
+            ok = (v in tried and a["spurious_fraction"] is not None
+                  and a["spurious_fraction"] < s["spurious_fraction"]
+                  and a["missing_fraction"] is not None and a["missing_fraction"] <= max_mi)
+            report["candidates"][v] = {
+                "spurious_before": s["spurious_fraction"],
+                "missing_before": s["missing_fraction"],
+                "spurious_after": a.get("spurious_fraction"),
+                "missing_after": a.get("missing_fraction"), "accepted": bool(ok)}
+            if ok:
+                new[v] = tried[v]
+    else:
+        report["candidates"] = {s["view"]: {"spurious_before": s["spurious_fraction"],
+                                            "missing_before": s["missing_fraction"],
+                                            "accepted": False} for s in cand}
+    report["time_s"] = round(time.perf_counter() - t0, 3)
+    return new, report
+
+
 def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
                                 step: int = 1) -> dict:
     """Segment a recording's views with a config (default: the project's defaults) and
@@ -1623,7 +1761,8 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     dict
         ``iou`` (per scored view, index -> IoU), ``iou_mean``, ``iou_min``,
         ``worst_view``, ``n_views``, ``n_scored``, ``seconds_per_view``, ``qa_flags``
-        (index -> flags, only flagged views).
+        (index -> flags, only flagged views), ``failed`` (index -> why, the views whose
+        segmentation failed: scored as an empty mask, as the stage leaves them).
 
     Raises
     ------
@@ -1640,11 +1779,42 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     rec = read_recording(path, roles=("views",), **reader_options(cfg))
     views = sorted(rec.views, key=lambda m: m.timestamp_ns)
     poses = rec.camera_poses(views)
+    cameras = [rec.camera_for(m) for m in views]
     options = SegmentOptions.from_config(cfg["segmentation"])
     ious: dict[int, float] = {}
     flags: dict[int, list[str]] = {}
     seconds = 0.0
-    for i in range(0, len(views), max(1, int(step))):
+    scored = range(0, len(views), max(1, int(step)))
+    images = {i: rec.decode(views[i]) for i in scored}
+    sils: dict[int, Silhouette] = {}
+    failed: dict[int, str] = {}
+    for i in scored:
+        t0 = time.perf_counter()
+        try:
+            sils[i] = segment_view(images[i], cameras[i], poses[i], rec.workspace,
+                                   options=options)[0]
+        except StageError as exc:  # as the stage does: an empty mask, the view flagged
+            failed[i] = str(exc)
+            sils[i] = Silhouette(np.zeros((cameras[i].height, cameras[i].width), bool),
+                                 float("nan"), options.polarity, 0, 0, False,
+                                 np.full(2, np.nan), (0, 0, 0, 0),
+                                 qa={"flags": [f"segmentation failed: {exc}"]})
+        seconds += time.perf_counter() - t0
+    if step == 1 and cfg["segmentation"]["resegment_spurious"]:
+        redone: dict[int, Silhouette] = {}
+
+        def again(v: int, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+            redone[v] = segment_view(images[v], cameras[v], poses[v], box,
+                                     options=options)[0]
+            return redone[v].mask
+
+        t0 = time.perf_counter()
+        new, _ = resegment_spurious_views(
+            [sils[i].mask for i in scored], cameras, poses, rec.workspace, again,
+            carving_cfg=cfg["carving"], exclude=[i for i in scored if sils[i].qa["flags"]])
+        seconds += time.perf_counter() - t0
+        sils.update({v: redone[v] for v in new})
+    for i in scored:
         key = f"ground_truth/silhouettes/{i:03d}.png"
         if key not in rec.attachments:
             continue
@@ -1653,11 +1823,7 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
         rect = rec.rectifiers.get(views[i].frame_id)  # the view is segmented rectified
         if rect is not None and truth is not None and truth.shape == (rect.height, rect.width):
             truth = rect(truth)
-        image = rec.decode(views[i])
-        t0 = time.perf_counter()
-        sil, _ = segment_view(image, rec.camera_for(views[i]), poses[i], rec.workspace,
-                              options=options)
-        seconds += time.perf_counter() - t0
+        sil = sils[i]
         gt = truth > 127
         if gt.shape != sil.mask.shape:
             raise StageError(f"{path}: {key} is {gt.shape[1]}x{gt.shape[0]}, the view "
@@ -1671,4 +1837,4 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     worst = min(ious, key=ious.get)
     return {"iou": ious, "iou_mean": float(vals.mean()), "iou_min": float(vals.min()),
             "worst_view": int(worst), "n_views": len(views), "n_scored": len(ious),
-            "seconds_per_view": seconds / len(ious), "qa_flags": flags}
+            "seconds_per_view": seconds / len(ious), "qa_flags": flags, "failed": failed}

@@ -839,3 +839,29 @@ def test_views_without_a_workspace_box_in_a_room_lit_cell(tmp_path, obj, colour,
         iou.append(_iou(sil.mask, truth))
     assert len(iou) == 10
     assert np.mean(iou) >= 0.97 and min(iou) >= 0.9, np.round(iou, 3)
+
+
+def test_scoring_a_recording_scores_a_failed_view_as_the_stage_leaves_it(tmp_path, monkeypatch):
+    """A view whose segmentation fails is an empty mask in the stage (flagged, the others
+    go on); the scoring function scored nothing then and raised. It now scores the view
+    as the empty mask (IoU 0) and says why."""
+    import robo3d.silhouettes as sil
+    from robo3d.errors import StageError
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    path = tmp_path / "six.mcap"
+    simulate_recording(path, "dimple_block", params=SimulationParams.cell(
+        small=True, views=6, sweeps=0, seed=3))
+    real, calls = sil.segment_view, []
+
+    def flaky(image, *a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise StageError("no pixel passes the threshold")
+        return real(image, *a, **k)
+
+    monkeypatch.setattr(sil, "segment_view", flaky)
+    r = sil.score_recording_silhouettes(str(path))
+    assert r["n_scored"] == 6 and r["iou"][2] == 0.0 and r["worst_view"] == 2
+    assert "no pixel passes" in r["failed"][2] and list(r["failed"]) == [2]
+    assert min(v for i, v in r["iou"].items() if i != 2) > 0.9, r["iou"]

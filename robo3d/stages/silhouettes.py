@@ -110,8 +110,13 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                 masks[i] = np.zeros_like(masks[i])
                 per_view[i] = _failed_row(
                     i, views[i], "most views of the recording could not be segmented")
+    resegmented = None
+    if given_up is None and cfg["segmentation"]["resegment_spurious"]:
+        resegmented = _resegment(inputs["recording"], rec, views, cameras, poses,
+                                 backgrounds, ws, options, cfg, masks, per_view)
     report = _report(per_view, ws, t0)
     report["silhouettes_failed"] = given_up
+    report["resegmented"] = resegmented
     report["views_failed"] = [v["index"] for v in per_view if v.get("failed")]
     if rec.rectifiers:  # the views segmented as resampled to the pinhole camera
         report["rectified"] = {fid: r.describe() for fid, r in rec.rectifiers.items()}
@@ -128,6 +133,40 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
              len(views), report["seconds"], report["n_touching_image_border"],
              report["n_touching_border"])
     return report
+
+
+def _resegment(path: str, rec, views: list, cameras: list, poses: np.ndarray,
+               backgrounds: list, ws, options: SegmentOptions, cfg: Mapping[str, Any],
+               masks: list[np.ndarray], per_view: list[dict]) -> dict[str, Any]:
+    """The views whose foreground the other views' hull rules out, segmented again inside
+    its box (:func:`robo3d.silhouettes.resegment_spurious_views`); ``masks`` and
+    ``per_view`` updated in place where the new mask is kept (its row then says
+    ``resegmented``). Returns the check's report."""
+    from ..silhouettes import resegment_spurious_views
+
+    rows: dict[int, dict] = {}
+
+    def again(v: int, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+        try:
+            mask, rows[v] = _segment_one(path, rec, v, views[v], cameras[v], poses[v],
+                                         backgrounds[v], box, options)
+        except StageError:
+            return None
+        return mask
+
+    new, rep = resegment_spurious_views(
+        masks, cameras, poses, ws, again, carving_cfg=cfg["carving"],
+        exclude=[i for i, r in enumerate(per_view) if r["qa"]["flags"]])
+    for v, mask in new.items():
+        log.warning("view %d (topic %s, t=%d ns): %.0f%% of its foreground lies outside the "
+                    "other views' hull; segmented again inside that hull's box, %.0f%% "
+                    "now", v, views[v].topic, views[v].timestamp_ns,
+                    100 * rep["candidates"][v]["spurious_before"],
+                    100 * rep["candidates"][v]["spurious_after"])
+        masks[v] = mask
+        per_view[v] = rows[v] | {"resegmented": {"box": rep["box"], **rep["candidates"][v]},
+                                 "roi_source": "the other views' hull"}
+    return rep
 
 
 def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,

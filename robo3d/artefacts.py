@@ -513,6 +513,29 @@ def clouds_workspace(clouds: Sequence[SweepCloud]) -> tuple[np.ndarray, np.ndarr
     return np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64)
 
 
+def clouds_up(clouds: Sequence[SweepCloud]) -> tuple[np.ndarray, dict[str, Any]]:
+    """The base's up axis seen from the clouds' sensors (:func:`robo3d.carving.up_axis`):
+    ``+z`` unless the sensors looked from below the object or level along ``z``."""
+    from .carving import up_axis
+
+    pts = [c.points_base for c in clouds if len(c.points_base)]
+    if not pts:
+        return np.array([0.0, 0.0, 1.0]), {"up": "+z", "how": "no points"}
+    return up_axis(np.concatenate(pts),
+                   np.concatenate([c.sensor_origin_base for c in clouds
+                                   if len(c.points_base)]))
+
+
+def clouds_floor(clouds: Sequence[SweepCloud]) -> tuple[np.ndarray, float] | None:
+    """The workspace box's floor: the base's up axis (:func:`clouds_up`) and the height
+    along it of the box's lowest face; None without a box."""
+    box = clouds_workspace(clouds)
+    if box is None:
+        return None
+    up = clouds_up(clouds)[0]
+    return up, float(min(box[0] @ up, box[1] @ up))
+
+
 def in_clouds_workspace(clouds: Sequence[SweepCloud]) -> list[np.ndarray]:
     """Per cloud, whether each point lies in the workspace box (:func:`clouds_workspace`),
     not in the triangulation's margin around it; all True without a box."""
@@ -525,12 +548,13 @@ def in_clouds_workspace(clouds: Sequence[SweepCloud]) -> list[np.ndarray]:
 
 def table_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any]) -> list[np.ndarray]:
     """Per cloud, its points on the table the object stands on: at most
-    ``triangulation.table_above_floor_mm`` above the workspace box's floor, on a surface facing
-    up (normal within ``table_max_tilt_deg``, 45 degrees, of +z; the normals face the
-    sensor). The table's normals come from neighbouring profiles that the robot's error
-    offsets: on random scene 166, 120 of its 281 lie within 25 degrees, 59 more within
-    45. The objects' own points near the floor are their sides: within 45 degrees at most
-    56 of a run's 2,700 on the objects benchmark (user_mesh/7).
+    ``triangulation.table_above_floor_mm`` above the workspace box's floor, on a surface
+    facing up (normal within ``table_max_tilt_deg``, 45 degrees, of up; the normals face the
+    sensor). Up is the base's ``+z`` unless its sensors say otherwise (a robot hung from the
+    ceiling: :func:`clouds_floor`). The table's normals come from neighbouring profiles that
+    the robot's error offsets: on random scene 166, 120 of its 281 lie within 25 degrees, 59
+    more within 45. The objects' own points near the floor are their sides: within 45
+    degrees at most 56 of a run's 2,700 on the objects benchmark (user_mesh/7).
 
     The box's floor is the table (the box contains the object, which stands on it): the
     crop drops the table below the floor, but the robot's error lifts the line the sheet
@@ -548,12 +572,13 @@ def table_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any]) -> list[np
     thinner than the bound lying flat would be left unmeasured (set 0 for such parts).
     Empty masks without a box, or with the bound 0."""
     h = 1e-3 * float(tc["table_above_floor_mm"])
-    box = clouds_workspace(clouds)
-    if box is None or not h > 0:
+    floor = clouds_floor(clouds) if h > 0 else None
+    if floor is None:
         return [np.zeros(len(c), bool) for c in clouds]
-    top = float(box[0][2]) + h
+    up, height = floor
     cos_tilt = float(np.cos(np.radians(float(tc["table_max_tilt_deg"]))))
-    return [(c.points_base[:, 2] <= top) & (c.normals_base[:, 2] >= cos_tilt) for c in clouds]
+    return [(c.points_base @ up <= height + h) & (c.normals_base @ up >= cos_tilt)
+            for c in clouds]
 
 
 def crop_clouds_to_workspace(clouds: Sequence[SweepCloud]) -> list[int]:

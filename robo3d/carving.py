@@ -174,6 +174,68 @@ def reference_box(grid: VoxelGrid, masks: Sequence[np.ndarray],
                     margin=margin)
 
 
+def up_axis(points: np.ndarray, sensor_origins: np.ndarray, *, max_points: int = 20_000
+            ) -> tuple[np.ndarray, dict[str, Any]]:
+    """The axis of ``base`` that points up, away from the table the object stands on,
+    from where the sensors were: ``+z`` (ROS REP 103, every upright robot) unless the
+    sensors say otherwise.
+
+    Sensors look at an object on a table from above, never from under the table. ``d``
+    is the mean unit direction from each point to the sensor that measured it (at most
+    ``max_points`` points, evenly spread). When ``d`` has no upward ``z`` (``d_z <= 0``:
+    a robot hanging from the ceiling, ``base`` upside down) or hardly any (``|d_z| <
+    0.2``) while another axis holds more than half of it (a converter's world frame with
+    ``y`` up), the signed axis nearest ``d`` is up. Otherwise ``+z``: a single sweep
+    from one side, low over the table, leans ``d`` toward that side, and is no reason to
+    leave the base's own convention.
+
+    Returns
+    -------
+    up : (3,) float64
+        A signed unit axis of ``base``.
+    report : dict
+        ``up`` (e.g. ``"+z"``), ``sensor_direction`` (``d``), ``how``.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    o = np.asarray(sensor_origins, dtype=np.float64).reshape(-1, 3)
+    step = max(1, len(p) // max(1, int(max_points)))
+    v = (o - p)[::step]
+    norm = np.linalg.norm(v, axis=1)
+    v = v[np.isfinite(norm) & (norm > 0)] / norm[np.isfinite(norm) & (norm > 0), None]
+    up, how = np.array([0.0, 0.0, 1.0]), "+z: the base frame's convention"
+    d = v.mean(axis=0) if len(v) else np.zeros(3)
+    k = int(np.argmax(np.abs(d)))
+    if len(v) and (d[2] <= 0 or (abs(d[2]) < 0.2 and abs(d[k]) > 0.5)) and abs(d[k]) > 0:
+        up = np.sign(d[k]) * np.eye(3)[k]
+        how = ("the sensors looked from below the object along base z: the signed axis "
+               "nearest their mean direction") if d[2] <= 0 else (
+               "the sensors looked level in base z, along another axis from above")
+    name = "+-"[int(up.sum() < 0)] + "xyz"[int(np.argmax(np.abs(up)))]
+    return up, {"up": name, "sensor_direction": [round(float(x), 4) for x in d],
+                "how": how}
+
+
+def level_rotation(up: np.ndarray) -> np.ndarray:
+    """A rotation ``P`` (3 x 3) from ``base`` to a frame whose ``z`` is ``up`` (a signed
+    axis keeps axis-aligned boxes axis-aligned): ``P @ up = (0, 0, 1)``."""
+    u = np.asarray(up, dtype=np.float64).reshape(3)
+    u = u / np.linalg.norm(u)
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    a = a - (a @ u) * u
+    a /= np.linalg.norm(a)
+    return np.stack([a, np.cross(u, a), u])
+
+
+def turn_box(R: np.ndarray, box: tuple[np.ndarray, np.ndarray]
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The axis-aligned box around ``box`` turned by ``R`` (exact for a signed axis
+    permutation)."""
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in box)
+    corners = np.array([[(lo, hi)[(i >> j) & 1][j] for j in range(3)] for i in range(8)])
+    turned = corners @ np.asarray(R, dtype=np.float64).T
+    return turned.min(axis=0), turned.max(axis=0)
+
+
 def _facing_z(n: np.ndarray, max_tilt_deg: float) -> np.ndarray:
     """Which normals ``(N, 3)`` lie within ``max_tilt_deg`` of ``+z`` or ``-z``."""
     return np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * np.linalg.norm(n, axis=1)

@@ -210,8 +210,15 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     hull read as silhouettes that contradict the laser, so none was dropped: the table
     became measured surface, the measured surface's median 33.6 mm from the truth
     (0.24 mm with the recording's box; ``benchmarks/README.md``, stop 40)."""
-    from ..artefacts import clouds_workspace
-    from ..carving import VoxelGrid, hull_box, support_height, table_height
+    from ..artefacts import clouds_up, clouds_workspace
+    from ..carving import (
+        VoxelGrid,
+        hull_box,
+        level_rotation,
+        support_height,
+        table_height,
+        turn_box,
+    )
 
     if clouds_workspace(clouds) is not None:
         return None
@@ -228,9 +235,13 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     # the floor: where no view sees under the object the hull runs below the table, and
     # closing the surface from it would add a skirt down there; the table the laser saw
     # beside the box is the floor, as a recording's box has it (half a millimetre up)
-    pts = np.concatenate([c.points_base for c in clouds])
-    nrm = np.concatenate([c.normals_base for c in clouds])
-    table = table_height(pts, nrm, box[0], box[1])
+    # heights along the base's up axis (a ceiling robot's base has z down)
+    up, up_report = clouds_up(clouds)
+    P = level_rotation(up)
+    pts = np.concatenate([c.points_base for c in clouds]) @ P.T
+    nrm = np.concatenate([c.normals_base for c in clouds]) @ P.T
+    lvl = turn_box(P, box)
+    table = table_height(pts, nrm, lvl[0], lvl[1])
     beside = "from the laser points beside the box"
     if table is None:  # no point beside a box as wide as the scene (bad masks): the
         # lowest wide horizontal surface the laser saw (random scene 466 of stop 52: the
@@ -238,9 +249,9 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
         table = support_height(pts, nrm)
         beside = "the lowest wide horizontal surface the laser saw"
     floor = "the hull's"
-    if table is not None and box[0][2] < table < 0.5 * (box[0][2] + box[1][2]):
-        box = (np.array([box[0][0], box[0][1], table + 0.0005]), box[1])
-        floor = f"the table's (z = {table:.4f} m, {beside})"
+    if table is not None and lvl[0][2] < table < 0.5 * (lvl[0][2] + lvl[1][2]):
+        box = turn_box(P.T, (np.array([lvl[0][0], lvl[0][1], table + 0.0005]), lvl[1]))
+        floor = f"the table's ({up_report['up']} = {table:.4f} m, {beside})"
     for c in clouds:
         c.report = {**(c.report or {}), "workspace": [box[0].tolist(), box[1].tolist()],
                     "workspace_source": "visual hull", "workspace_margin_m": margin_m}
@@ -249,7 +260,7 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
              np.round(box[1], 4).tolist(), floor)
     return {"box_min": box[0].tolist(), "box_max": box[1].tolist(), "floor": floor,
             "table_z_m": table, "margin": float(ac["workspace_from_hull_margin"]),
-            "min_margin_m": margin_m}
+            "min_margin_m": margin_m, "up": up_report}
 
 
 def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any]:
@@ -264,24 +275,29 @@ def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any
     A small simulated room-lit cell (a blob on a marker table, 3 sweeps, no views): the
     final mesh 30.4 mm from the truth at the median, 100 % of it labelled measured
     (``benchmarks/README.md``, stop 52)."""
-    from ..carving import laser_box
+    from ..artefacts import clouds_up
+    from ..carving import laser_box, level_rotation, turn_box
 
     ac = cfg["alignment"]
     if not ac["workspace_from_laser"]:
         return {"skipped": "alignment.workspace_from_laser is false"}
     margin_m = float(cfg["triangulation"]["workspace_margin_m"])
-    got = laser_box(np.concatenate([c.points_base for c in clouds]),
-                    np.concatenate([c.normals_base for c in clouds]),
+    up, up_report = clouds_up(clouds)  # the table below: along the base's up axis
+    P = level_rotation(up)
+    got = laser_box(np.concatenate([c.points_base for c in clouds]) @ P.T,
+                    np.concatenate([c.normals_base for c in clouds]) @ P.T,
                     np.concatenate([c.frame_index for c in clouds]),
                     np.concatenate([np.full(len(c.points_base), k) for k, c in enumerate(clouds)]),
                     margin=float(ac["workspace_from_hull_margin"]), min_margin_m=margin_m)
     if got is None:
         return {"skipped": "too few laser points above the table to find the object"}
     lo, hi, info = got
+    lo, hi = turn_box(P.T, (lo, hi))
+    info["up"] = up_report
     for c in clouds:
         c.report = {**(c.report or {}), "workspace": [lo.tolist(), hi.tolist()],
                     "workspace_source": "laser", "workspace_margin_m": margin_m}
-    floor = (f"the table's (z = {info['table_z_m']:.4f} m)"
+    floor = (f"the table's ({up_report['up']} = {info['table_z_m']:.4f} m)"
              if info["table_z_m"] is not None else "the object's lowest point (no table seen)")
     log.warning("alignment: the recording has no workspace box, nor do its views give "
                 "one; the box of the object the laser measured, %s .. %s m (floor: %s; %d "
@@ -389,14 +405,15 @@ def _above_floor(clouds: list, pts: np.ndarray) -> np.ndarray:
     """Which of the clouds' points ``pts`` lie above the workspace box's floor by more
     than the triangulation's margin (``workspace_margin_m``, 2 mm when not reported): not
     the table; all of them without a box."""
-    from ..artefacts import clouds_workspace
+    from ..artefacts import clouds_floor
 
-    box = clouds_workspace(clouds)
-    if box is None:
+    floor = clouds_floor(clouds)
+    if floor is None:
         return np.ones(len(pts), bool)
+    up, height = floor
     margin = max([float((c.report or {}).get("workspace_margin_m", 0.002)) for c in clouds]
                  or [0.002])
-    return pts[:, 2] > box[0][2] + margin
+    return pts @ up > height + margin
 
 
 def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],

@@ -156,7 +156,7 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
     before and after the alignment, accuracy and completeness of the fused, final and
     measured meshes, and the sweeps' pose errors (``metrics["skipped"]["poses"]`` when
     ``ground_truth/tf.json`` is missing or cannot be used)."""
-    from ..artefacts import clouds_workspace, load_clouds_npz
+    from ..artefacts import clouds_up, clouds_workspace, load_clouds_npz
     from ..evaluate import cloud_accuracy, completeness, mesh_accuracy, volume_iou
     from ..grid import VoxelGrid
     from ..meshio import read_mesh
@@ -176,8 +176,15 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
     scored = None
     if region is not None:
         scored = (np.asarray(region[0], dtype=np.float64).copy(),
-                  np.asarray(region[1], dtype=np.float64))
-        scored[0][2] += ev["floor_margin_m"]
+                  np.asarray(region[1], dtype=np.float64).copy())
+        # the floor: the box's face down the base's up axis (+z unless the sensors say
+        # otherwise: a ceiling robot's base has z down)
+        up = clouds_up(ali)[0] if ali else np.array([0.0, 0.0, 1.0])
+        k = int(np.argmax(np.abs(up)))
+        if up[k] > 0:
+            scored[0][k] += ev["floor_margin_m"]
+        else:
+            scored[1][k] -= ev["floor_margin_m"]
     ev_out: dict[str, Any] = {
         "region": None if region is None else [region[0].tolist(), region[1].tolist()],
         "region_source": None if region is None else region_source,

@@ -319,9 +319,21 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
 }
 
 
+def _stage_config_keys() -> dict[str, dict[str, tuple[str, ...]]]:
+    """Sections a stage reads only in part: per stage, section -> the keys it reads."""
+    from .silhouettes import RESEGMENT_CARVING_KEYS
+
+    return {"silhouettes": {"carving": RESEGMENT_CARVING_KEYS}}
+
+
 def stage_config(cfg: Mapping[str, Any], stage: str) -> dict[str, Any]:
-    """The part of the (validated) config that ``stage`` reads (:data:`STAGE_CONFIG`)."""
-    return {k: cfg[k] for k in STAGE_CONFIG[stage] if k in cfg}
+    """The part of the (validated) config that ``stage`` reads (:data:`STAGE_CONFIG`; of a
+    section it reads in part, only those keys)."""
+    out = {k: cfg[k] for k in STAGE_CONFIG[stage] if k in cfg}
+    for section, keys in _stage_config_keys().get(stage, {}).items():
+        if isinstance(out.get(section), Mapping):
+            out[section] = {k: out[section][k] for k in keys if k in out[section]}
+    return out
 
 
 #: the keys of metrics.json (at any depth) that describe the run, not the scan: wall-clock

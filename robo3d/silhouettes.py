@@ -1606,6 +1606,13 @@ def segment_view(
     return sil, roi_source
 
 
+#: The ``carving`` keys that :func:`resegment_spurious_views` reads (the silhouettes stage
+#: re-runs when one of them changes, not when the carve's resolution or method does).
+RESEGMENT_CARVING_KEYS = ("box_margin", "outside_image", "behind_camera", "qa_resolution",
+                          "qa_max_missing", "qa_max_spurious", "qa_min_unexplained",
+                          "qa_min_observers", "qa_leave_out")
+
+
 def resegment_spurious_views(
     masks: list[np.ndarray],
     cameras: list[CameraModel],
@@ -1625,7 +1632,8 @@ def resegment_spurious_views(
     plate reach their border or end beside the object, carve it away. Each view is
     scored against the others' hull on the agreement check's coarse grid
     (:func:`robo3d.carving.flag_disagreeing_views`, the config's ``carving.qa_*``, the
-    carving box as the carve places it). A view flagged because more than
+    carving box as the carve places it, the grid ``qa_resolution`` whatever the carve's
+    resolution). A view flagged because more than
     ``qa_max_spurious`` of its foreground lies outside that hull, and that misses no more
     than ``qa_max_missing`` of it, is segmented again by ``segment(view, box)`` with the
     box of the hull of the views not flagged (:func:`robo3d.carving.reference_box`, grown
@@ -1645,7 +1653,7 @@ def resegment_spurious_views(
         ``segment(view, (box_min, box_max))``: the view's mask segmented with that box
         as its workspace, or None when the segmentation failed.
     carving_cfg : mapping
-        The config's ``carving`` section.
+        The config's ``carving`` section (the keys :data:`RESEGMENT_CARVING_KEYS`).
     exclude : sequence of int
         Views already suspect (the segmentation's own QA flags): not in the reference.
 
@@ -1673,7 +1681,8 @@ def resegment_spurious_views(
 
     t0 = time.perf_counter()
     agreement = AgreementOptions.from_config(carving_cfg)
-    carve = CarveOptions.from_config(carving_cfg).replace(min_views_background=1)
+    carve = CarveOptions(outside_image=carving_cfg["outside_image"],
+                         behind_camera=carving_cfg["behind_camera"])
     report: dict[str, Any] = {"checked": False, "candidates": {}, "box": None}
     n = len(masks)
     with_mask = [i for i in range(n) if masks[i].any()]
@@ -1692,8 +1701,7 @@ def resegment_spurious_views(
         except StageError as exc:
             report["why_not"] = f"no carving box: {exc}"
             return {}, report
-    grid = make_grid(lo, hi, resolution=min(agreement.qa_resolution,
-                                            int(carving_cfg["resolution"])))
+    grid = make_grid(lo, hi, resolution=agreement.qa_resolution)
     suspect = {int(e) for e in exclude}
     empty = set(range(n)) - set(with_mask)
     suspect = (suspect if len(suspect) <= n // 2 else set()) | empty

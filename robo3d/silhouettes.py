@@ -42,9 +42,14 @@ D. **Threshold.** ``f`` is heavy-tailed (an object's colours lie at many distanc
    ROI, foreground whose colour lies within 3 Lab units of a segment between two
    background modes is background: the blurred rim of a printed marker (every grey
    between paper and ink) would otherwise close into rings and, filled, into blobs, and a
-   shadow on the table is the table's colour darkened towards the ink. When such pixels
-   are most of the foreground the object itself has those colours (a grey object on a
-   black-and-white table), and only a 2 px band along the background is dropped.
+   shadow on the table is the table's colour darkened towards the ink. So is a background
+   colour darkened towards black, down to ``shadow_darkest`` (0.55) of its Lab
+   coordinates (a shadow on a plain table, where no ink mode lies), when the rest of the
+   foreground is coloured unlike the background (median a*b* distance 8 or more): a
+   grey, white or black object shades through those colours itself and keeps its
+   shadow. When such pixels are most of the foreground the object itself has those
+   colours (a grey object on a black-and-white table), and only a 2 px band along the
+   background is dropped.
    Steps 6-7 follow, with the background's edge ``s_bg`` from the sample pixels below
    ``s``.
 E. **GrabCut** (``grabcut=True``, the pipeline's default): the mask seeds OpenCV's GrabCut
@@ -469,6 +474,8 @@ _SURROUND_RING = 0.4    # ... or along this share of the border ring ...
 _SURROUND_ROUGH = 1.6   # ... is background when at most this many times its flat limit
 _MIN_THRESHOLD = 2.0    # the colour-difference threshold never goes below this (std devs)
 _BLEND_LAB = 3.0        # a colour this close (Lab) to a blend of two background modes is one
+_SHADOW_CHROMA = 8.0    # shadows are dropped only when the object's other colours lie this far
+                        # (median, Lab a*b*) from every background mode's: a coloured object
 
 
 def to_lab(image: np.ndarray, *, name: str = "image") -> np.ndarray:
@@ -716,6 +723,25 @@ def _blend_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]) -
     uniq, inverse = np.unique(keys, return_inverse=True)
     x = np.stack([uniq // (512 * 512), (uniq // 512) % 512 - 256, uniq % 512 - 256], axis=1)
     return _segment_distance(x.astype(np.float32), modes)[inverse.ravel()]
+
+
+def _shadow_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]],
+                     darkest: float) -> np.ndarray:
+    """Distance (Lab units) of colours ``x`` (N, 3) to the nearest background mode darkened
+    towards black down to ``darkest`` of its Lab coordinates (a shadow on it: the same
+    hue, less light); each distinct colour once."""
+    xq = np.rint(np.asarray(x, dtype=np.float32)).astype(np.int64)
+    keys = (xq[:, 0] * 512 + xq[:, 1] + 256) * 512 + xq[:, 2] + 256
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    u = np.stack([uniq // (512 * 512), (uniq // 512) % 512 - 256, uniq % 512 - 256],
+                 axis=1).astype(np.float32)
+    d = np.full(len(u), np.inf, np.float32)
+    for m, _ in modes:
+        a = np.asarray(m, dtype=np.float32)
+        ab = (np.float32(darkest) - 1) * a
+        t = np.clip(((u - a) @ ab) / max(float(ab @ ab), 1e-6), 0.0, 1.0)
+        np.minimum(d, np.linalg.norm(u - a - t[:, None] * ab, axis=1), out=d)
+    return d[inverse.ravel()]
 
 
 def _segment_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]
@@ -1034,8 +1060,9 @@ class SegmentOptions(Options):
 
     The section's other keys (``background_topic``, ``background_max_offset_mm``,
     ``background_max_offset_deg``) are the stage's: which empty-scene image goes with a
-    view. :func:`segment_silhouette` reads the first nine fields; the three ``roi_*``
-    fields say how :func:`segment_view` finds the region it analyses.
+    view. :func:`segment_silhouette` reads the first nine fields and ``shadow_darkest``;
+    the three ``roi_*`` fields say how :func:`segment_view` finds the region it
+    analyses.
 
     Attributes
     ----------
@@ -1076,6 +1103,11 @@ class SegmentOptions(Options):
         (:func:`find_roi`).
     roi_margin_px : int, pixels
         Margin around the projected box or the found region.
+    shadow_darkest : float
+        Automatic polarity with a sample outside the ROI: foreground whose colour is a
+        background colour darkened down to this fraction of its Lab coordinates is a
+        shadow on the table and dropped, when the object's other colours are unlike the
+        background's (:func:`_shadows`); 1 keeps shadows.
     """
 
     section = "segmentation"
@@ -1092,6 +1124,7 @@ class SegmentOptions(Options):
     roi_from_workspace: bool = True
     roi_auto: bool = True
     roi_margin_px: int = 10
+    shadow_darkest: float = 0.55
 
 
 def _check_options(o: SegmentOptions) -> None:
@@ -1111,6 +1144,8 @@ def _check_options(o: SegmentOptions) -> None:
         raise ValueError(f"threshold must be finite, got {o.threshold}")
     if int(o.edge_refine_px) < 0:
         raise ValueError(f"edge_refine_px must be >= 0, got {o.edge_refine_px}")
+    if not 0.0 < float(o.shadow_darkest) <= 1.0:
+        raise ValueError(f"shadow_darkest must be in (0, 1], got {o.shadow_darkest}")
 
 
 def _feature(image: np.ndarray, grey: np.ndarray, background: np.ndarray | None,
@@ -1190,13 +1225,34 @@ def _threshold(f: np.ndarray, box: tuple[int, int, int, int], sample: np.ndarray
     return s, level, local
 
 
+def _shadows(lab: np.ndarray, fg: np.ndarray, modes: list, darkest: float) -> np.ndarray:
+    """The foreground pixels ``fg`` whose colour is a background mode darkened (a shadow
+    on the table: :func:`_shadow_distance` within ``_BLEND_LAB``), when the rest of the
+    foreground is coloured unlike every mode (median a*b* distance at least
+    ``_SHADOW_CHROMA``); none otherwise. A grey, white or black object's own shading
+    holds such colours too (a grey bracket's lit face is the table's grey a little
+    darker); its shadow stays with it, as before."""
+    out = np.zeros_like(fg)
+    if not fg.any():
+        return out
+    out[fg] = _shadow_distance(lab[fg], modes, darkest) <= _BLEND_LAB
+    rest = fg & ~out
+    if not out.any() or not rest.any():
+        return np.zeros_like(fg)
+    ab = np.array([m[1:] for m, _ in modes], dtype=np.float32)
+    chroma = np.linalg.norm(lab[rest][:, None, 1:] - ab[None], axis=2).min(axis=1)
+    return out if float(np.median(chroma)) >= _SHADOW_CHROMA else np.zeros_like(fg)
+
+
 def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: str,
                 sample_kind: str, model: dict, box: tuple[int, int, int, int],
-                blur_sigma_px: float) -> tuple[np.ndarray, np.ndarray | None]:
+                blur_sigma_px: float, shadow_darkest: float = 1.0
+                ) -> tuple[np.ndarray, np.ndarray | None]:
     """The ROI's foreground: ``f`` beyond ``s``, the outline band cut at its local
-    midpoints, and (automatic polarity) blends of two background colours dropped; and
-    those dropped blends (None when none were, or when the object has such colours and
-    only its rims were dropped): background that GrabCut must not take back."""
+    midpoints, and (automatic polarity) blends of two background colours and, beside a
+    coloured object, shadows on the background (:func:`_shadows`, ``shadow_darkest``)
+    dropped; and those dropped (None when none were, or when the object has such colours
+    and only its rims were dropped): background that GrabCut must not take back."""
     u0, v0, u1, v1 = box
     fg_roi = inside < s if mode == "darker" else inside > s
     dropped = None
@@ -1206,16 +1262,20 @@ def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: st
         band = fg_roi & cv2.dilate((~fg_roi).view(np.uint8), kernel).astype(bool)
         fg_roi[band] = (inside[band] < local[band]) if mode == "darker" else \
             (inside[band] > local[band])
-    if mode == "auto" and sample_kind == "outside roi" and len(model.get("modes", ())) > 1:
+    modes = model.get("modes", ()) if mode == "auto" and sample_kind == "outside roi" else ()
+    if len(modes) > 1 or (modes and shadow_darkest < 1):
         # colours between two background colours differ from both but are background: the
         # blurred rim of a printed marker (every grey between paper and ink), which would
         # close into rings and then blobs, and a shadow on the table (the table's colour
         # darkened towards the markers' ink). Such foreground is dropped, unless it is most
         # of the foreground (then the object itself is of those colours, a grey object on
         # a black-and-white table): then only the rims, a 2 px band along the background
+        lab = model["lab"][v0:v1, u0:u1]
         blend = np.zeros_like(fg_roi)
-        blend[fg_roi] = _blend_distance(model["lab"][v0:v1, u0:u1][fg_roi],
-                                        model["modes"]) <= _BLEND_LAB
+        if len(modes) > 1:
+            blend[fg_roi] = _blend_distance(lab[fg_roi], modes) <= _BLEND_LAB
+        if shadow_darkest < 1:
+            blend |= _shadows(lab, fg_roi & ~blend, modes, shadow_darkest)
         if np.count_nonzero(blend) > 0.5 * np.count_nonzero(fg_roi):
             blend &= cv2.dilate((~fg_roi).view(np.uint8), np.ones((5, 5), np.uint8)
                                 ).astype(bool)
@@ -1317,7 +1377,7 @@ def segment_silhouette(
                                            o)
     s, level, local = _threshold(f, box, sample, mode, o)
     fg_roi, dropped = _foreground(f[v0:v1, u0:u1], s, local, mode, sample_kind, model, box,
-                                  o.blur_sigma_px)
+                                  o.blur_sigma_px, o.shadow_darkest)
     if outside is not None:
         fg_roi &= ~outside[v0:v1, u0:u1]
     where = f"(threshold s={s:.2f}, polarity {mode}, roi {box})"

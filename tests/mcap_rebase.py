@@ -64,57 +64,48 @@ def _turn_mesh(R: np.ndarray, data: bytes) -> bytes:
         return p.read_bytes()
 
 
+def _turn_metadata(R: np.ndarray, name: str, meta: dict[str, str]) -> dict[str, str] | None:
+    if name == "robo3d.simulation":
+        return None
+    if "workspace_min" in meta:
+        lo, hi = (np.array(meta[k].split(), float) for k in ("workspace_min", "workspace_max"))
+        corners = np.array([[(lo, hi)[(i >> k) & 1][k] for k in range(3)]
+                            for i in range(8)]) @ R.T
+        meta["workspace_min"] = " ".join(f"{x:.6f}" for x in corners.min(axis=0))
+        meta["workspace_max"] = " ".join(f"{x:.6f}" for x in corners.max(axis=0))
+    return meta
+
+
+def _turn_attachment(R: np.ndarray, name: str, data: bytes) -> bytes:
+    if name == "ground_truth/mesh.ply":
+        return _turn_mesh(R, data)
+    if name == "ground_truth/tf.json":
+        return json.dumps(_turn_json(R, json.loads(data))).encode()
+    if name == "ground_truth/image_poses.json":
+        poses = json.loads(data)
+        for rows in poses.values():
+            for row in rows if isinstance(rows, list) else ():
+                T = np.array(row["T_base_camera"], float).reshape(4, 4)
+                T[:3] = R @ T[:3]
+                row["T_base_camera"] = T.reshape(-1).tolist()
+        return json.dumps(poses).encode()
+    return data
+
+
+def _turn_message(R: np.ndarray, schema: str, encoding: str, data: bytes) -> bytes:
+    if schema not in ("foxglove.FrameTransforms", "foxglove.FrameTransform"):
+        return data
+    if encoding == "protobuf":
+        return _turn_pb(R, data, schema)
+    return json.dumps(_turn_json(R, json.loads(data))).encode()
+
+
 def rebase_recording(src: Path, dst: Path, R: np.ndarray) -> Path:
     """Copy ``src`` to ``dst`` with ``base`` turned by the rotation ``R`` (a point ``x``
     in the old base is ``R @ x`` in the new)."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
+    from mcap_copy import copy_recording
 
     R = np.asarray(R, dtype=np.float64)
-    with open(src, "rb") as f, open(dst, "wb") as g:
-        r = make_reader(f)
-        w = Writer(g)
-        w.start()
-        sids: dict[int, int] = {}
-        cids: dict[int, int] = {}
-        for sch, ch, m in r.iter_messages(log_time_order=False):
-            data = m.data
-            if sch.name in ("foxglove.FrameTransforms", "foxglove.FrameTransform"):
-                data = (_turn_pb(R, data, sch.name) if ch.message_encoding == "protobuf"
-                        else json.dumps(_turn_json(R, json.loads(data))).encode())
-            if sch.id not in sids:
-                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
-            if ch.id not in cids:
-                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id])
-            w.add_message(cids[ch.id], log_time=m.log_time, data=data,
-                          publish_time=m.publish_time)
-        for md in r.iter_metadata():
-            meta = dict(md.metadata)
-            if md.name == "robo3d.simulation":
-                continue
-            if "workspace_min" in meta:
-                lo, hi = (np.array(meta[k].split(), float) for k in ("workspace_min",
-                                                                   "workspace_max"))
-                corners = np.array([[(lo, hi)[(i >> k) & 1][k] for k in range(3)]
-                                    for i in range(8)]) @ R.T
-                meta["workspace_min"] = " ".join(f"{x:.6f}" for x in corners.min(axis=0))
-                meta["workspace_max"] = " ".join(f"{x:.6f}" for x in corners.max(axis=0))
-            w.add_metadata(md.name, meta)
-        for a in r.iter_attachments():
-            data = a.data
-            if a.name == "ground_truth/mesh.ply":
-                data = _turn_mesh(R, data)
-            elif a.name == "ground_truth/tf.json":
-                data = json.dumps(_turn_json(R, json.loads(data))).encode()
-            elif a.name == "ground_truth/image_poses.json":
-                poses = json.loads(data)
-                for rows in poses.values():
-                    for row in rows if isinstance(rows, list) else ():
-                        T = np.array(row["T_base_camera"], float).reshape(4, 4)
-                        T[:3] = R @ T[:3]
-                        row["T_base_camera"] = T.reshape(-1).tolist()
-                data = json.dumps(poses).encode()
-            w.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
-                             media_type=a.media_type, data=data)
-        w.finish()
-    return dst
+    return copy_recording(src, dst, metadata=lambda n, m: _turn_metadata(R, n, dict(m)),
+                          message=lambda s, e, d: _turn_message(R, s, e, d),
+                          attachment=lambda n, d: _turn_attachment(R, n, d))

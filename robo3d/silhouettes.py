@@ -44,12 +44,12 @@ D. **Threshold.** ``f`` is heavy-tailed (an object's colours lie at many distanc
    between paper and ink) would otherwise close into rings and, filled, into blobs, and a
    shadow on the table is the table's colour darkened towards the ink. So is a background
    colour darkened towards black, down to ``shadow_darkest`` (0.55) of its Lab
-   coordinates (a shadow on a plain table, where no ink mode lies), when the rest of the
-   foreground is coloured unlike the background (median a*b* distance 8 or more): a
-   grey, white or black object shades through those colours itself and keeps its
-   shadow. When such pixels are most of the foreground the object itself has those
-   colours (a grey object on a black-and-white table), and only a 2 px band along the
-   background is dropped.
+   coordinates (a shadow on a plain table, where no ink mode lies), when most of the rest
+   of the foreground is coloured unlike the background (a*b* distance 8 or more) or far
+   darker than the darkest shadow (a black object): a grey or white object shades through
+   those colours itself and keeps its shadow. When such pixels are most of the foreground
+   the object itself has those colours (a grey object on a black-and-white table), and
+   only a 2 px band along the background is dropped.
    Steps 6-7 follow, with the background's edge ``s_bg`` from the sample pixels below
    ``s``.
 E. **GrabCut** (``grabcut=True``, the pipeline's default): the mask seeds OpenCV's GrabCut
@@ -476,6 +476,7 @@ _MIN_THRESHOLD = 2.0    # the colour-difference threshold never goes below this 
 _BLEND_LAB = 3.0        # a colour this close (Lab) to a blend of two background modes is one
 _SHADOW_CHROMA = 8.0    # shadows are dropped only when the object's other colours lie this far
                         # (median, Lab a*b*) from every background mode's: a coloured object
+_SHADOW_DARKER = 0.6    # ... or are darker than this times the darkest shadow: a black object
 
 
 def to_lab(image: np.ndarray, *, name: str = "image") -> np.ndarray:
@@ -1227,11 +1228,13 @@ def _threshold(f: np.ndarray, box: tuple[int, int, int, int], sample: np.ndarray
 
 def _shadows(lab: np.ndarray, fg: np.ndarray, modes: list, darkest: float) -> np.ndarray:
     """The foreground pixels ``fg`` whose colour is a background mode darkened (a shadow
-    on the table: :func:`_shadow_distance` within ``_BLEND_LAB``), when the rest of the
-    foreground is coloured unlike every mode (median a*b* distance at least
-    ``_SHADOW_CHROMA``); none otherwise. A grey, white or black object's own shading
-    holds such colours too (a grey bracket's lit face is the table's grey a little
-    darker); its shadow stays with it, as before."""
+    on the table: :func:`_shadow_distance` within ``_BLEND_LAB``), when most of the rest
+    of the foreground is unlike anything a shadow could make: coloured unlike every mode
+    (a*b* distance at least ``_SHADOW_CHROMA``), or darker than the darkest shadow by
+    far (lightness under ``_SHADOW_DARKER`` times it: a black object); none otherwise. A
+    grey or white object's own shading holds the shadow's colours (a grey bracket's lit
+    face is the table's grey a little darker, its shaded face as dark as the darkest
+    shadow); its shadow stays with it, as before."""
     out = np.zeros_like(fg)
     if not fg.any():
         return out
@@ -1240,8 +1243,11 @@ def _shadows(lab: np.ndarray, fg: np.ndarray, modes: list, darkest: float) -> np
     if not out.any() or not rest.any():
         return np.zeros_like(fg)
     ab = np.array([m[1:] for m, _ in modes], dtype=np.float32)
-    chroma = np.linalg.norm(lab[rest][:, None, 1:] - ab[None], axis=2).min(axis=1)
-    return out if float(np.median(chroma)) >= _SHADOW_CHROMA else np.zeros_like(fg)
+    x = lab[rest]
+    chroma = np.linalg.norm(x[:, None, 1:] - ab[None], axis=2).min(axis=1)
+    darker = x[:, 0] < _SHADOW_DARKER * darkest * min(float(m[0]) for m, _ in modes)
+    unlike = float(np.mean((chroma >= _SHADOW_CHROMA) | darker))
+    return out if unlike >= 0.5 else np.zeros_like(fg)
 
 
 def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: str,

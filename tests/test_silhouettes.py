@@ -887,8 +887,9 @@ def _shadow_scene(obj_rgb, seed: int = 5) -> tuple[np.ndarray, np.ndarray, np.nd
 def test_a_shadow_on_a_plain_table_is_background_beside_a_coloured_object():
     """A coloured object's shadow on a plain table is the table's colour darkened (no
     ink mode to blend towards): it was object (random scenes on plain tables, mean view
-    IoU 0.83-0.93 -> 0.93-0.998 with it dropped, ``benchmarks/README.md`` stop 53). A grey
-    object shades through the same colours itself, so beside it the shadow stays."""
+    IoU 0.83-0.93 -> 0.93-0.998 with it dropped, ``benchmarks/README.md`` stop 53); so
+    does a black object's. A grey object shades through the same colours itself, so
+    beside it the shadow stays."""
     roi = (40, 15, 190, 150)
     opts = SegmentOptions(edge_refine_px=0)
     keep = opts.replace(shadow_darkest=1.0)
@@ -897,6 +898,10 @@ def test_a_shadow_on_a_plain_table_is_background_beside_a_coloured_object():
     kept = segment_silhouette(green, roi=roi, options=keep).mask
     assert _iou(dropped, obj) > 0.97, _iou(dropped, obj)
     assert kept[shadow].mean() > 0.8 and _iou(kept, obj) < 0.85, _iou(kept, obj)
+    # a black object is far darker than any shadow: its shadow goes too
+    black, obj, shadow = _shadow_scene([0.05, 0.05, 0.05])
+    assert _iou(segment_silhouette(black, roi=roi, options=opts).mask, obj) > 0.97
+    assert segment_silhouette(black, roi=roi, options=keep).mask[shadow].mean() > 0.8
     # a grey object: the same masks with and without the shadow model
     grey, obj, shadow = _shadow_scene([0.45, 0.45, 0.44])
     assert np.array_equal(segment_silhouette(grey, roi=roi, options=opts).mask,

@@ -1108,7 +1108,7 @@ class SegmentOptions(Options):
         Automatic polarity with a sample outside the ROI: foreground whose colour is a
         background colour darkened down to this fraction of its Lab coordinates is a
         shadow on the table and dropped, when the object's other colours are unlike the
-        background's (:func:`_shadows`); 1 keeps shadows.
+        background's or far darker (:func:`_shadows`); 1 keeps shadows.
     """
 
     section = "segmentation"
@@ -1256,7 +1256,7 @@ def _foreground(inside: np.ndarray, s: float, local: np.ndarray | None, mode: st
                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The ROI's foreground: ``f`` beyond ``s``, the outline band cut at its local
     midpoints, and (automatic polarity) blends of two background colours and, beside a
-    coloured object, shadows on the background (:func:`_shadows`, ``shadow_darkest``)
+    coloured or black object, shadows on the background (:func:`_shadows`, ``shadow_darkest``)
     dropped; and those dropped (None when none were, or when the object has such colours
     and only its rims were dropped): background that GrabCut must not take back."""
     u0, v0, u1, v1 = box

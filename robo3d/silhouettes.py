@@ -1877,9 +1877,12 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     if step == 1 and cfg["segmentation"]["resegment_spurious"]:
         redone: dict[int, Silhouette] = {}
 
-        def again(v: int, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-            redone[v] = segment_view(images[v], cameras[v], poses[v], box,
-                                     options=options)[0]
+        def again(v: int, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+            try:
+                redone[v] = segment_view(images[v], cameras[v], poses[v], box,
+                                         options=options)[0]
+            except StageError:  # the first mask stays, as in the stage
+                return None
             return redone[v].mask
 
         t0 = time.perf_counter()

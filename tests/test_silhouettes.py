@@ -908,3 +908,32 @@ def test_a_shadow_on_a_plain_table_is_background_beside_a_coloured_object():
                           segment_silhouette(grey, roi=roi, options=keep).mask)
     with pytest.raises(ValueError, match="shadow_darkest"):
         segment_silhouette(grey, roi=roi, options=opts.replace(shadow_darkest=0.0))
+
+
+def test_scoring_keeps_the_first_mask_when_segmenting_again_fails(tmp_path, monkeypatch):
+    """The box-less turntable cup's plate views are segmented again inside the others'
+    hull; when that fails, the scoring function (like the stage) keeps the first mask
+    instead of raising (it raised on a hard scene of a black bracket on a black-marker
+    table)."""
+    import robo3d.silhouettes as sil
+    from robo3d.config import default_config
+    from robo3d.errors import StageError
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    rec = tmp_path / "cup.mcap"
+    simulate_recording(rec, "cup", seed=34, params=SimulationParams.cell(
+        object_color="red", markers="aruco", small=True, views=16, sweeps=0,
+        turntable=True, workspace_box=False))
+    real = sil.segment_view
+
+    def no_second_try(image, camera, pose, workspace=None, *a, **k):
+        if workspace is not None:
+            raise StageError("no pixel passes the threshold")
+        return real(image, camera, pose, workspace, *a, **k)
+
+    monkeypatch.setattr(sil, "segment_view", no_second_try)
+    got = sil.score_recording_silhouettes(str(rec))
+    cfg = default_config()
+    cfg["segmentation"]["resegment_spurious"] = False
+    first = sil.score_recording_silhouettes(str(rec), cfg)
+    assert got["iou"] == first["iou"] and got["iou_min"] < 0.6 and not got["failed"]

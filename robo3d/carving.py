@@ -1225,6 +1225,19 @@ def _mask_scores(mask: np.ndarray, hull_px: np.ndarray, unknown_px: np.ndarray, 
             "unknown_px": int(np.count_nonzero(unknown_px)), "tolerance_px": tol}
 
 
+def reference_suspects(masks: Sequence[np.ndarray], flagged: Sequence[int]
+                       ) -> tuple[list[int], bool]:
+    """The views kept out of the agreement check's reference (``exclude`` of
+    :func:`flag_disagreeing_views`): those the segmentation's own checks ``flagged``,
+    unless more than half were (then every view with a mask scores the others), and those
+    with an empty mask. Returns them sorted, and whether the flagged ones were too many."""
+    n = len(masks)
+    flagged = {int(v) for v in flagged}
+    too_many = len(flagged) > n // 2
+    empty = {i for i in range(n) if not np.asarray(masks[i]).any()}
+    return sorted((set() if too_many else flagged) | empty), too_many
+
+
 def flag_disagreeing_views(
     grid: VoxelGrid,
     masks: Sequence[np.ndarray],

@@ -715,34 +715,38 @@ def colour_difference(
     return d
 
 
+def _per_colour(x: np.ndarray, distance) -> np.ndarray:
+    """``distance`` of colours ``x`` (N, 3, Lab) evaluated once per distinct colour (1 Lab
+    unit bins: a ROI holds far fewer colours than pixels), (N,)."""
+    xq = np.rint(np.asarray(x, dtype=np.float32)).astype(np.int64)
+    keys = (xq[:, 0] * 512 + xq[:, 1] + 256) * 512 + xq[:, 2] + 256
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    u = np.stack([uniq // (512 * 512), (uniq // 512) % 512 - 256, uniq % 512 - 256], axis=1)
+    return distance(u.astype(np.float32))[inverse.ravel()]
+
+
 def _blend_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     """Distance (Lab units) of colours ``x`` (N, 3) to the nearest segment between two
     background modes (the colours of a blurred edge between two background colours, or
     of a background colour darkened towards another by a shadow); all pairs at once."""
-    xq = np.rint(np.asarray(x, dtype=np.float32)).astype(np.int64)  # 1 Lab unit bins:
-    keys = (xq[:, 0] * 512 + xq[:, 1] + 256) * 512 + xq[:, 2] + 256   # each colour once
-    uniq, inverse = np.unique(keys, return_inverse=True)
-    x = np.stack([uniq // (512 * 512), (uniq // 512) % 512 - 256, uniq % 512 - 256], axis=1)
-    return _segment_distance(x.astype(np.float32), modes)[inverse.ravel()]
+    return _per_colour(x, lambda u: _segment_distance(u, modes))
 
 
 def _shadow_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]],
                      darkest: float) -> np.ndarray:
     """Distance (Lab units) of colours ``x`` (N, 3) to the nearest background mode darkened
     towards black down to ``darkest`` of its Lab coordinates (a shadow on it: the same
-    hue, less light); each distinct colour once."""
-    xq = np.rint(np.asarray(x, dtype=np.float32)).astype(np.int64)
-    keys = (xq[:, 0] * 512 + xq[:, 1] + 256) * 512 + xq[:, 2] + 256
-    uniq, inverse = np.unique(keys, return_inverse=True)
-    u = np.stack([uniq // (512 * 512), (uniq // 512) % 512 - 256, uniq % 512 - 256],
-                 axis=1).astype(np.float32)
-    d = np.full(len(u), np.inf, np.float32)
-    for m, _ in modes:
-        a = np.asarray(m, dtype=np.float32)
-        ab = (np.float32(darkest) - 1) * a
-        t = np.clip(((u - a) @ ab) / max(float(ab @ ab), 1e-6), 0.0, 1.0)
-        np.minimum(d, np.linalg.norm(u - a - t[:, None] * ab, axis=1), out=d)
-    return d[inverse.ravel()]
+    hue, less light)."""
+    def darkened(u: np.ndarray) -> np.ndarray:
+        d = np.full(len(u), np.inf, np.float32)
+        for m, _ in modes:  # a few modes
+            a = np.asarray(m, dtype=np.float32)
+            ab = (np.float32(darkest) - 1) * a
+            t = np.clip(((u - a) @ ab) / max(float(ab @ ab), 1e-6), 0.0, 1.0)
+            np.minimum(d, np.linalg.norm(u - a - t[:, None] * ab, axis=1), out=d)
+        return d
+
+    return _per_colour(x, darkened)
 
 
 def _segment_distance(x: np.ndarray, modes: list[tuple[np.ndarray, np.ndarray]]
@@ -1741,6 +1745,7 @@ def resegment_spurious_views(
         box_from_silhouettes,
         flag_disagreeing_views,
         reference_box,
+        reference_suspects,
         view_agreement,
     )
     from .grid import make_grid
@@ -1768,9 +1773,7 @@ def resegment_spurious_views(
             report["why_not"] = f"no carving box: {exc}"
             return {}, report
     grid = make_grid(lo, hi, resolution=agreement.qa_resolution)
-    suspect = {int(e) for e in exclude}
-    empty = set(range(n)) - set(with_mask)
-    suspect = (suspect if len(suspect) <= n // 2 else set()) | empty
+    suspect = set(reference_suspects(masks, exclude)[0])
     qa = flag_disagreeing_views(grid, masks, cameras, T_base_cameras, options=agreement,
                                 carve=carve, exclude=sorted(suspect))
     report["checked"] = True
@@ -1790,28 +1793,22 @@ def resegment_spurious_views(
         m = segment(s["view"], box)
         if m is not None and m.any():
             tried[s["view"]] = m
+    after = view_agreement(grid, [tried.get(i, masks[i]) for i in range(n)], cameras,
+                           T_base_cameras, reference=reference, carve=carve,
+                           min_observers=agreement.qa_min_observers) if tried else []
     new: dict[int, np.ndarray] = {}
-    if tried:
-        trial = [tried.get(i, masks[i]) for i in range(n)]
-        after = view_agreement(grid, trial, cameras, T_base_cameras, reference=reference,
-                               carve=carve, min_observers=agreement.qa_min_observers)
-        for s in cand:
-            v = s["view"]
-            a = after[v] if v in tried else {}
-            ok = (v in tried and a["spurious_fraction"] is not None
-                  and a["spurious_fraction"] < s["spurious_fraction"]
-                  and a["missing_fraction"] is not None and a["missing_fraction"] <= max_mi)
-            report["candidates"][v] = {
-                "spurious_before": s["spurious_fraction"],
-                "missing_before": s["missing_fraction"],
-                "spurious_after": a.get("spurious_fraction"),
-                "missing_after": a.get("missing_fraction"), "accepted": bool(ok)}
-            if ok:
-                new[v] = tried[v]
-    else:
-        report["candidates"] = {s["view"]: {"spurious_before": s["spurious_fraction"],
-                                            "missing_before": s["missing_fraction"],
-                                            "accepted": False} for s in cand}
+    for s in cand:
+        v = s["view"]
+        a = after[v] if v in tried else {}
+        ok = (a.get("spurious_fraction") is not None
+              and a["spurious_fraction"] < s["spurious_fraction"]
+              and a.get("missing_fraction") is not None and a["missing_fraction"] <= max_mi)
+        report["candidates"][v] = {
+            "spurious_before": s["spurious_fraction"], "missing_before": s["missing_fraction"],
+            "spurious_after": a.get("spurious_fraction"),
+            "missing_after": a.get("missing_fraction"), "accepted": bool(ok)}
+        if ok:
+            new[v] = tried[v]
     report["time_s"] = round(time.perf_counter() - t0, 3)
     return new, report
 

@@ -68,11 +68,12 @@ def _turn_metadata(R: np.ndarray, name: str, meta: dict[str, str]) -> dict[str, 
     if name == "robo3d.simulation":
         return None
     if "workspace_min" in meta:
-        lo, hi = (np.array(meta[k].split(), float) for k in ("workspace_min", "workspace_max"))
-        corners = np.array([[(lo, hi)[(i >> k) & 1][k] for k in range(3)]
-                            for i in range(8)]) @ R.T
-        meta["workspace_min"] = " ".join(f"{x:.6f}" for x in corners.min(axis=0))
-        meta["workspace_max"] = " ".join(f"{x:.6f}" for x in corners.max(axis=0))
+        from robo3d.carving import turn_box
+
+        lo, hi = turn_box(R, [np.array(meta[k].split(), float)
+                              for k in ("workspace_min", "workspace_max")])
+        meta["workspace_min"] = " ".join(f"{x:.6f}" for x in lo)
+        meta["workspace_max"] = " ".join(f"{x:.6f}" for x in hi)
     return meta
 
 

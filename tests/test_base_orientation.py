@@ -56,6 +56,7 @@ def test_table_points_of_an_upside_down_base() -> None:
     """The table's points at the box's floor, facing up, are the same in a ceiling
     robot's base (z down) as in an upright one's."""
     from robo3d.artefacts import SweepCloud, table_points
+    from robo3d.carving import turn_box
 
     rng = np.random.default_rng(1)
     table = np.c_[rng.uniform(-0.05, 0.05, (400, 2)), rng.uniform(0, 0.001, 400)]
@@ -66,9 +67,7 @@ def test_table_points_of_an_upside_down_base() -> None:
     tc = {"table_above_floor_mm": 2.0, "table_max_tilt_deg": 45.0}
     got = []
     for R in (np.eye(3), DOWN, Y_UP):
-        lo, hi = np.array([-0.06, -0.06, 0.0]), np.array([0.06, 0.06, 0.05])
-        corners = np.array([[(lo, hi)[(i >> j) & 1][j] for j in range(3)] for i in range(8)])
-        box = (corners @ R.T).min(axis=0), (corners @ R.T).max(axis=0)
+        box = turn_box(R, (np.array([-0.06, -0.06, 0.0]), np.array([0.06, 0.06, 0.05])))
         c = SweepCloud(points_base=pts @ R.T, normals_base=nrm @ R.T,
                        frame_index=np.zeros(800, np.int64), confidence=np.ones(800),
                        sweep=0, sensor_origin_base=origin @ R.T,

@@ -121,6 +121,7 @@ def _apply_corrections(clouds: list, result, centres: list) -> list[np.ndarray]:
     (``correction`` at the sweep's middle frame, ``correction_model``, ``flagged``), and
     return the corrections at the middle frames. A turning sweep (``centres[k]`` not
     None) is corrected as a rigid body about its centre (:func:`_turning_centres`)."""
+    from ..registration import apply_correction
     from ..transforms import correction_at
 
     corrections = []
@@ -139,8 +140,6 @@ def _apply_corrections(clouds: list, result, centres: list) -> list[np.ndarray]:
         if result is not None and result.rotations is None:
             p, o, n = result.apply(k, c.points_base, c.sensor_origin_base, c.normals_base)
         elif centres[k] is not None:  # a turning sweep: rigid about its centre
-            from ..registration import apply_correction
-
             about = centres[k]
             at = np.broadcast_to(about, c.points_base.shape)
             p, _, n = apply_correction(c.points_base, at, rot, tr, c.normals_base)
@@ -149,8 +148,6 @@ def _apply_corrections(clouds: list, result, centres: list) -> list[np.ndarray]:
                                  tr)[0]
             o_mid = about
         else:
-            from ..registration import apply_correction
-
             p, o, n = apply_correction(c.points_base, c.sensor_origin_base, rot, tr,
                                        c.normals_base)
         C_mid = correction_at(o_mid, rot, tr)

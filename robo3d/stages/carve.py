@@ -285,7 +285,13 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
     """Score every view against the other views' hull and choose the views to leave out
     (see :func:`stage_carve`); with fewer than 4 views, or ``carving.qa_resolution`` 0,
     nothing is scored."""
-    from ..carving import AgreementOptions, CarveOptions, flag_disagreeing_views, make_grid
+    from ..carving import (
+        AgreementOptions,
+        CarveOptions,
+        flag_disagreeing_views,
+        make_grid,
+        reference_suspects,
+    )
 
     qa_opts = AgreementOptions.from_config(cc)
     n = len(cameras)
@@ -296,13 +302,10 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
         out["why_not"] = ("carving.qa_resolution is 0" if qa_opts.qa_resolution == 0 else
                           f"{n} views: too few for the others to outvote one")
         return out
-    exclude = sorted(seg_flags)
-    empty = [i for i in range(n) if not masks[i].any()]
-    if len(exclude) > n // 2:
+    exclude, too_many = reference_suspects(masks, seg_flags)
+    if too_many:
         log.warning("the segmentation flagged %d of %d views: too many to leave the "
-                    "reference; all views with a mask score each other", len(exclude), n)
-        exclude = empty
-    exclude = sorted(set(exclude) | set(empty))
+                    "reference; all views with a mask score each other", len(seg_flags), n)
     grid = make_grid(box_min, box_max, resolution=min(qa_opts.qa_resolution,
                                                       cc["resolution"]))
     # the masks are scored against the others' exact hull whatever k the carve uses: a

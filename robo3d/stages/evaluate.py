@@ -157,6 +157,7 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
     measured meshes, and the sweeps' pose errors (``metrics["skipped"]["poses"]`` when
     ``ground_truth/tf.json`` is missing or cannot be used)."""
     from ..artefacts import clouds_up, clouds_workspace, load_clouds_npz
+    from ..carving import level_rotation, turn_box
     from ..evaluate import cloud_accuracy, completeness, mesh_accuracy, volume_iou
     from ..grid import VoxelGrid
     from ..meshio import read_mesh
@@ -175,16 +176,11 @@ def _surface_evaluation(inputs: Mapping[str, str], rec, truth, cfg: Mapping[str,
                          "the visual hull's box (align.json workspace_from_hull)")
     scored = None
     if region is not None:
-        scored = (np.asarray(region[0], dtype=np.float64).copy(),
-                  np.asarray(region[1], dtype=np.float64).copy())
-        # the floor: the box's face down the base's up axis (+z unless the sensors say
-        # otherwise: a ceiling robot's base has z down)
-        up = clouds_up(ali)[0] if ali else np.array([0.0, 0.0, 1.0])
-        k = int(np.argmax(np.abs(up)))
-        if up[k] > 0:
-            scored[0][k] += ev["floor_margin_m"]
-        else:
-            scored[1][k] -= ev["floor_margin_m"]
+        # the floor raised: the box's face down the base's up axis (+z unless the sensors
+        # say otherwise: a ceiling robot's base has z down), in the level frame
+        P = level_rotation(clouds_up(ali)[0] if ali else np.array([0.0, 0.0, 1.0]))
+        lo, hi = turn_box(P, region)
+        scored = turn_box(P.T, (lo + np.array([0.0, 0.0, ev["floor_margin_m"]]), hi))
     ev_out: dict[str, Any] = {
         "region": None if region is None else [region[0].tolist(), region[1].tolist()],
         "region_source": None if region is None else region_source,

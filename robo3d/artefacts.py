@@ -107,12 +107,16 @@ class Silhouettes:
         (None in files written before the QA).
     workspace : ((3,), (3,)) float64, metres, or None
         The recording's workspace box in ``base``.
+    laser_seeded : (V,) bool or None
+        The views segmented again from the laser's points because their first mask left
+        many of them outside (:func:`robo3d.silhouettes.resegment_laser_contradicted`;
+        None in older files and in recordings without laser frames).
 
     The file (``np.savez_compressed``): ``masks`` packed 8 pixels a byte along each row
     (``np.packbits(axis=-1)``) with their ``mask_shape`` (V, H, W), ``T_base_camera``,
-    ``stamps_ns``, ``qa_flagged``, the cameras as ``K`` (V, 3, 3), ``D`` (V, 5),
-    ``image_size`` (V, 2: width, height) and ``frame_ids``, and ``workspace_min``,
-    ``workspace_max`` when there is a box.
+    ``stamps_ns``, ``qa_flagged``, ``laser_seeded`` (when known), the cameras as ``K``
+    (V, 3, 3), ``D`` (V, 5), ``image_size`` (V, 2: width, height) and ``frame_ids``, and
+    ``workspace_min``, ``workspace_max`` when there is a box.
     """
 
     masks: np.ndarray
@@ -121,12 +125,14 @@ class Silhouettes:
     cameras: list[CameraModel]
     qa_flagged: np.ndarray | None = None
     workspace: tuple[np.ndarray, np.ndarray] | None = None
+    laser_seeded: np.ndarray | None = None
 
     @classmethod
     def from_views(cls, masks: Sequence[np.ndarray], T_base_camera: np.ndarray,
                    stamps_ns: Sequence[int], cameras: list[CameraModel],
                    qa_flagged: Sequence[bool],
-                   workspace: tuple[np.ndarray, np.ndarray] | None = None) -> Silhouettes:
+                   workspace: tuple[np.ndarray, np.ndarray] | None = None,
+                   laser_seeded: Sequence[bool] | None = None) -> Silhouettes:
         """The artefact of one mask per view (of the views' own sizes, padded to the
         largest)."""
         sizes = {m.shape for m in masks}
@@ -140,7 +146,9 @@ class Silhouettes:
                 stack[i, : m.shape[0], : m.shape[1]] = m
         return cls(masks=stack, T_base_camera=T_base_camera,
                    stamps_ns=np.array(stamps_ns, dtype=np.int64), cameras=cameras,
-                   qa_flagged=np.array(qa_flagged, dtype=bool), workspace=workspace)
+                   qa_flagged=np.array(qa_flagged, dtype=bool), workspace=workspace,
+                   laser_seeded=None if laser_seeded is None
+                   else np.array(laser_seeded, dtype=bool))
 
     def view_masks(self) -> list[np.ndarray]:
         """Each view's mask at its camera's size, (H_i, W_i) bool."""
@@ -152,6 +160,8 @@ class Silhouettes:
                "T_base_camera": self.T_base_camera, "stamps_ns": self.stamps_ns}
         if self.qa_flagged is not None:
             out["qa_flagged"] = self.qa_flagged
+        if self.laser_seeded is not None:
+            out["laser_seeded"] = self.laser_seeded
         return {**out, **camera_arrays(self.cameras), **workspace_arrays(self.workspace)}
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -173,7 +183,7 @@ class Silhouettes:
                                 f"{shape}")
         return cls(masks=masks, T_base_camera=d["T_base_camera"], stamps_ns=d["stamps_ns"],
                    cameras=cameras_from(d), qa_flagged=d.get("qa_flagged"),
-                   workspace=workspace_from(d))
+                   workspace=workspace_from(d), laser_seeded=d.get("laser_seeded"))
 
 
 # --- visual hull (hull.npz) ----------------------------------------------------------
@@ -579,6 +589,55 @@ def table_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any]) -> list[np
     cos_tilt = float(np.cos(np.radians(float(tc["table_max_tilt_deg"]))))
     return [(c.points_base @ up <= height + h) & (c.normals_base @ up >= cos_tilt)
             for c in clouds]
+
+
+def clouds_laser_box(clouds: Sequence[SweepCloud], *, margin: float, min_margin_m: float
+                     ) -> tuple[np.ndarray, np.ndarray, dict[str, Any], np.ndarray] | None:
+    """The box of the object the laser measured, standing on the table it measured beside
+    it (:func:`robo3d.carving.laser_box`), in the level frame of the base's up axis
+    (:func:`clouds_up`, :func:`robo3d.carving.level_rotation`): ``(lo, hi, info, P)``
+    with ``P`` the rotation base -> level frame and ``info["up"]`` the up axis's report;
+    None when too few points stand above the table."""
+    from .carving import laser_box, level_rotation
+
+    up, up_report = clouds_up(clouds)
+    P = level_rotation(up)
+    got = laser_box(np.concatenate([c.points_base for c in clouds]) @ P.T,
+                    np.concatenate([c.normals_base for c in clouds]) @ P.T,
+                    np.concatenate([c.frame_index for c in clouds]),
+                    np.concatenate([np.full(len(c.points_base), k) for k, c in enumerate(clouds)]),
+                    margin=margin, min_margin_m=min_margin_m)
+    if got is None:
+        return None
+    lo, hi, info = got
+    return lo, hi, {**info, "up": up_report}, P
+
+
+def object_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any], *,
+                  box_margin: float) -> tuple[np.ndarray, np.ndarray, str]:
+    """The laser's points on the object as the triangulation placed them (the robot's
+    poses): inside the workspace box and not on the table (:func:`table_points`, the
+    config's ``triangulation`` section ``tc``); without a box, inside the box of the object
+    the laser measured (:func:`robo3d.carving.laser_box`, grown by ``box_margin``, along
+    the base's up axis), which leaves the table and a wall out. Returns the points
+    ``(N, 3)``, their laser frames ``(N,)`` and where the box came from (``"workspace"``,
+    ``"laser"``, or ``"none"`` with no points when the laser found no object)."""
+    pts = [c.points_base for c in clouds]
+    if not any(len(p) for p in pts):
+        return np.zeros((0, 3)), np.zeros(0, np.int64), "none"
+    frames = np.concatenate([c.frame_index for c in clouds]).astype(np.int64)
+    if clouds_workspace(clouds) is not None:
+        keep = np.concatenate([inside & ~table for inside, table in
+                               zip(in_clouds_workspace(clouds), table_points(clouds, tc),
+                                   strict=True)])
+        return np.concatenate(pts)[keep], frames[keep], "workspace"
+    got = clouds_laser_box(clouds, margin=box_margin, min_margin_m=float(tc["workspace_margin_m"]))
+    if got is None:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), "none"
+    lo, hi, _, P = got
+    level = np.concatenate(pts) @ P.T
+    keep = np.all((level >= lo) & (level <= hi), axis=1)
+    return np.concatenate(pts)[keep], frames[keep], "laser"
 
 
 def crop_clouds_to_workspace(clouds: Sequence[SweepCloud]) -> list[int]:

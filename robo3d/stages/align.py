@@ -272,25 +272,20 @@ def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any
     A small simulated room-lit cell (a blob on a marker table, 3 sweeps, no views): the
     final mesh 30.4 mm from the truth at the median, 100 % of it labelled measured
     (``benchmarks/README.md``, stop 52)."""
-    from ..artefacts import clouds_up
-    from ..carving import laser_box, level_rotation, turn_box
+    from ..artefacts import clouds_laser_box
+    from ..carving import turn_box
 
     ac = cfg["alignment"]
     if not ac["workspace_from_laser"]:
         return {"skipped": "alignment.workspace_from_laser is false"}
     margin_m = float(cfg["triangulation"]["workspace_margin_m"])
-    up, up_report = clouds_up(clouds)  # the table below: along the base's up axis
-    P = level_rotation(up)
-    got = laser_box(np.concatenate([c.points_base for c in clouds]) @ P.T,
-                    np.concatenate([c.normals_base for c in clouds]) @ P.T,
-                    np.concatenate([c.frame_index for c in clouds]),
-                    np.concatenate([np.full(len(c.points_base), k) for k, c in enumerate(clouds)]),
-                    margin=float(ac["workspace_from_hull_margin"]), min_margin_m=margin_m)
+    got = clouds_laser_box(clouds, margin=float(ac["workspace_from_hull_margin"]),
+                           min_margin_m=margin_m)
     if got is None:
         return {"skipped": "too few laser points above the table to find the object"}
-    lo, hi, info = got
+    lo, hi, info, P = got
+    up_report = info["up"]
     lo, hi = turn_box(P.T, (lo, hi))
-    info["up"] = up_report
     for c in clouds:
         c.report = {**(c.report or {}), "workspace": [lo.tolist(), hi.tolist()],
                     "workspace_source": "laser", "workspace_margin_m": margin_m}
@@ -413,6 +408,27 @@ def _above_floor(clouds: list, pts: np.ndarray) -> np.ndarray:
     return pts @ up > height + margin
 
 
+def _silhouette_flags(path: str) -> tuple[np.ndarray | None, list[int]]:
+    """From ``silhouettes.npz``: the views the QA flagged (None in older files) and the
+    views segmented again from the laser's points (``laser_seeded``)."""
+    with np.load(path) as z:
+        qa = z["qa_flagged"].astype(bool) if "qa_flagged" in z.files else None
+        seeded = (np.flatnonzero(z["laser_seeded"]).tolist() if "laser_seeded" in z.files
+                  else [])
+    return qa, seeded
+
+
+def _laser_seeded_skip(seeded: list[int], n_all: int) -> dict[str, Any]:
+    """The report of the silhouette test skipped because views were segmented again from
+    the laser's points (their first masks left many outside): the views proved unable to
+    judge the laser in this recording (their other masks are as doubtful), as when they
+    contradict it as a whole."""
+    return {"skipped": f"{len(seeded)} view(s) were segmented again from the laser's "
+                       "points, which their first masks contradicted: the silhouettes do "
+                       "not judge the laser here; none is dropped",
+            "laser_seeded_views": seeded, "dropped": 0, "points": n_all}
+
+
 def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
                          ac: Mapping[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
     """Drop the aligned points that lie outside a view's silhouette (in place).
@@ -448,8 +464,9 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     n_all = sum(len(c) for c in clouds)
     if n_all == 0:
         return {"skipped": "no points"}, np.zeros((0, 3))
-    with np.load(inputs["silhouettes"]) as z:
-        qa = z["qa_flagged"].astype(bool) if "qa_flagged" in z.files else None
+    qa, seeded = _silhouette_flags(inputs["silhouettes"])
+    if seeded:  # masks segmented again from the laser's points cannot judge them
+        return _laser_seeded_skip(seeded, n_all), np.zeros((0, 3))
     idx = [i for i in range(len(views.cameras)) if qa is None or not qa[i]]
     pts = np.concatenate([c.points_base for c in clouds])
     tol_px, tol_m = float(ac["outside_hull_px"]), 1e-3 * float(ac["outside_hull_mm"])

@@ -187,6 +187,11 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     left = metrics.get("views_left_out") or []
     if left:
         notes.append(f"{len(left)} view(s) left out of the hull by the agreement check")
+    seeded = _get(metrics, ("stages", "silhouettes", "laser_seeded", "candidates")) or {}
+    n_seeded = sum(bool(isinstance(c, dict) and c.get("accepted")) for c in seeded.values())
+    if n_seeded:
+        notes.append(f"{n_seeded} view(s) segmented again from where the laser measured "
+                     "the object (the colour model's masks left its points outside)")
     failed = _get(metrics, ("stages", "silhouettes", "views_failed")) or []
     if failed:
         notes.append(f"{len(failed)} view(s) gave no silhouette and were not used")

@@ -304,7 +304,8 @@ def _setup_logging(log_path: str | None, rec: str = "", stage: str = "") -> None
 #: The config sections each stage reads (its rule passes them as ``params``, so that
 #: changing one re-runs exactly the stages that read it, and those after them).
 STAGE_CONFIG: dict[str, tuple[str, ...]] = {
-    "silhouettes": ("segmentation", "carving", "topics", "frames", "timing", "rerun", "seed"),
+    "silhouettes": ("segmentation", "carving", "triangulation", "alignment", "topics", "frames",
+                    "timing", "rerun", "seed"),
     "carve": ("carving", "topics", "frames", "timing", "rerun", "seed"),
     "stripes": ("stripes", "triangulation", "topics", "frames", "timing", "rerun", "seed"),
     "triangulate": ("triangulation", "topics", "frames", "timing", "rerun", "seed"),
@@ -321,9 +322,11 @@ STAGE_CONFIG: dict[str, tuple[str, ...]] = {
 
 def _stage_config_keys() -> dict[str, dict[str, tuple[str, ...]]]:
     """Sections a stage reads only in part: per stage, section -> the keys it reads."""
-    from .silhouettes import RESEGMENT_CARVING_KEYS
+    from .silhouettes import LASER_ALIGNMENT_KEYS, LASER_TRIANGULATION_KEYS, RESEGMENT_CARVING_KEYS
 
-    return {"silhouettes": {"carving": RESEGMENT_CARVING_KEYS}}
+    return {"silhouettes": {"carving": RESEGMENT_CARVING_KEYS,
+                            "triangulation": LASER_TRIANGULATION_KEYS,
+                            "alignment": LASER_ALIGNMENT_KEYS}}
 
 
 def stage_config(cfg: Mapping[str, Any], stage: str) -> dict[str, Any]:

@@ -350,6 +350,7 @@ def _by_stamp(messages: Sequence[Any], stamps_ns: np.ndarray) -> list[Any | None
 def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
                   mask_iou: Mapping[int, float] | None = None,
                   left_out: set[int] | frozenset[int] = frozenset(),
+                  from_laser: set[int] | frozenset[int] = frozenset(),
                   notes: Sequence[str] = ()) -> np.ndarray:
     """Evenly spaced silhouette views with their masks over their images.
 
@@ -366,6 +367,9 @@ def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
         Each view's mask against the true one (ground truth), for the captions.
     left_out : set of int
         Views the carve left out (its agreement check), said in the captions.
+    from_laser : set of int
+        Views segmented again from the laser's points (the colour model's mask left many
+        of them outside), said in the captions.
     notes : sequence of str
         More lines under the title (what the laser said of the masks).
     """
@@ -381,6 +385,8 @@ def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
         cap = f"view {i}"
         if mask_iou and i in mask_iou:
             cap += f", IoU {mask_iou[i]:.3f}"
+        if i in from_laser:
+            cap += ", from the laser"
         if i in left_out:
             cap += ", left out of the hull"
         caps.append(cap)
@@ -390,7 +396,9 @@ def masks_picture(rec: Any, sil: Any, *, n: int = 8, tile_px: int = 240,
     return titled(tile_grid(tiles, caps, cols=min(4, len(tiles))),
                   f"Silhouettes: {len(tiles)} of {len(masks)} views, mask outlined",
                   [f"object tinted, background dimmed; {n_flag} view(s) flagged by the "
-                   f"mask check, {len(left_out)} left out of the hull", *notes])
+                   f"mask check, {len(left_out)} left out of the hull"
+                   + (f", {len(from_laser)} segmented again from where the laser measured "
+                      "the object" if from_laser else ""), *notes])
 
 
 def stripes_picture(rec: Any, stripes: Any, *, n: int = 6, tile_px: int = 320) -> np.ndarray:

@@ -80,6 +80,29 @@ def test_without_views_or_when_off_nothing_is_dropped(tmp_path):
     assert "skipped" in report and len(cloud) == 1
 
 
+def test_masks_segmented_again_from_the_laser_do_not_judge_it(tmp_path):
+    """Views whose first masks left many laser points outside and were segmented again
+    from those points (``laser_seeded`` in silhouettes.npz): the masks of that recording
+    drop no laser point (without the flag, the points 8 mm off are dropped)."""
+    cam, Ts, masks = _views()
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = np.concatenate([CENTRE + RADIUS * d[:250], CENTRE + (RADIUS + 0.008) * d[250:]])
+    views = SilhouetteViews([m.astype(float) for m in masks], masks, [cam] * len(Ts), Ts)
+    for seeded, dropped_expected in ((np.zeros(len(Ts), bool), 50),
+                                     (np.eye(len(Ts), dtype=bool)[2], 0)):
+        npz = tmp_path / "silhouettes.npz"
+        np.savez(npz, qa_flagged=np.zeros(len(Ts), bool), laser_seeded=seeded)
+        clouds = [_cloud(pts.copy(), 0)]
+        report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)},
+                                               default_config()["alignment"])
+        assert report["dropped"] == dropped_expected and len(dropped) == dropped_expected
+        if seeded.any():
+            assert "skipped" in report and report["laser_seeded_views"] == [2]
+            assert len(clouds[0]) == 300
+
+
 def test_points_that_every_view_sees_outside_do_not_make_the_views_untrusted(tmp_path):
     """The table lit by the laser within the workspace: a third of the points, outside
     every silhouette. Each view would drop them all, but so would the others: every view

@@ -272,8 +272,9 @@ def _planned(batch: Path, tmp_path: Path, change: str) -> set[str]:
     ("segmentation: {edge_refine_px: 2}",
      {"silhouettes", "carve", "align", "fuse", "simplify", "evaluate", "foxglove"}),
     ("carving: {resolution: 64}", {"carve", "fuse", "simplify", "evaluate", "foxglove"}),
-    ("stripes: {min_peak: 9.0}", {"stripes", "triangulate", "align", "fuse", "simplify",
-                                  "evaluate", "foxglove"}),
+    # the laser's points test the masks (segmentation.laser_reseed): new clouds, new masks
+    ("stripes: {min_peak: 9.0}", {"stripes", "triangulate", "silhouettes", "carve", "align",
+                                  "fuse", "simplify", "evaluate", "foxglove"}),
     ("alignment: {prior_mm: 0.4}", {"align", "fuse", "simplify", "evaluate", "foxglove"}),
     ("simplify: {target_faces: 15000}", {"simplify", "evaluate", "foxglove"}),
     ("evaluation: {n_samples: 100000}", {"evaluate"}),

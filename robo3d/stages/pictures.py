@@ -98,8 +98,11 @@ def _masks(rec, sil, metrics: Mapping[str, Any], n: int, tile: int) -> np.ndarra
            if isinstance(v, dict) and v.get("iou") is not None}
     left = {int(v["view"]) for v in metrics.get("views_left_out") or []
             if isinstance(v, dict) and "view" in v}
+    seeded = ((metrics.get("stages") or {}).get("silhouettes") or {}).get("laser_seeded") or {}
+    laser = {int(v) for v, c in (seeded.get("candidates") or {}).items()
+             if isinstance(c, dict) and c.get("accepted")}
     return masks_picture(rec, sil, n=n, tile_px=tile, mask_iou=iou, left_out=left,
-                         notes=_laser_against_masks(metrics))
+                         from_laser=laser, notes=_laser_against_masks(metrics))
 
 
 def _laser_against_masks(metrics: Mapping[str, Any]) -> list[str]:

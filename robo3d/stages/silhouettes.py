@@ -68,7 +68,7 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     ws = rec.workspace
     backgrounds = _background_images(inputs["recording"], cfg, views, cameras, poses,
                                      inputs.get("calibration"))
-    masks, per_view, failed = [], [], []
+    masks, per_view, failed = [], [], {}
     progress = Progress("segmenting views", len(views))
 
     def one(i: int):
@@ -86,17 +86,22 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
             if isinstance(out, StageError):
                 # one view that cannot be segmented (its object in the background's
                 # colours) does not stop the others: an empty mask, flagged, unused
-                failed.append(str(out))
+                failed[i] = str(out)
                 log.warning("%s; the view is flagged and not used", out)
                 reason = str(out).removeprefix(_where(inputs["recording"], i, msg) + ": ")
                 out = np.zeros((cam.height, cam.width), bool), _failed_row(i, msg, reason)
             masks.append(out[0])
             per_view.append(out[1])
             progress(i + 1)
+    laser_seeded = None
+    if inputs.get("clouds") and cfg["segmentation"]["laser_reseed"]:
+        laser_seeded = _laser_reseed(inputs["clouds"], rec, views, cameras, poses, ws, cfg,
+                                     masks, per_view)
+        failed = {i: why for i, why in failed.items() if per_view[i].get("failed")}
     given_up = None
     if views and len(failed) > len(views) // 2:
         what = (f"{len(failed)} of {len(views)} views could not be segmented (at most half "
-                f"may fail); the first: {failed[0]}")
+                f"may fail); the first: {next(iter(failed.values()))}")
         if not has_laser:
             raise StageError(what)
         # random scene 182 of stop 36 (a black torus on a checker table, 2 of 3 views
@@ -117,11 +122,14 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     report = _report(per_view, ws, t0)
     report["silhouettes_failed"] = given_up
     report["resegmented"] = resegmented
+    report["laser_seeded"] = laser_seeded
     report["views_failed"] = [v["index"] for v in per_view if v.get("failed")]
     if rec.rectifiers:  # the views segmented as resampled to the pinhole camera
         report["rectified"] = {fid: r.describe() for fid, r in rec.rectifiers.items()}
     Silhouettes.from_views(masks, poses, [m.timestamp_ns for m in views], cameras,
-                           [bool(v["qa"]["flags"]) for v in per_view], ws
+                           [bool(v["qa"]["flags"]) for v in per_view], ws,
+                           None if laser_seeded is None
+                           else ["laser_seeded" in v for v in per_view]
                            ).save(outputs["npz"])
     if outputs.get("masks"):
         _write_mask_pngs(outputs["masks"], masks)
@@ -167,6 +175,52 @@ def _resegment(path: str, rec, views: list, cameras: list, poses: np.ndarray,
         per_view[v] = rows[v] | {"resegmented": {"box": rep["box"], **rep["candidates"][v]},
                                  "roi_source": "the other views' hull"}
     return rep
+
+
+def _laser_reseed(clouds_path: str, rec, views: list, cameras: list, poses: np.ndarray, ws,
+                  cfg: Mapping[str, Any], masks: list[np.ndarray],
+                  per_view: list[dict]) -> dict[str, Any]:
+    """The views whose masks the laser's points contradict, segmented again from where the
+    laser measured the object (:func:`robo3d.silhouettes.resegment_laser_contradicted`,
+    the points from :func:`robo3d.artefacts.object_points`); ``masks`` and ``per_view``
+    updated in place where the new mask is kept (its row then says ``laser_seeded``, and
+    a view whose segmentation had failed is no longer failed). Returns the report."""
+    from ..artefacts import load_clouds_npz, object_points
+    from ..silhouettes import resegment_laser_contradicted, roi_from_box, silhouette_qa
+
+    sc = cfg["segmentation"]
+    points, frames, box = object_points(
+        load_clouds_npz(clouds_path), cfg["triangulation"],
+        box_margin=float(cfg["alignment"]["workspace_from_hull_margin"]))
+    if len(points) < int(sc["laser_min_points"]):
+        return {"checked": False, "points": int(len(points)),
+                "why_not": f"{len(points)} laser points on the object (box: {box}): too few"}
+    rois = []
+    for i, row in enumerate(per_view):
+        if row.get("roi") is not None:
+            rois.append(tuple(row["roi"]))
+        elif ws is not None:
+            rois.append(roi_from_box(ws[0], ws[1], cameras[i], poses[i],
+                                     margin_px=float(sc["roi_margin_px"])))
+        else:
+            rois.append(None)
+    new, rep = resegment_laser_contradicted(
+        masks, cameras, poses, points, frames, lambda v: rec.decode(views[v]), rois,
+        max_outside=float(sc["laser_max_outside"]), tolerance_px=int(sc["laser_tolerance_px"]),
+        min_points=int(sc["laser_min_points"]), band_px=int(sc["laser_band_px"]),
+        min_area_ratio=float(sc["laser_min_area_ratio"]))
+    for v, mask in new.items():
+        cand = rep["candidates"][v]
+        log.warning("view %d (topic %s, t=%d ns): %.0f%% of the laser's points on the object "
+                    "lie outside its mask; segmented again from where the laser measured "
+                    "the object, %.0f%% now", v, views[v].topic, views[v].timestamp_ns,
+                    100 * cand["outside_before"], 100 * cand["outside_after"])
+        masks[v] = mask
+        row = {k: val for k, val in per_view[v].items() if k != "failed"}
+        per_view[v] = row | {"area_px": int(np.count_nonzero(mask)), "roi": list(rois[v])
+                             if rois[v] is not None else None,
+                             "qa": silhouette_qa(mask, rois[v]), "laser_seeded": cand}
+    return {"checked": True, "box": box, **rep}
 
 
 def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,

@@ -80,6 +80,17 @@ def get_scan_inputs(wildcards):
     return {"recording": RECORDINGS[wildcards.rec].path, **get_calibration(wildcards)}
 
 
+def get_silhouettes_inputs(wildcards):
+    """The recording and its calibration, and with laser frames the triangulated clouds:
+    their points on the object test the masks (a view that leaves many outside is
+    segmented again from them)."""
+    out = get_scan_inputs(wildcards)
+    if "laser" in recording_stages(RECORDINGS[wildcards.rec]) \
+            and config["segmentation"]["laser_reseed"]:
+        out["clouds"] = f"results/{wildcards.rec}/clouds.npz"
+    return out
+
+
 def get_calibration_recording(wildcards):
     """The .mcap file of one calibration recording."""
     return CALIBRATIONS[wildcards.calib].path

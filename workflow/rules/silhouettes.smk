@@ -3,7 +3,7 @@
 
 rule silhouettes:
     input:
-        unpack(get_scan_inputs),
+        unpack(get_silhouettes_inputs),
     output:
         npz="results/{rec}/silhouettes.npz",
         masks=directory("results/{rec}/masks"),

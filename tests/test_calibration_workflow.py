@@ -421,7 +421,7 @@ def test_re_calibrating_re_runs_the_scans_using_it_and_only_those(tmp_path):
     assert not {f for f, _ in rules} & {"calA", "calB"}  # calibrations are not scanned
     # mark every output as made, in the order of the rules (none older than its inputs
     # or than the rules' scripts)
-    order = ["calibrate", "silhouettes", "stripes", "carve", "triangulate", "align", "fuse",
+    order = ["calibrate", "stripes", "triangulate", "silhouettes", "carve", "align", "fuse",
              "simplify", "evaluate", "foxglove", "pictures", "batch_table"]
     t0 = time.time() + 10
     for r in recs.iterdir():

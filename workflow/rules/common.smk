@@ -83,9 +83,11 @@ def get_scan_inputs(wildcards):
 def get_silhouettes_inputs(wildcards):
     """The recording and its calibration, and with laser frames the triangulated clouds:
     their points on the object test the masks (a view that leaves many outside is
-    segmented again from them)."""
+    segmented again from them). Not for a file that cannot be read: its silhouettes job
+    runs and fails with the reader's message, beside its stripes job."""
     out = get_scan_inputs(wildcards)
-    if "laser" in recording_stages(RECORDINGS[wildcards.rec]) \
+    entry = RECORDINGS[wildcards.rec]
+    if "laser" in recording_stages(entry) and getattr(entry.summary, "readable", True) \
             and config["segmentation"]["laser_reseed"]:
         out["clouds"] = f"results/{wildcards.rec}/clouds.npz"
     return out

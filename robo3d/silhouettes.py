@@ -1825,6 +1825,11 @@ def score_recording_silhouettes(path: str, cfg: dict | None = None, *,
     """Segment a recording's views with a config (default: the project's defaults) and
     score the masks against its ``ground_truth/silhouettes/NNN.png`` attachments.
 
+    The segmentation from the views alone: the stage's test against the laser's points
+    (:func:`resegment_laser_contradicted`) needs the triangulated clouds, so a scan whose
+    views it re-segments scores better through the workflow (``metrics.json``'s
+    ``evaluation.mask_iou``) than here.
+
     Parameters
     ----------
     path : str

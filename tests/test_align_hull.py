@@ -16,12 +16,18 @@ from robo3d.stages.align import _reject_outside_hull
 CENTRE, RADIUS, F = np.array([0.0, 0.0, 0.1]), 0.04, 300.0
 
 
-def _views(n: int = 10):
+def ring_cameras(n: int, centre: np.ndarray, rise: float = 0.6):
+    """A 240 x 180 camera (f = 300 px) at ``n`` poses on a ring around ``centre``, 0.35 m
+    out and ``rise`` x 0.35 m up, looking at it: the camera and the poses."""
     cam = CameraModel("camera", 240, 180, [[F, 0, 119.5], [0, F, 89.5], [0, 0, 1]],
                       np.zeros(5))
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    eyes = CENTRE + 0.35 * np.stack([np.cos(ang), np.sin(ang), np.full(n, 0.6)], 1)
-    Ts = np.stack([look_at(e, CENTRE) for e in eyes])
+    eyes = centre + 0.35 * np.stack([np.cos(ang), np.sin(ang), np.full(n, rise)], 1)
+    return cam, np.stack([look_at(e, centre) for e in eyes])
+
+
+def _views(n: int = 10):
+    cam, Ts = ring_cameras(n, CENTRE)
     v, u = np.mgrid[0:cam.height, 0:cam.width]
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
     masks = []

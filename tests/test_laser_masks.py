@@ -4,23 +4,24 @@ grey table printed with black dots, whose colour model failed in two views."""
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 
-from robo3d.camera import CameraModel, pixel_rays
-from robo3d.silhouettes import laser_cover, resegment_laser_contradicted
-from robo3d.sim.rig import look_at
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_align_hull import ring_cameras  # noqa: E402
 
-CENTRE, RADIUS, F = np.array([0.0, 0.0, 0.04]), 0.04, 300.0
+from robo3d.camera import pixel_rays  # noqa: E402
+from robo3d.silhouettes import laser_cover, resegment_laser_contradicted  # noqa: E402
+
+CENTRE, RADIUS = np.array([0.0, 0.0, 0.04]), 0.04
 
 
 def _scene(n: int = 6):
     """Cameras around a grey sphere on a grey dotted table: the cameras, their poses, the
     true masks and the images (shaded sphere, the table's grey with black dots, noise)."""
-    cam = CameraModel("camera", 240, 180, [[F, 0, 119.5], [0, F, 89.5], [0, 0, 1]],
-                      np.zeros(5))
-    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    eyes = CENTRE + 0.35 * np.stack([np.cos(ang), np.sin(ang), np.full(n, 0.7)], 1)
-    Ts = np.stack([look_at(e, CENTRE) for e in eyes])
+    cam, Ts = ring_cameras(n, CENTRE, rise=0.7)
     v, u = np.mgrid[0:cam.height, 0:cam.width]
     uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
     light = np.array([0.3, -0.4, 0.87]) / np.linalg.norm([0.3, -0.4, 0.87])

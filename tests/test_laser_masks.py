@@ -117,3 +117,28 @@ def test_right_masks_stay_when_the_laser_measured_something_else():
     # seen beside the sphere in most views (in front of it or behind it in the others)
     assert sum(o is not None and o > 0.9 for o in rep["outside"]) >= 3
     assert all(not c["accepted"] and c["area_ratio"] < 0.5 for c in rep["candidates"].values())
+
+
+def test_masks_reaching_far_beyond_the_lasers_box_are_segmented_again_inside_it():
+    """Without a workspace box, a mask that took the table around the sphere (most of it
+    outside the box of what the laser measured) is segmented again inside that box and
+    replaced; a right mask is not; a segmentation that fails keeps the first mask."""
+    from robo3d.silhouettes import resegment_outside_box
+
+    cam, Ts, truth, _ = _scene(4)
+    box = (CENTRE - RADIUS - 0.004, CENTRE + RADIUS + 0.004)
+    masks = [m.copy() for m in truth]
+    masks[0][100:, :] = True  # the table's lower half taken for object
+    masks[3][100:, :] = True
+    calls = []
+
+    def segment(v):
+        calls.append(v)
+        return None if v == 3 else truth[v]
+
+    new, rep = resegment_outside_box(masks, [cam] * 4, Ts, box, segment)
+    assert sorted(new) == [0] and calls == [0, 3]
+    assert np.array_equal(new[0], truth[0])
+    assert rep["outside"][0] > 0.5 and all(rep["outside"][v] < 0.01 for v in (1, 2))
+    assert rep["candidates"][0]["accepted"] and rep["candidates"][0]["outside_after"] < 0.01
+    assert not rep["candidates"][3]["accepted"] and rep["candidates"][3]["outside_after"] is None

@@ -95,8 +95,9 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
             progress(i + 1)
     laser_seeded = None
     if inputs.get("clouds") and cfg["segmentation"]["laser_reseed"]:
-        laser_seeded = _laser_reseed(inputs["clouds"], rec, views, cameras, poses, ws, cfg,
-                                     masks, per_view)
+        laser_seeded = _laser_reseed(inputs["recording"], inputs["clouds"], rec, views,
+                                     cameras, poses, ws, cfg, masks, per_view,
+                                     backgrounds, options)
         failed = {i: why for i, why in failed.items() if per_view[i].get("failed")}
     given_up = None
     if views and len(failed) > len(views) // 2:
@@ -153,15 +154,7 @@ def _resegment(path: str, rec, views: list, cameras: list, poses: np.ndarray,
     from ..silhouettes import resegment_spurious_views
 
     rows: dict[int, dict] = {}
-
-    def again(v: int, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
-        try:
-            mask, rows[v] = _segment_one(path, rec, v, views[v], cameras[v], poses[v],
-                                         backgrounds[v], box, options)
-        except StageError:
-            return None
-        return mask
-
+    again = _segment_again(path, rec, views, cameras, poses, backgrounds, options, rows)
     new, rep = resegment_spurious_views(
         masks, cameras, poses, ws, again, carving_cfg=cfg["carving"],
         exclude=[i for i, r in enumerate(per_view) if r["qa"]["flags"]])
@@ -177,24 +170,45 @@ def _resegment(path: str, rec, views: list, cameras: list, poses: np.ndarray,
     return rep
 
 
-def _laser_reseed(clouds_path: str, rec, views: list, cameras: list, poses: np.ndarray, ws,
-                  cfg: Mapping[str, Any], masks: list[np.ndarray],
-                  per_view: list[dict]) -> dict[str, Any]:
+def _segment_again(path: str, rec, views: list, cameras: list, poses: np.ndarray,
+                   backgrounds: list, options: SegmentOptions, rows: dict[int, dict]):
+    """``again(view, box)``: the view segmented with ``box`` as its workspace (its report
+    row into ``rows``), or None when that fails."""
+    def again(v: int, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+        try:
+            mask, rows[v] = _segment_one(path, rec, v, views[v], cameras[v], poses[v],
+                                         backgrounds[v], box, options)
+        except StageError:
+            return None
+        return mask
+
+    return again
+
+
+def _laser_reseed(path: str, clouds_path: str, rec, views: list, cameras: list,
+                  poses: np.ndarray, ws, cfg: Mapping[str, Any], masks: list[np.ndarray],
+                  per_view: list[dict], backgrounds: list,
+                  options: SegmentOptions) -> dict[str, Any]:
     """The views whose masks the laser's points contradict, segmented again from where the
     laser measured the object (:func:`robo3d.silhouettes.resegment_laser_contradicted`,
     the points from :func:`robo3d.artefacts.object_points`); ``masks`` and ``per_view``
     updated in place where the new mask is kept (its row then says ``laser_seeded``, and
-    a view whose segmentation had failed is no longer failed). Returns the report."""
+    a view whose segmentation had failed is no longer failed). Without a workspace box,
+    first the views whose masks reach far beyond the laser's box of the object, segmented
+    again inside it (:func:`_laser_box_reseed`). Returns the report."""
     from ..artefacts import load_clouds_npz, object_points
     from ..silhouettes import resegment_laser_contradicted, roi_from_box, silhouette_qa
 
     sc = cfg["segmentation"]
-    points, frames, box = object_points(
+    points, frames, box, laser_ws = object_points(
         load_clouds_npz(clouds_path), cfg["triangulation"],
         box_margin=float(cfg["alignment"]["workspace_from_hull_margin"]))
     if len(points) < int(sc["laser_min_points"]):
         return {"checked": False, "points": int(len(points)),
                 "why_not": f"{len(points)} laser points on the object (box: {box}): too few"}
+    in_box = (_laser_box_reseed(path, rec, views, cameras, poses, laser_ws, cfg, masks,
+                                per_view, backgrounds, options)
+              if ws is None and laser_ws is not None else None)
     rois = []
     for i, row in enumerate(per_view):
         if row.get("roi") is not None:
@@ -220,7 +234,36 @@ def _laser_reseed(clouds_path: str, rec, views: list, cameras: list, poses: np.n
         per_view[v] = row | {"area_px": int(np.count_nonzero(mask)), "roi": list(rois[v])
                              if rois[v] is not None else None,
                              "qa": silhouette_qa(mask, rois[v]), "laser_seeded": cand}
-    return {"checked": True, "box": box, **rep}
+    return {"checked": True, "box": box, "within_laser_box": in_box, **rep}
+
+
+def _laser_box_reseed(path: str, rec, views: list, cameras: list, poses: np.ndarray,
+                      laser_ws: tuple[np.ndarray, np.ndarray], cfg: Mapping[str, Any],
+                      masks: list[np.ndarray], per_view: list[dict], backgrounds: list,
+                      options: SegmentOptions) -> dict[str, Any]:
+    """A recording without a workspace box: the views more than ``carving.qa_max_spurious``
+    of whose mask lies outside the laser's box of the object, segmented again with that
+    box as their workspace (:func:`robo3d.silhouettes.resegment_outside_box`); ``masks``
+    and ``per_view`` updated in place where the new mask is kept (its row then says
+    ``within_laser_box``). Returns the report."""
+    from ..silhouettes import resegment_outside_box
+
+    rows: dict[int, dict] = {}
+    again = _segment_again(path, rec, views, cameras, poses, backgrounds, options, rows)
+    new, rep = resegment_outside_box(
+        masks, cameras, poses, laser_ws, lambda v: again(v, laser_ws),
+        max_outside=float(cfg["carving"]["qa_max_spurious"]),
+        margin_px=float(cfg["segmentation"]["roi_margin_px"]))
+    for v, mask in new.items():
+        log.warning("view %d (topic %s, t=%d ns): %.0f%% of its mask lies outside the box of "
+                    "the object the laser measured (the recording has no workspace box); "
+                    "segmented again inside it, %.0f%% now", v, views[v].topic,
+                    views[v].timestamp_ns, 100 * rep["candidates"][v]["outside_before"],
+                    100 * rep["candidates"][v]["outside_after"])
+        masks[v] = mask
+        per_view[v] = rows[v] | {"within_laser_box": rep["candidates"][v],
+                                 "roi_source": "the laser's box of the object"}
+    return rep
 
 
 def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,

@@ -581,14 +581,22 @@ def table_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any]) -> list[np
     facing faces lie 3.5 mm or more above the table (the bracket's groove); a part
     thinner than the bound lying flat would be left unmeasured (set 0 for such parts).
     Empty masks without a box, or with the bound 0."""
-    h = 1e-3 * float(tc["table_above_floor_mm"])
-    floor = clouds_floor(clouds) if h > 0 else None
+    floor = clouds_floor(clouds) if float(tc["table_above_floor_mm"]) > 0 else None
     if floor is None:
         return [np.zeros(len(c), bool) for c in clouds]
-    up, height = floor
+    return [_on_table(c.points_base, c.normals_base, *floor, tc) for c in clouds]
+
+
+def _on_table(points: np.ndarray, normals: np.ndarray, up: np.ndarray, floor: float,
+              tc: Mapping[str, Any]) -> np.ndarray:
+    """Points at most ``table_above_floor_mm`` above the height ``floor`` along ``up`` on
+    a surface facing up (normal within ``table_max_tilt_deg`` of it): the table
+    (:func:`table_points`); none when the bound is 0."""
+    h = 1e-3 * float(tc["table_above_floor_mm"])
+    if h <= 0:
+        return np.zeros(len(points), bool)
     cos_tilt = float(np.cos(np.radians(float(tc["table_max_tilt_deg"]))))
-    return [(c.points_base @ up <= height + h) & (c.normals_base @ up >= cos_tilt)
-            for c in clouds]
+    return (points @ up <= floor + h) & (normals @ up >= cos_tilt)
 
 
 def clouds_laser_box(clouds: Sequence[SweepCloud], *, margin: float, min_margin_m: float
@@ -642,15 +650,15 @@ def object_points(clouds: Sequence[SweepCloud], tc: Mapping[str, Any], *,
     from .carving import turn_box
 
     lo, hi, _, P = got
-    level = np.concatenate(pts) @ P.T
-    # the table as table_points has it, above the laser box's floor: the robot's error
-    # lifts the line on the table into the box (random scene 528: right masks left 25-44 %
-    # of the box's points outside)
-    up = np.concatenate([c.normals_base for c in clouds]) @ P.T[:, 2]
-    table = ((level[:, 2] <= lo[2] + 1e-3 * float(tc["table_above_floor_mm"]))
-             & (up >= float(np.cos(np.radians(float(tc["table_max_tilt_deg"]))))))
+    allp = np.concatenate(pts)
+    level = allp @ P.T
+    # the table as table_points has it, above the laser box's floor (up is the level
+    # frame's z, P's last row): the robot's error lifts the line on the table into the box
+    # (random scene 528: right masks left 25-44 % of the box's points outside)
+    table = _on_table(allp, np.concatenate([c.normals_base for c in clouds]), P[2],
+                      float(lo[2]), tc)
     keep = np.all((level >= lo) & (level <= hi), axis=1) & ~table
-    return np.concatenate(pts)[keep], frames[keep], "laser", turn_box(P.T, (lo, hi))
+    return allp[keep], frames[keep], "laser", turn_box(P.T, (lo, hi))
 
 
 def crop_clouds_to_workspace(clouds: Sequence[SweepCloud]) -> list[int]:

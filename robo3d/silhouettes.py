@@ -1970,7 +1970,7 @@ def laser_cover(px: np.ndarray, frames: np.ndarray, shape: tuple[int, int], *,
         return cover.astype(bool), 0
     cover[px[:, 1], px[:, 0]] = 1
     # one pixel per (pixel, frame): a profile is dense along itself, its neighbour across
-    uniq, first = np.unique(px[:, 1] * shape[1] + px[:, 0] + frames.astype(np.int64)
+    _, first = np.unique(px[:, 1] * shape[1] + px[:, 0] + frames.astype(np.int64)
                             * shape[0] * shape[1], return_index=True)
     p, f = px[first].astype(np.float64), np.asarray(frames)[first]
     radius = 2

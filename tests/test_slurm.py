@@ -75,9 +75,9 @@ _POLLING = ("import sys\n"
 
 def _snakemake(work: Path, recs: Path, *args: str, nice: int = 0,
                poll: bool = False) -> subprocess.Popen:
-    cmd = [sys.executable, *(("-c", _POLLING) if poll else ("-m", "snakemake")), "-s", str(REPO / "Snakefile"), "--directory",
-           str(work), "--configfile", str(recs.parent / "config.yaml"), "--config",
-           f"recordings={recs}", *args]
+    cmd = [sys.executable, *(("-c", _POLLING) if poll else ("-m", "snakemake")), "-s",
+           str(REPO / "Snakefile"), "--directory", str(work), "--configfile",
+           str(recs.parent / "config.yaml"), "--config", f"recordings={recs}", *args]
     return subprocess.Popen(cmd, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, preexec_fn=(lambda: os.nice(nice)) if nice else None)
 

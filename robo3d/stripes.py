@@ -792,6 +792,11 @@ def brightness_coefficient(
 (_OK, _NO_BAND, _TWO_BLOBS, _TOO_WEAK, _TOO_WIDE, _AT_BORDER, _ISOLATED, _SECOND,
  _OUTSIDE) = range(9)
 _JIT = {"nogil": True, "cache": True}
+# The small helpers below are plain ``@njit`` functions, not ``inline="always"``: numba's
+# own inlining copied each into every kernel's IR once per argument types, and compiling
+# the detector took 100 s of a cold cache on a 2-core Intel Xeon; as functions of their
+# own (LLVM still inlines them) 34 s, the same centres bit for bit at the same speed
+# (stop 55, ``benchmarks/README.md``).
 #: A laser adds light: its luma (Rec. 601) rises by at least this fraction of its
 #: channel's rise (a candidate's height is at most the luma's two-sided rise over this).
 #: The laser's own share is 0.24-0.29 for a real blue or violet laser on a Bayer sensor
@@ -813,7 +818,7 @@ _DOMINANT = 2.0
 _FALL = 0.0
 
 
-@njit(inline="always")
+@njit
 def _lum(img, r, c, nch):  # noqa: ANN001, ANN202 - numba kernel
     """Lightness (eq. 19) of pixel (r, c) of an (H, W, 1|3) image, float32."""
     if nch == 1:
@@ -828,7 +833,7 @@ def _lum(img, r, c, nch):  # noqa: ANN001, ANN202 - numba kernel
     return np.float32(0.5) * (np.float32(hi) + np.float32(lo))
 
 
-@njit(inline="always")
+@njit
 def _rgb_row(flat, r, buf):  # noqa: ANN001, ANN202
     """Lightness (eq. 19) of row r of the (H, 3 W) view of an RGB image into buf."""
     for c in range(buf.size):
@@ -842,7 +847,7 @@ def _rgb_row(flat, r, buf):  # noqa: ANN001, ANN202
         buf[c] = np.float32(0.5) * (np.float32(hi) + np.float32(lo))
 
 
-@njit(inline="always")
+@njit
 def _peaks_update(row, r, cmax, carg, cmin):  # noqa: ANN001, ANN202
     """Running per-column maximum (first row of it) and minimum, branch-free so that
     the loop vectorises."""
@@ -854,7 +859,7 @@ def _peaks_update(row, r, cmax, carg, cmin):  # noqa: ANN001, ANN202
         cmin[c] = x if x < cmin[c] else cmin[c]
 
 
-@njit(inline="always")
+@njit
 def _row_extrema(row):  # noqa: ANN001, ANN202
     mx = row[0]
     mn = row[0]
@@ -906,7 +911,7 @@ def _peaks_rgb(img, want_rows):  # noqa: ANN001, ANN202
     return cmax, carg, cmin, rmax, rmin
 
 
-@njit(inline="always")
+@njit
 def _band_update(row, r, lo, hi, n_above, n_band, bmax, barg):  # noqa: ANN001, ANN202
     for c in range(row.size):
         x = np.float32(row[c])
@@ -961,7 +966,7 @@ def _noise_sigma(img, nch):  # noqa: ANN001, ANN202
     return _mad_sigma(d)
 
 
-@njit(inline="always")
+@njit
 def _noise_grid(h, w):  # noqa: ANN001, ANN202
     """The rows and columns of the noise estimate's samples: up to 64 of each, spread
     evenly over an (h, w) image (each row with the one below it)."""
@@ -976,7 +981,7 @@ def _noise_grid(h, w):  # noqa: ANN001, ANN202
     return rows, cols
 
 
-@njit(inline="always")
+@njit
 def _mad_sigma(d):  # noqa: ANN001, ANN202
     """A Gaussian's sigma from absolute differences of neighbouring samples (their MAD,
     1.4826 per sigma, over sqrt(2) for a difference of two)."""
@@ -1019,7 +1024,7 @@ def _local_reference(cmax, good, half):  # noqa: ANN001, ANN202
     return out
 
 
-@njit(inline="always")
+@njit
 def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
                 gaussian, linear=False):  # noqa: ANN001, ANN202
     """The stripe's profile in column c within +-hw rows of its brightest pixel p:
@@ -1247,7 +1252,7 @@ _BLOCK = 32
 _LIGHTNESS_PREFERRED = 8.0
 
 
-@njit(inline="always")
+@njit
 def _contrast_px(img, r, c, k, nch):  # noqa: ANN001, ANN202
     """Contrast ``k`` (index in CONTRASTS) of pixel (r, c) and the pixel's largest other
     channel (0 for the lightness), float32, in the image's units."""
@@ -1299,14 +1304,14 @@ def _probe(img: np.ndarray, k: int, step: int, thr: float,
     return out[0], out[1]
 
 
-@njit(inline="always")
+@njit
 def _heights(x, y0, yu1, yd1, yu2, yd2, n):  # noqa: ANN001, ANN202
     """x = y0 - min(max(yu1, yd1), max(yu2, yd2)): the two-sided ridge height."""
     for c in range(n):
         x[c] = y0[c] - min(max(yu1[c], yd1[c]), max(yu2[c], yd2[c]))
 
 
-@njit(inline="always")
+@njit
 def _channel_row(flat, r, k, nch, two, c0):  # noqa: ANN001, ANN202
     """Row r of the (H, W * nch) view of an image into c0, for contrast k, in one
     vectorisable loop: the laser's channel, or the lightness (a mono image: its values;
@@ -1329,7 +1334,7 @@ def _channel_row(flat, r, k, nch, two, c0):  # noqa: ANN001, ANN202
         c0[c] = f[3 * c + k]
 
 
-@njit(inline="always")
+@njit
 def _rise_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
     """Two-sided ridge height of channel ch at (r, c), across the line (along u or v)."""
     if along_u:
@@ -1343,7 +1348,7 @@ def _rise_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
     return y0 - min(b1, b2)
 
 
-@njit(inline="always")
+@njit
 def _luma_rise_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
     """Two-sided ridge height of the Rec. 601 luma (:func:`_contrast_at`'s ``_LUMA``, a
     JPEG's full-resolution component) of RGB pixel (r, c), across the line (as
@@ -1362,7 +1367,7 @@ def _luma_rise_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
     return np.float32(y0 - min(b1, b2))
 
 
-@njit(inline="always")
+@njit
 def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat, floor):  # noqa: ANN001, ANN202
     """The laser's height at (r, c) from its channel's rise xk: ``min(xk, xk - max(rise
     of the other two channels))`` (a laser adds light, mostly of its colour: its channel
@@ -1397,7 +1402,7 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat, floor):  # noqa: ANN001, A
     return min(h, _luma_rise_at(img, r, c, a1, a2, along_u) / np.float32(_LUMA_SHARE))
 
 
-@njit(inline="always")
+@njit
 def _outside(x, i0, i1, low):  # noqa: ANN001, ANN202
     """x[i] = low outside i0 <= i <= i1 (the region of interest of one line)."""
     n = x.size
@@ -1544,7 +1549,7 @@ def _ridge_scan_rows(img, k, two, rowbuf, a1, a2, sep, thr, sat, lo, hi):  # noq
     return m1, p1, m2, p2
 
 
-@njit(inline="always")
+@njit
 def _channel8(f, stride, ch, buf, c0, c1):  # noqa: ANN001, ANN202
     """Channel ``ch`` of pixels ``c0 <= c < c1`` of a row of interleaved uint8 pixels
     (``stride`` = 1 or 3 channels each) into ``buf``; the offsets go into the slices and
@@ -1561,7 +1566,7 @@ def _channel8(f, stride, ch, buf, c0, c1):  # noqa: ANN001, ANN202
             dst[c] = src[3 * c]
 
 
-@njit(inline="always")
+@njit
 def _over8(xb, f0, fu1, fd1, fu2, fd2, tb, n):  # noqa: ANN001, ANN202
     """uint8 profiles: ``xb[i]`` = by how much the two-sided ridge height
     ``f0 - min(max(fu1, fd1), max(fu2, fd2))`` (clipped at 0) of pixel i beats
@@ -1579,7 +1584,7 @@ def _over8(xb, f0, fu1, fd1, fu2, fd2, tb, n):  # noqa: ANN001, ANN202
     return acc
 
 
-@njit(inline="always")
+@njit
 def _nonzero8(xbuf, words, i0, i1, cj):  # noqa: ANN001, ANN202
     """The indices ``i0 <= i < i1`` of the non-zero bytes of ``xbuf`` (``words``: its
     uint64 view, read 8 bytes at a time), in order, into ``cj``; returns their number."""
@@ -1953,7 +1958,7 @@ def _probe_image(img, k, step, a1, a2, thr, sep, sat, along_u, lo, hi):  # noqa:
     return m1, p1, m2, p2
 
 
-@njit(inline="always")
+@njit
 def _keep_two(xc, c, v1, c1, v2, c2, sep):  # noqa: ANN001, ANN202
     """Offer candidate ``xc`` at ``c`` (already above the second best ``v2``) to a line's
     two best ridges ``(v1, c1)``, ``(v2, c2)``: within ``sep`` of the best it can only
@@ -1973,7 +1978,7 @@ def _keep_two(xc, c, v1, c1, v2, c2, sep):  # noqa: ANN001, ANN202
     return v1, c1, v2, c2
 
 
-@njit(inline="always")
+@njit
 def _contrast_at(img, r, c, k, nch, two):  # noqa: ANN001, ANN202
     """The profile value of pixel (r, c) for contrast k, float64: the laser's own
     channel (its rise is the stripe; where the laser saturates the channel, a flat top
@@ -2082,7 +2087,7 @@ _WEAK_TOL = 1.0
 _WEAK_STEP = 0.25
 
 
-@njit(inline="always")
+@njit
 def _step_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
     """The larger step of channel ch across (r, c) between the pixels a1 and a2 away on
     either side (an edge's contrast)."""
@@ -2095,7 +2100,7 @@ def _step_at(img, r, c, ch, a1, a2, along_u):  # noqa: ANN001, ANN202
     return max(s1, s2)
 
 
-@njit(inline="always")
+@njit
 def _weak_at(img, r, c, k, a1, a2, along_u, sat, thr):  # noqa: ANN001, ANN202
     """The height of a curve's continuation at (r, c) (step 3b): the two-sided rise of
     the laser's channel (a mono image's values) less :data:`_WEAK_OTHERS` of the other
@@ -2205,7 +2210,7 @@ def _extend(img, k, rows_axis, win, status, run, thr, link_px, gap, lo, hi, sat)
     return added
 
 
-@njit(inline="always")
+@njit
 def _find(parent, i):  # noqa: ANN001, ANN202
     while parent[i] != i:
         parent[i] = parent[parent[i]]

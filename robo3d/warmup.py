@@ -1,8 +1,9 @@
 """Compile the pipeline's numba kernels into numba's on-disk cache, once.
 
 A fresh install (or an edit of a module) has no compiled kernels: the first process that
-calls one compiles it (the stripe detector's kernels for 8-bit frames: about 40 s of CPU
-on a 2-core AMD EPYC; the carver's: about 6 s) and writes it to the cache
+calls one compiles it (the stripe detector's kernels for 8-bit frames: about 35 s of CPU
+on a 2-core Intel Xeon, 100 s before its helpers were compiled as functions of their own
+instead of inlined into every kernel, stop 55; the carver's: about 6 s) and writes it to the cache
 (``robo3d/__pycache__``), which later processes load in well under a second. Processes
 that start side by side before the cache is written each compile it themselves: a batch
 of N recordings on N cores (or N SLURM jobs) pays the compilation N times over, and on a
@@ -16,11 +17,11 @@ ways its stage does (a kernel is compiled once per argument types):
 
 Only the image types a recording's laser frames decode to (8-bit RGB and mono) are
 compiled by default; other types (16-bit, float) and the other detector and centre
-methods compile at their first use, or with ``robo3d warm-up --all-types`` (about 100 s
+methods compile at their first use, or with ``robo3d warm-up --all-types`` (about 60 s
 of CPU more: the 16-bit and float frames beside the 8-bit detector, the other methods
 after it; ``./run.sh test`` uses it, as the stripe tests call every type. Measured on a
-2-core Intel Xeon with a cold cache, stop 44: 95 s without it, 99 s with it, and the
-stripe tests no longer spend 77 s compiling).
+2-core Intel Xeon with a cold cache, stop 55: 43 s without it, 56 s with it; 106 s and
+137 s with the helpers inlined).
 """
 
 from __future__ import annotations

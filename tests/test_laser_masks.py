@@ -198,3 +198,30 @@ def test_the_laser_seeds_the_views_that_failed_unless_most_did(tmp_path, monkeyp
     assert most_failed["laser_seeded"]["checked"] is False
     assert not any(m.any() for m in masks)
     assert most_failed["views_failed"] == list(range(6))
+
+
+def test_masks_inside_the_frame_are_not_cut_to_a_partial_laser_box():
+    """The laser's box of the object is only what it measured (one sweep over a part of
+    the object): a right mask that ends inside the frame is not segmented again inside
+    it (random scene 542 of stop 55: a cup's masks cut to the sliver one sweep measured);
+    a mask that runs out of the frame (the table taken for object) still is."""
+    from robo3d.silhouettes import resegment_outside_box
+
+    cam, Ts, truth, _ = _scene(4)
+    assert not any(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()
+                   for m in truth)
+    sliver = (CENTRE + np.array([-0.01, -0.04, -0.01]), CENTRE + np.array([0.0, 0.04, 0.04]))
+    calls = []
+
+    def segment(v):
+        calls.append(v)
+        return truth[v] & (np.arange(truth[v].shape[1]) < 10)[None, :]
+
+    masks = [m.copy() for m in truth]
+    masks[2][100:, :] = True  # the table's lower half taken for object, out of the frame
+    new, rep = resegment_outside_box(masks, [cam] * 4, Ts, sliver, segment)
+    assert calls == [2] and 2 in rep["candidates"]
+    assert sorted(rep["inside_frame"]) == [v for v in (0, 1, 3) if rep["outside"][v] > 0.1]
+    assert len(rep["inside_frame"]) >= 2  # most right masks reach beyond the sliver
+    assert all(v not in new for v in (0, 1, 3))
+

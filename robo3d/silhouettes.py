@@ -2145,7 +2145,7 @@ def resegment_outside_box(
         report["outside"].append(round(float(before), 4))
         if before <= max_outside:
             continue
-        if not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
+        if not silhouette_qa(mask, None)["sides_touched"]:  # of the image itself
             report["inside_frame"].append(v)
             continue
         got = segment(v)

@@ -224,4 +224,3 @@ def test_masks_inside_the_frame_are_not_cut_to_a_partial_laser_box():
     assert sorted(rep["inside_frame"]) == [v for v in (0, 1, 3) if rep["outside"][v] > 0.1]
     assert len(rep["inside_frame"]) >= 2  # most right masks reach beyond the sliver
     assert all(v not in new for v in (0, 1, 3))
-

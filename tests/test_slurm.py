@@ -113,9 +113,8 @@ def runs(cluster, tmp_path_factory) -> tuple[Path, Path, str]:
         # one core per group job (the profile asks two): this one-node cluster has two,
         # so the two recordings' jobs run side by side instead of one after the other
         "--cores", "1", poll=True)
-    # the local run at a lower priority: the cluster's jobs finish first. The SLURM
-    # plugin looks at its jobs after 1, 12, 33, 64, 105 s (10 s more each time none has
-    # ended): side by side at equal priority they ended at 65 s and were seen at 105 s
+    # the local run at a lower priority: the cluster's jobs, whose end the run above
+    # looks for every POLL_S seconds, finish first
     local_run = _snakemake(local, recs, "--cores", "2", "--quiet", "all", nice=10)
     try:
         _wait(local_run, "the local run")

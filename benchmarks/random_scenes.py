@@ -5,6 +5,7 @@ Run from the repository root::
 
     .venv/bin/python benchmarks/random_scenes.py                  # 16 scenes (about 10 min)
     .venv/bin/python benchmarks/random_scenes.py --n 28 --start 100 --keep /tmp/rs
+    .venv/bin/python benchmarks/random_scenes.py --scenes 148 466 --out /tmp/again.json
 
 Scene ``k`` is drawn from a generator seeded with ``1000 + k`` (the same scene on every
 run): one of the simulator's objects or a user's mesh file (a PLY box in metres, an STL
@@ -142,17 +143,19 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=16, help="number of scenes")
     ap.add_argument("--start", type=int, default=0, help="first scene's number")
+    ap.add_argument("--scenes", type=int, nargs="+", default=None,
+                    help="run these scene numbers instead of --n from --start (again, after a fix)")
     ap.add_argument("--keep", default=None, help="keep recordings and work folders here")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "random_scenes.json"))
     args = ap.parse_args()
-    if args.n < 1 or args.start < 0:
-        ap.error("--n must be >= 1 and --start >= 0")
+    if args.n < 1 or args.start < 0 or min(args.scenes or [0]) < 0:
+        ap.error("--n must be >= 1, --start and --scenes >= 0")
     base = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="robo3d-random-"))
     out_path = Path(args.out)
     old = previous_results(out_path)
     meshes = user_meshes(base / "meshes")
     details: dict[str, Any] = {}
-    for k in range(args.start, args.start + args.n):
+    for k in args.scenes or range(args.start, args.start + args.n):
         obj, a = scene(k)
         print(f"== scene {k} ({obj}): {' '.join(a)}", flush=True)
         name = f"scene{k:03d}_{obj}"

@@ -245,6 +245,53 @@ def test_outside_image_keep_vs_carve():
     assert rep["views"][0]["outside_image"] == int((~inside).sum())
 
 
+def test_a_voxel_in_fewer_than_two_images_is_not_hull():
+    """Four views on a ring around the sphere, a box three times its size: under
+    ``outside_image="keep"`` the box's corners lie in no image and the silhouette cones
+    run on out of the other frames. The default keeps only the voxels that two views or
+    more have in their image (counted here with OpenCV's projection); the sphere itself,
+    in every image, is kept whole."""
+    from robo3d.carving import CarveOptions, carve_visual_hull, in_enough_images
+
+    cam = _camera(size=(160, 120))
+    ring = [np.array([np.cos(a), np.sin(a), 0.3]) / np.hypot(1.0, 0.3)
+            for a in np.radians([0.0, 90.0, 180.0, 270.0])]
+    Ts = np.stack([look_at(CENTRE + DIST * d, CENTRE) for d in ring])
+    masks = [_render_sphere(cam, T, CENTRE, RADIUS) for T in Ts]
+    grid = make_grid(CENTRE - 3 * RADIUS, CENTRE + 3 * RADIUS, resolution=48)
+    seed_hull, _ = carve_visual_hull(grid, masks, cam, Ts, CarveOptions(min_views_in_image=1))
+    hull, report = carve_visual_hull(grid, masks, cam, Ts)
+    centres = grid.centres(False)
+    n_in = np.zeros(len(centres), int)
+    for T in Ts:
+        pix = np.floor(_cv2_pixels(centres, cam, T) + 0.5).astype(int)
+        front = (centres - T[:3, 3]) @ T[:3, 2] > 0
+        n_in += front & (pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0) \
+            & (pix[:, 1] < cam.height)
+    old, new = seed_hull.occupancy.reshape(-1), hull.occupancy.reshape(-1)
+    assert np.mean(n_in[old] < 2) > 0.2  # the seed's hull: a fifth or more in < 2 images
+    assert np.array_equal(new, old & (n_in >= 2))
+    assert report["in_images"]["min_views"] == 2
+    assert report["in_images"]["removed"] == int(old.sum() - new.sum())
+    assert np.array_equal(in_enough_images(seed_hull, cam, Ts, 2), (n_in >= 2)[old])
+    in_sphere = np.linalg.norm(centres - CENTRE, axis=1) < RADIUS - grid.voxel_size
+    assert new[in_sphere].all()
+    # the seed's hull: 18 times the sphere's volume, 93 % of it more than 2 R from its
+    # centre; now 1.5 times, a quarter that far (two opposite views bound no depth)
+    n_sphere = SPHERE_VOLUME / grid.voxel_size**3
+    far = np.linalg.norm(centres - CENTRE, axis=1) > 2 * RADIUS
+    assert old.sum() > 10 * n_sphere and far[old].mean() > 0.9
+    assert new.sum() < 2 * n_sphere and far[new].mean() < 0.3
+    # one view: it alone is every view there is; outside_image "carve": nothing to add
+    one, rep1 = carve_visual_hull(grid, masks[:1], cam, Ts[:1])
+    assert "in_images" not in rep1
+    assert np.array_equal(one.occupancy, carve_dense(grid, masks[:1], cam, Ts[:1])[0].occupancy)
+    strict, rep_s = carve_visual_hull(grid, masks, cam, Ts, CarveOptions(outside_image="carve"))
+    assert "in_images" not in rep_s and not (strict.occupancy & ~hull.occupancy).any()
+    with pytest.raises(ValueError, match="min_views_in_image"):
+        carve_visual_hull(grid, masks, cam, Ts, CarveOptions(min_views_in_image=0))
+
+
 def test_behind_camera_keep_vs_carve():
     cam = _camera()
     grid = make_grid([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1], resolution=20)

@@ -120,7 +120,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     report["seconds"] = round(time.perf_counter() - t0, 3)
     grid.save_npz(outputs["npz"], carving={k: getattr(opts, k) for k in (
                       "method", "leaf_rule", "outside_image", "behind_camera",
-                      "min_views_background")},
+                      "min_views_background", "min_views_in_image")},
                   views_used=np.array(used, dtype=np.int64),
                   views_left_out=left_out_rows)
     write_mesh(outputs["ply"], vertices, faces)

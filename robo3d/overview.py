@@ -200,6 +200,11 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     if _get(metrics, ("stages", "align", "outside_hull", "contradicted")):
         notes.append("the silhouettes contradict the laser: no laser point was dropped "
                      "by them")
+    if _get(metrics, ("stages", "align", "outside_hull", "views_agreement", "overrules")):
+        share = _get(metrics, ("stages", "align", "outside_hull", "dropped_fraction"))
+        notes.append("the views agree with each other and overrule the laser: "
+                     + (f"{100 * share:.0f} % of its points" if _number(share) else "its points")
+                     + " outside them dropped as not on the object")
     if _get(metrics, ("surface_sources", "hull_contradicted")):
         notes.append("the hull contradicts the laser: nothing closed, the mesh is the "
                      "measured surface")

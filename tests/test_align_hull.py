@@ -11,7 +11,7 @@ from robo3d.camera import CameraModel, pixel_rays
 from robo3d.config import default_config
 from robo3d.registration import SilhouetteViews
 from robo3d.sim.rig import look_at
-from robo3d.stages.align import _reject_outside_hull
+from robo3d.stages.align import _reject_outside_hull, _views_agreement
 
 CENTRE, RADIUS, F = np.array([0.0, 0.0, 0.1]), 0.04, 300.0
 
@@ -199,17 +199,25 @@ def test_margin_points_are_placed_by_alignment_not_used_by_it(tmp_path, monkeypa
     assert len(aligned[1]) == 40
 
 
+def _boxed(cloud: SweepCloud) -> SweepCloud:
+    """The cloud with the workspace box the triangulation reports (the views' agreement
+    is measured in it)."""
+    cloud.report = {"workspace": [(CENTRE - 0.06).tolist(), (CENTRE + 0.06).tolist()]}
+    return cloud
+
+
 def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path):
     """Masks that failed alike in many views (a white cup on a checker table: each mask
     missed the cup's white patches) together drop most of the measured points, each
     point by a few views, and no single view is the odd one out: the laser is kept whole
-    and the report says why."""
+    and the report says why. Such masks disagree with each other (median IoU with the
+    other views' hull 0.29; specks 0.0), so the views do not overrule the laser."""
     cam, Ts, masks = _views()
     rng = np.random.default_rng(2)
     d = rng.normal(size=(500, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     surface = CENTRE + RADIUS * d
-    clouds = [_cloud(surface.copy(), 0)]
+    clouds = [_boxed(_cloud(surface.copy(), 0))]
     npz = tmp_path / "silhouettes.npz"
     np.savez(npz, qa_flagged=np.zeros(len(Ts), bool))
     half = []  # each mask misses a third of its 12-px blocks (its white patches)
@@ -222,16 +230,19 @@ def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path)
                                            default_config()["alignment"])
     assert report["contradicted"] is True and report["dropped"] == 0 and len(dropped) == 0
     assert report["disputed_fraction"] > 0.2 and "contradict the laser" in report["skipped"]
+    assert report["views_agreement"]["iou_median"] < 0.5
+    assert report["views_agreement"]["overrules"] is False
     assert len(clouds[0]) == 500
     # masks that are specks in every view: every point outside most of them
     specks = [np.zeros_like(m) for m in masks]
     for m in specks:
         m[80:84, 100:104] = True
     views_s = SilhouetteViews([m.astype(float) for m in specks], specks, [cam] * len(Ts), Ts)
-    clouds = [_cloud(surface.copy(), 0)]
+    clouds = [_boxed(_cloud(surface.copy(), 0))]
     report, dropped = _reject_outside_hull(clouds, views_s, {"silhouettes": str(npz)},
                                            default_config()["alignment"])
     assert report["contradicted"] is True and report["would_drop_fraction"] > 0.9
+    assert report["views_agreement"]["iou_median"] < 0.1
     assert report["disputed_fraction"] < 0.2 and len(clouds[0]) == 500
     # the same masks with a lenient cap drop what they see outside: the test is the cap
     lenient = {**default_config()["alignment"], "outside_hull_max_fraction": 0.9,
@@ -239,6 +250,44 @@ def test_silhouettes_that_contradict_the_laser_as_a_whole_drop_nothing(tmp_path)
     clouds = [_cloud(surface.copy(), 0)]
     report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)}, lenient)
     assert report["dropped"] == len(dropped) > 200 and len(clouds[0]) < 300
+
+
+def test_views_that_agree_overrule_a_laser_read_off_a_texture(tmp_path):
+    """Right masks, and a laser that left no trace on the object: the detector read a
+    texture's edges, 4-15 mm off the surface, and a few points on it (random scene 379: a
+    blue laser on an orange checker torus, 92 % of its points outside masks of IoU 0.94).
+    The masks would drop most of the points, which read as masks that failed everywhere;
+    but ten views that agree with each other are not what failed: the points off the
+    object are dropped, those on it kept. With the override off (null) the laser is kept
+    whole, as before."""
+    cam, Ts, masks = _views()
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = CENTRE + RADIUS * d[:60]
+    off = CENTRE + (RADIUS + rng.uniform(0.004, 0.015, size=(340, 1))) * d[60:]
+    npz = tmp_path / "silhouettes.npz"
+    np.savez(npz, qa_flagged=np.zeros(len(Ts), bool))
+    views = SilhouetteViews([m.astype(float) for m in masks], masks, [cam] * len(Ts), Ts)
+    ac = default_config()["alignment"]
+    clouds = [_boxed(_cloud(np.concatenate([surface, off]), 0))]
+    report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)},
+                                           {**ac, "outside_hull_views_agree_iou": None})
+    assert report["contradicted"] is True and len(clouds[0]) == 400
+    assert report["would_drop_fraction"] > 0.5 > report["disputed_fraction"]
+    clouds = [_boxed(_cloud(np.concatenate([surface, off]), 0))]
+    report, dropped = _reject_outside_hull(clouds, views, {"silhouettes": str(npz)}, ac)
+    assert "contradicted" not in report
+    agree = report["views_agreement"]
+    assert agree["overrules"] is True and agree["iou_median"] > 0.85
+    assert len(agree["per_view"]) == 10
+    r = np.linalg.norm(clouds[0].points_base - CENTRE, axis=1)
+    assert len(clouds[0]) >= 60 and np.all(np.abs(r - RADIUS) < 0.003)  # the surface kept
+    assert report["dropped"] == len(dropped) > 300  # the texture's points dropped
+    # two views bound nothing of each other, nor is anything measured without a box
+    assert _views_agreement(clouds, views, [0, 1], 64) is None
+    assert _views_agreement([_cloud(surface, 0)], views, list(range(10)), 64) is None
+    assert _views_agreement(clouds, views, list(range(10)), 0) is None
 
 
 def test_the_lit_table_next_to_the_floor_does_not_make_the_silhouettes_contradicted(tmp_path):

@@ -311,6 +311,7 @@ def test_the_masks_picture_says_when_the_laser_contradicts_the_masks():
     """The alignment's warning on masks that the laser contradicts sends the user to
     pictures/masks.png, which said only "0 view(s) flagged by the mask check" (random
     scene 408: a white checker bottle on a marker table, masks IoU 0.04-0.05)."""
+    from robo3d.overview import recording_status
     from robo3d.stages.pictures import _laser_against_masks
 
     oh = {"contradicted": True, "would_drop_fraction": 0.8702,
@@ -327,3 +328,12 @@ def test_the_masks_picture_says_when_the_laser_contradicts_the_masks():
           "views_not_used_contradict_laser": []}
     assert _laser_against_masks({"stages": {"align": {"outside_hull": ok}}}) == []
     assert _laser_against_masks({}) == []
+    # views that agree overrule the laser (random scene 379): the picture says so
+    over = {"dropped_fraction": 0.92, "views_agreement": {"overrules": True,
+                                                          "iou_median": 0.8368}}
+    line, = _laser_against_masks({"stages": {"align": {"outside_hull": over}}})
+    assert "views agree (median IoU 0.84" in line and "92 % of the laser's points" in line
+    status, notes = recording_status({**_metrics(False), "stages": {
+        "align": {"outside_hull": over}}})
+    assert notes[-1] == ("the views agree with each other and overrule the laser: 92 % of "
+                         "its points outside them dropped as not on the object")

@@ -124,6 +124,11 @@ def _laser_against_masks(metrics: Mapping[str, Any]) -> list[str]:
         share = f"{100 * frac:.0f} % of" if isinstance(frac, int | float) else "many of"
         notes.append(f"the laser contradicts these masks: {share} its points lie outside "
                      "them, so none was dropped for it; the masks are likely wrong")
+    agree = oh.get("views_agreement") or {}
+    if agree.get("overrules") and isinstance(oh.get("dropped_fraction"), int | float):
+        notes.append(f"the views agree (median IoU {agree.get('iou_median', 0):.2f} with the "
+                     f"others' hull): {100 * oh['dropped_fraction']:.0f} % of the laser's "
+                     "points lay outside them and were dropped as not on the object")
     if alone:
         views = ", ".join(f"{i} ({100 * f:.0f} %)" for i, f in sorted(alone.items())[:8])
         more = f" and {len(alone) - 8} more" if len(alone) > 8 else ""

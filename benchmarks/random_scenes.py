@@ -26,7 +26,9 @@ Writes ``benchmarks/results/random_scenes.json``: ``n_scenes``, ``completed``,
 ``end_to_end_s_max``, ``targets``, ``met``, ``notes`` and ``details`` (per scene: its
 ``robo3d simulate`` arguments, ``completed``, ``end_to_end_s``, the slowest stage and its
 seconds, and for scenes with laser frames and a true surface ``measured_median_mm``,
-``measured_p95_mm`` from the run's own ``metrics.json``; a failed run's error).
+``measured_p95_mm``, and with a true surface the whole mesh's ``mesh_median_mm``,
+``mesh_p95_mm`` and its ``inferred_area_fraction``, from the run's own ``metrics.json``;
+a failed run's error).
 """
 
 from __future__ import annotations
@@ -134,9 +136,13 @@ def run_scene(name: str, obj: str, a: list[str], base: Path, meshes: dict[str, l
              for k_, v in m.get("timings", {}).items() if k_ != "total_seconds"}
     slow = max(times, key=times.get) if times else None
     meas = m.get("evaluation", {}).get("measured") or {}
+    mesh = m.get("evaluation", {}).get("mesh") or {}
     return {**out, "completed": 1, "end_to_end_s": e2e, "slowest_stage": slow,
             "slowest_stage_s": times.get(slow) if slow else None,
-            "measured_median_mm": meas.get("median_mm"), "measured_p95_mm": meas.get("p95_mm")}
+            "measured_median_mm": meas.get("median_mm"), "measured_p95_mm": meas.get("p95_mm"),
+            "mesh_median_mm": mesh.get("median_mm"), "mesh_p95_mm": mesh.get("p95_mm"),
+            "inferred_area_fraction": (m.get("surface_sources") or {}).get(
+                "inferred_area_fraction")}
 
 
 def main() -> int:

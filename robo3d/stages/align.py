@@ -459,6 +459,46 @@ def _views_agreement(clouds: list, views, idx: list[int], resolution: int
             "resolution": int(resolution), "overrules": False}
 
 
+def _contradicted(would: float, disputed: float, ac: Mapping[str, Any]) -> dict[str, Any]:
+    """Said (a warning) and reported: the silhouettes contradict the laser, which is kept
+    whole; ``would`` and ``disputed``: the shares of the points they would drop, and
+    that fewer than half of the views would."""
+    log.warning("alignment: the silhouettes would drop %.1f %% of the laser points, %.1f %% "
+                "outside fewer than half of the views (limits "
+                "alignment.outside_hull_max_fraction %.0f %%, outside_hull_max_total_fraction "
+                "%.0f %%): they contradict the laser, which is kept whole; the masks are "
+                "likely wrong (see pictures/masks.png)", 100 * would, 100 * disputed,
+                100 * float(ac["outside_hull_max_fraction"]),
+                100 * float(ac["outside_hull_max_total_fraction"]))
+    return {"skipped": "the silhouettes contradict the laser: they would drop "
+                       f"{100 * would:.1f} % of the laser points, {100 * disputed:.1f} % "
+                       "outside fewer than half of the views (more than "
+                       "alignment.outside_hull_max_fraction, or more than "
+                       "outside_hull_max_total_fraction above the floor); none is dropped",
+            "contradicted": True, "would_drop_fraction": would,
+            "max_fraction": float(ac["outside_hull_max_fraction"]),
+            "max_total_fraction": float(ac["outside_hull_max_total_fraction"])}
+
+
+def _views_overrule(clouds: list, views, idx: list[int], ac: Mapping[str, Any],
+                    would: float, disputed: float) -> dict[str, Any] | None:
+    """The views' agreement (:func:`_views_agreement`) where the silhouettes would
+    contradict the laser, ``overrules`` set (and said) when it reaches
+    ``alignment.outside_hull_views_agree_iou``; None when it is not measured."""
+    agreement = _views_agreement(clouds, views, idx, int(ac["outside_hull_agree_resolution"]))
+    limit_iou = ac["outside_hull_views_agree_iou"]
+    if (agreement is not None and limit_iou is not None
+            and agreement["iou_median"] >= float(limit_iou)):
+        agreement["overrules"] = True
+        log.warning("alignment: the silhouettes would drop %.1f %% of the laser points (%.1f "
+                    "%% outside fewer than half of the views), but the views agree with each "
+                    "other (median IoU %.2f with the others' hull, at least "
+                    "alignment.outside_hull_views_agree_iou %.2f): the points are not on the "
+                    "object and are dropped", 100 * would, 100 * disputed,
+                    agreement["iou_median"], float(limit_iou))
+    return agreement
+
+
 def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
                          ac: Mapping[str, Any]) -> tuple[dict[str, Any], np.ndarray]:
     """Drop the aligned points that lie outside a view's silhouette (in place).
@@ -504,11 +544,9 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     idx = [i for i in range(len(views.cameras)) if qa is None or not qa[i]]
     pts = np.concatenate([c.points_base for c in clouds])
     tol_px, tol_m = float(ac["outside_hull_px"]), 1e-3 * float(ac["outside_hull_mm"])
-    per_view = np.zeros((len(idx), len(pts)), bool)
-    for j, i in enumerate(idx):
-        n_i, _ = outside_silhouettes(pts, [views.masks[i]], [views.cameras[i]],
-                                     views.T_base_camera[i:i + 1], tol_px=tol_px, tol_m=tol_m)
-        per_view[j] = n_i > 0
+    per_view = np.stack([outside_silhouettes(
+        pts, [views.masks[i]], [views.cameras[i]], views.T_base_camera[i:i + 1],
+        tol_px=tol_px, tol_m=tol_m)[0] > 0 for i in idx]) if idx else np.zeros((0, len(pts)), bool)
     # a view contradicts the laser when it drops many points that (almost) no other
     # view drops: its own mask is wrong there. Points that most views see outside their
     # silhouettes (the table or the wall lit by the laser and triangulated within the
@@ -534,36 +572,16 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     contradicted = (disputed > float(ac["outside_hull_max_fraction"])
                     or (above.any() and float(drop[above].mean())
                         > float(ac["outside_hull_max_total_fraction"])))
-    agreement = None
-    if contradicted:
-        # ... unless the views agree with each other: then the points are what is wrong
-        # (a stripe taken from a texture's edges where the laser left no trace)
-        agreement = _views_agreement(clouds, views, idx,
-                                     int(ac["outside_hull_agree_resolution"]))
-        limit_iou = ac["outside_hull_views_agree_iou"]
-        if (agreement is not None and limit_iou is not None
-                and agreement["iou_median"] >= float(limit_iou)):
-            contradicted = False
-            agreement["overrules"] = True
-            log.warning("alignment: the silhouettes would drop %.1f %% of the laser points "
-                        "(%.1f %% outside fewer than half of the views), but the views agree "
-                        "with each other (median IoU %.2f with the others' hull, at least "
-                        "alignment.outside_hull_views_agree_iou %.2f): the points are not on "
-                        "the object and are dropped", 100 * would, 100 * disputed,
-                        agreement["iou_median"], float(limit_iou))
+    # ... unless the views agree with each other: then the points are what is wrong (a
+    # stripe taken from a texture's edges where the laser left no trace)
+    agreement = _views_overrule(clouds, views, idx, ac, would, disputed) if contradicted \
+        else None
+    contradicted = contradicted and not (agreement or {}).get("overrules")
     if contradicted:
         # the silhouettes as a whole contradict the laser: segmentation that failed
         # together in many views (a white cup on a black-and-white checker table: every
         # mask missed its white patches; 84 % of the laser points lay outside some of
         # them, each outside fewer than half)
-        log.warning("alignment: the silhouettes would drop %.1f %% of the laser points, "
-                    "%.1f %% outside fewer than half of the views (limits "
-                    "alignment.outside_hull_max_fraction %.0f %%, "
-                    "outside_hull_max_total_fraction %.0f %%): they contradict the laser, "
-                    "which is kept whole; the masks are likely wrong (see "
-                    "pictures/masks.png)", 100 * would, 100 * disputed,
-                    100 * float(ac["outside_hull_max_fraction"]),
-                    100 * float(ac["outside_hull_max_total_fraction"]))
         drop = np.zeros_like(drop)
     starts = np.cumsum([0] + [len(c) for c in clouds])
     per_sweep = []
@@ -584,15 +602,7 @@ def _reject_outside_hull(clouds: list, views, inputs: Mapping[str, str],
     if agreement is not None:
         report["views_agreement"] = agreement
     if contradicted:
-        report.update(
-            skipped="the silhouettes contradict the laser: they would drop "
-                    f"{100 * would:.1f} % of the laser points, {100 * disputed:.1f} % outside "
-                    "fewer than half of the views (more than "
-                    "alignment.outside_hull_max_fraction, or more than "
-                    "outside_hull_max_total_fraction above the floor); none is dropped",
-            contradicted=True, would_drop_fraction=would,
-            max_fraction=float(ac["outside_hull_max_fraction"]),
-            max_total_fraction=float(ac["outside_hull_max_total_fraction"]))
+        report.update(_contradicted(would, disputed, ac))
     log.info("alignment: %d of %d laser points (%.2f %%) lie outside a silhouette: dropped "
              "(%d views used%s)", int(drop.sum()), n_all, 100 * float(drop.mean()),
              report["views_used"],

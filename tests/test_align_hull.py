@@ -365,3 +365,33 @@ def test_points_whose_stripe_centre_was_pulled_off_the_stripe_are_dropped(tmp_pa
     old = [_cloud(rng.normal(size=(5, 3)), 0)]  # no skew kept (an older clouds.npz)
     report, dropped = _drop_skewed(old, cfg)
     assert "older" in report["skipped"] and len(old[0]) == 5
+
+
+def test_a_single_sweep_without_views_is_flagged(tmp_path):
+    """One sweep and no views: nothing to align it to, and nothing checks its robot
+    pose. It is flagged as a sweep that the alignment keeps at the robot's pose is
+    (random scene 148: a stripe read off an orange checker, 20 mm off, labelled measured
+    with nothing flagged), in the report and in the aligned cloud, whose surface fusion
+    then labels ``flagged_sweep``. With the alignment turned off in the config nothing is
+    flagged: the user chose it."""
+    from robo3d.artefacts import load_clouds_npz, save_clouds_npz
+    from robo3d.stages.align import stage_align
+
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    save_clouds_npz(tmp_path / "clouds.npz", [_boxed(_cloud(CENTRE + RADIUS * d, 0))])
+    out = {"npz": str(tmp_path / "aligned.npz"), "ply": str(tmp_path / "aligned.ply"),
+           "rrd": str(tmp_path / "align.rrd"), "report": str(tmp_path / "align.json")}
+    report = stage_align({"clouds": str(tmp_path / "clouds.npz")}, out, default_config(), "t")
+    assert report["skipped"] == "a single sweep and no views: nothing to align it to"
+    sweep, = report["per_sweep"]
+    assert sweep["flagged"] and "checked by nothing" in sweep["reason"]
+    assert sweep["n_points"] == 300
+    aligned, = load_clouds_npz(out["npz"])
+    assert aligned.report["flagged"] is True and len(aligned) == 300
+    cfg = default_config()
+    cfg["alignment"]["enabled"] = False
+    report = stage_align({"clouds": str(tmp_path / "clouds.npz")}, out, cfg, "t")
+    assert "per_sweep" not in report
+    assert not load_clouds_npz(out["npz"])[0].report.get("flagged")

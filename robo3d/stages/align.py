@@ -79,6 +79,8 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                         "skipped": "alignment disabled in the config" if not ac["enabled"]
                         else "a single sweep and no views: nothing to align it to"}
     corrections = _apply_corrections(clouds, result, centres)
+    if result is None and ac["enabled"]:
+        align_report["per_sweep"] = _lone_sweep_flagged(clouds)
     ws_check = _crop_to_workspace(clouds)
     hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)
     skew_check, skewed = _drop_skewed(clouds, ac)
@@ -163,6 +165,23 @@ def _apply_corrections(clouds: list, result, centres: list) -> list[np.ndarray]:
             c.report["flagged"] = bool(result.per_sweep[k].get("flagged"))
         c.points_base, c.sensor_origin_base, c.normals_base = p, o, n
     return corrections
+
+
+def _lone_sweep_flagged(clouds: list) -> list[dict[str, Any]]:
+    """A single sweep without views rests on the robot's poses alone, as a sweep that the
+    alignment flags does (kept at the robot's pose, checked against no other sweep or
+    view): flagged in its cloud's report, so that fusion labels the surface it measured
+    (``flagged_sweep``), and in the align report's ``per_sweep``.
+
+    Why: with views, such a sweep is refined against them or flagged ("no other sweep
+    left to align with"); without, the alignment was skipped and nothing said so. Random
+    scene 148 (a blue laser read as red off an orange checker, one sweep, no views):
+    measured median 20 mm, labelled measured with nothing flagged."""
+    reason = "a single sweep and no views: its robot pose is checked by nothing"
+    for c in clouds:
+        c.report = {**(c.report or {}), "flagged": True}
+    return [{"sweep": c.sweep, "n_points": len(c), "translation_mm": 0.0, "rotation_deg": 0.0,
+             "converged": False, "flagged": True, "reason": reason} for c in clouds]
 
 
 def _turning_centres(clouds: list, max_turn_deg: float) -> list[np.ndarray | None]:

@@ -877,8 +877,7 @@ def carve_visual_hull(
     """
     o = options
     check_choice("method", o.method, CARVING_METHODS)
-    if int(o.min_views_in_image) < 1:
-        raise ValueError(f"min_views_in_image must be >= 1, got {o.min_views_in_image}")
+    check_min_views(o.min_views_in_image, "min_views_in_image")
     if o.method == "dense":
         if o.leaf_rule != "centre":
             raise ValueError(f"the dense method tests voxel centres only (leaf_rule "
@@ -892,7 +891,7 @@ def carve_visual_hull(
                                    outside_image=o.outside_image, behind_camera=o.behind_camera,
                                    leaf_rule=o.leaf_rule, threads=o.threads,
                                    min_views_background=o.min_views_background)
-    need = min(int(o.min_views_in_image), int(report["n_views"]))
+    need = min(o.min_views_in_image, int(report["n_views"]))
     if o.outside_image != "keep" or need <= 1 or out.n_occupied == 0:
         return out, report
     seen = in_enough_images(out, cameras, T_base_cameras, need)

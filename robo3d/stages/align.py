@@ -79,7 +79,7 @@ def stage_align(inputs: Mapping[str, str], outputs: Mapping[str, str],
                         "skipped": "alignment disabled in the config" if not ac["enabled"]
                         else "a single sweep and no views: nothing to align it to"}
     corrections = _apply_corrections(clouds, result, centres)
-    if result is None and ac["enabled"]:
+    if result is None and ac["enabled"]:  # one sweep, no views: nothing checked it
         align_report["per_sweep"] = _lone_sweep_flagged(clouds)
     ws_check = _crop_to_workspace(clouds)
     hull_check, rejected = _reject_outside_hull(clouds, views, inputs, ac)

@@ -179,6 +179,24 @@ def test_the_laser_box_holds_the_object_on_its_table() -> None:
     assert laser_box(p[flat], n[flat], f[flat], s[flat]) is None
 
 
+def test_a_lid_with_no_table_under_it_is_not_the_table() -> None:
+    """The laser saw the block's top and sides but not the table (a dark table, a dimmed
+    laser frame): the top is the lowest wide horizontal surface, and every side lies
+    under it. It is no table; the box holds the whole block, not what stands above its
+    top (random scene 579: a vase kept only its rim, 88 % of its points dropped)."""
+    from robo3d.carving import laser_box, support_height
+
+    p, n, f, s, (t_lo, t_hi) = _laser_scene()
+    block = np.all((p[:, :2] >= t_lo[:2] - 1e-9) & (p[:, :2] <= t_hi[:2] + 1e-9), axis=1)
+    block &= p[:, 2] > 0.0012  # not the table under the block's sides' foot
+    assert support_height(p[block], n[block]) is None
+    lo, hi, info = laser_box(p[block], n[block], f[block], s[block])
+    assert info["table_z_m"] is None and info["object_points"] > 0.99 * block.sum()
+    assert np.all(lo < t_lo + [0, 0, 0.0013]) and np.all(hi > t_hi), (lo, hi)
+    # the table seen again: it is the table, as before
+    assert -2e-4 <= support_height(p, n) <= 8e-4
+
+
 def _laser_only(rec: Path, res: Path, cfg, name: str) -> None:
     from stages_in_process import stage_outputs
 

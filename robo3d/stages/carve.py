@@ -103,6 +103,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
         except StageError as exc:  # random scene 463 of stop 52: one view left, no box
             return no_hull(f"no carving box from the {len(used)} view(s) left: {exc}",
                            **views_kw)
+    agreement["used"] = _used_views_agreement(agreement, used)
     grid = make_grid(box_min, box_max, resolution=cc["resolution"])
     grid, carve_report = carve_visual_hull(grid, [masks[i] for i in used],
                                            [cameras[i] for i in used], poses[used], opts)
@@ -122,7 +123,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
                       "method", "leaf_rule", "outside_image", "behind_camera",
                       "min_views_background", "min_views_in_image")},
                   views_used=np.array(used, dtype=np.int64),
-                  views_left_out=left_out_rows)
+                  views_left_out=left_out_rows, views_agreement=agreement["used"])
     write_mesh(outputs["ply"], vertices, faces)
     _log_hull(outputs["rrd"], rec_name, grid, vertices, faces, report, box_min, box_max,
               cameras, poses, masks, used, left_out_rows)
@@ -277,6 +278,19 @@ def _segmentation_flags(silhouettes_npz: str, sil: Mapping[str, Any], n_views: i
                 and reasons:
             flags[idx] = [f"segmentation: {r}" for r in reasons]
     return flags
+
+
+def _used_views_agreement(agreement: Mapping[str, Any], used: list[int]) -> dict[str, Any]:
+    """How well the views that carve the hull agree with each other: the median of their
+    IoUs with the other views' hull from the agreement check (``iou_median``, None when
+    it scored nothing or fewer than three of them: two views' cones bound nothing of each
+    other), and how many (``n_views``). Kept in ``hull.npz`` (``views_agreement``) for the
+    align stage, which does not let a hull its views disagree on place a workspace
+    (:func:`robo3d.stages.align._workspace_from_hull`)."""
+    by_view = {int(s["view"]): s["iou"] for s in agreement.get("views", [])}
+    ious = [float(by_view[i] or 0.0) for i in used if i in by_view]
+    return {"iou_median": float(np.median(ious)) if len(ious) >= 3 else None,
+            "n_views": len(ious)}
 
 
 def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: list,

@@ -35,6 +35,17 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return rec, _without_box(rec, d / "cell_nobox.mcap")
 
 
+@pytest.fixture(scope="module")
+def hull_run(cell, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The box-less cell through silhouettes, carve, stripes, triangulate and align with
+    the default config: the results' folder."""
+    from robo3d.config import default_config
+
+    res = tmp_path_factory.mktemp("nobox_run") / "hull"
+    run_up_to_align(cell[1], res, default_config(), "hull")
+    return res
+
+
 def _far_fraction(rec: Path, res: Path) -> tuple[float, int]:
     """Share of the aligned points more than 1 mm from the true object, and their count."""
     from robo3d.artefacts import load_clouds_npz
@@ -65,7 +76,8 @@ def _on_object(rec: Path, res: Path) -> np.ndarray:
     return pts[truth.distance(pts) <= 1e-3]
 
 
-def test_the_hull_box_takes_the_place_of_the_recordings(cell, tmp_path: Path) -> None:
+def test_the_hull_box_takes_the_place_of_the_recordings(cell, hull_run: Path,
+                                                        tmp_path: Path) -> None:
     import json
 
     from robo3d.config import default_config
@@ -77,12 +89,11 @@ def test_the_hull_box_takes_the_place_of_the_recordings(cell, tmp_path: Path) ->
     assert read_recording(boxed, roles=()).workspace is not None
     cfg = default_config()
     run_up_to_align(boxed, tmp_path / "box", cfg, "box")
-    run_up_to_align(bare, tmp_path / "hull", cfg, "hull")
     off = default_config()
     off["alignment"]["workspace_from_hull"] = False
     off["alignment"]["workspace_from_laser"] = False  # else the laser's box steps in
     run_up_to_align(bare, tmp_path / "off", off, "off")
-    rep = json.loads((tmp_path / "hull" / "reports" / "align.json").read_text())
+    rep = json.loads((hull_run / "reports" / "align.json").read_text())
     ws = rep["workspace_from_hull"]
     lo, hi = np.array(ws["box_min"]), np.array(ws["box_max"])
     true_lo, true_hi = read_recording(boxed, roles=()).workspace
@@ -94,18 +105,19 @@ def test_the_hull_box_takes_the_place_of_the_recordings(cell, tmp_path: Path) ->
     assert ws["floor"].startswith("the table's") and abs(ws["table_z_m"]) < 1e-3
     assert abs(lo[2] - true_lo[2]) < 1e-3  # the robot's error: 0.38 mm
     # the views that carved it agree with each other (the carve's check, kept in hull.npz)
-    _, extra = VoxelGrid.load_npz(tmp_path / "hull" / "hull.npz", return_extra=True)
+    _, extra = VoxelGrid.load_npz(hull_run / "hull.npz", return_extra=True)
     assert extra["views_agreement"]["iou_median"] > 0.5, extra["views_agreement"]
     # measured: 82 % of the points more than 1 mm off without it (8,161 points: the table
     # and the wall); 6.9 % with the hull's box, as with the recording's (1,307 both)
-    far = {k: _far_fraction(boxed, tmp_path / k) for k in ("box", "hull", "off")}
+    far = {k: _far_fraction(boxed, hull_run if k == "hull" else tmp_path / k)
+           for k in ("box", "hull", "off")}
     assert far["off"][0] > 0.5
     assert far["hull"][0] < 0.15 and far["hull"][0] <= far["box"][0] + 0.02
     assert far["hull"][1] < 0.3 * far["off"][1]
 
 
-def test_a_hull_its_views_disagree_on_does_not_place_the_workspace(cell, tmp_path: Path
-                                                                   ) -> None:
+def test_a_hull_its_views_disagree_on_does_not_place_the_workspace(
+        cell, hull_run: Path, tmp_path: Path) -> None:
     """Masks that failed in most views carve a few hundred voxels where no object is
     (random scenes 463, 546). Its box cropped the object away and kept the table as
     measured surface. The carve's agreement check says how well the views that carved
@@ -117,19 +129,13 @@ def test_a_hull_its_views_disagree_on_does_not_place_the_workspace(cell, tmp_pat
 
     from robo3d.carving import make_grid
     from robo3d.config import default_config
-    from robo3d.pipeline import stage_align, stage_stripes, stage_triangulate
+    from robo3d.pipeline import stage_align
     from robo3d.recording import read_recording
 
     boxed, bare = cell
     true_lo, true_hi = read_recording(boxed, roles=()).workspace
-    res = tmp_path / "laser"
-    (res / "reports").mkdir(parents=True)
+    res = hull_run  # its triangulated clouds
     cfg = default_config()
-    stage_stripes({"recording": str(bare)}, stage_outputs(res, "stripes", npz="stripes.npz"),
-                  cfg, "c")
-    stage_triangulate({"stripes": str(res / "stripes.npz")},
-                      stage_outputs(res, "triangulate", npz="clouds.npz", ply="clouds.ply"),
-                      cfg, "c")
     # a 12 mm hull beside the object, 40 mm off its middle, down to 30 mm under the table
     size = true_hi - true_lo
     off = 0.5 * (true_lo + true_hi) + [0.0, 0.04 + 0.5 * size[1], -0.03]

@@ -714,13 +714,31 @@ def _hull_field(hull: Any, grid_origin: np.ndarray,
     h_origin, h_vs, occ = _dilated_hull(hull, margin_voxels)
     field = ndimage.gaussian_filter(occ.astype(np.float32), smooth_sigma) if smooth_sigma > 0 \
         else occ.astype(np.float32)
-    inside = np.zeros(shape, dtype=bool)
-    idx = np.indices(shape, dtype=np.float32).reshape(3, -1)
+    # both grids are axis-aligned, so the trilinear interpolation is three linear ones,
+    # one axis at a time (what scipy.ndimage.map_coordinates(order=1, mode="constant")
+    # gives, 0 off the hull's grid): the simulated cup/4's 11.4 million fusion voxels in
+    # 0.16 s instead of 1.5 s, 3 voxels of 5.6 million inside flipping at the 0.5 level
+    # (map_coordinates' coordinates were float32)
     for k in range(3):  # fusion voxel index -> hull voxel coordinates
-        idx[k] = (grid_origin[k] + idx[k] * voxel_size - h_origin[k]) / h_vs
-    vals = ndimage.map_coordinates(field, idx, order=1, mode="constant", cval=0.0)
-    inside.ravel()[:] = vals > 0.5
-    return inside
+        c = (grid_origin[k] + np.arange(shape[k], dtype=np.float64) * voxel_size
+             - h_origin[k]) / h_vs
+        field = _linear_along(field, k, c)
+    return field > 0.5
+
+
+def _linear_along(f: np.ndarray, axis: int, c: np.ndarray) -> np.ndarray:
+    """``f`` sampled along ``axis`` at the fractional indices ``c`` by linear
+    interpolation, 0 outside ``[0, n - 1]`` (float32)."""
+    n = f.shape[axis]
+    valid = (c >= 0.0) & (c <= n - 1)
+    i0 = np.clip(np.floor(c).astype(np.int64), 0, max(n - 2, 0))
+    i1 = np.minimum(i0 + 1, n - 1)
+    t = np.clip(c - i0, 0.0, 1.0)
+    shape = [1] * f.ndim
+    shape[axis] = -1
+    w0 = np.where(valid, 1.0 - t, 0.0).astype(np.float32).reshape(shape)
+    w1 = np.where(valid, t, 0.0).astype(np.float32).reshape(shape)
+    return np.take(f, i0, axis=axis) * w0 + np.take(f, i1, axis=axis) * w1
 
 
 def fuse_tsdf(

@@ -775,3 +775,36 @@ def test_far_query_tree_options_find_the_same_neighbours():
     d1, i1 = cKDTree(lines, **KD_FAR).query(queries, k=1)
     np.testing.assert_array_equal(d0, d1)
     np.testing.assert_array_equal(i0, i1)
+
+
+def test_the_hull_field_is_scipys_trilinear_interpolation():
+    """``_hull_field`` interpolates the hull's smoothed occupancy one axis at a time; it
+    must be what ``scipy.ndimage.map_coordinates(order=1, mode="constant")`` gives at the
+    fusion voxels' centres, 0 off the hull's grid, for grids that overlap it partly, at
+    finer and coarser voxels, and for a hull one voxel thin."""
+    from scipy import ndimage
+
+    from robo3d.carving import VoxelGrid
+    from robo3d.fusion import _dilated_hull, _hull_field
+
+    rng = np.random.default_rng(5)
+    for occ_shape, vs, shift in (((9, 7, 5), 0.4, (-0.7, 0.3, 1.1)),
+                                 ((6, 1, 8), 1.7, (0.25, 0.0, -2.0)),
+                                 ((12, 10, 9), 0.33, (2.0, -1.0, 0.5))):
+        occ = rng.random(occ_shape) < 0.5
+        hull = VoxelGrid(origin=np.zeros(3), voxel_size=1.0, occupancy=occ)
+        shape = tuple(int(n / vs) + 4 for n in occ_shape)
+        origin = np.array(shift)
+        for margin, sigma in ((0, 0.0), (1, 1.0)):
+            got = _hull_field(hull, origin, vs, shape, margin, sigma)
+            h_origin, h_vs, docc = _dilated_hull(hull, margin)
+            field = (ndimage.gaussian_filter(docc.astype(np.float32), sigma) if sigma > 0
+                     else docc.astype(np.float32))
+            idx = np.indices(shape, dtype=np.float64).reshape(3, -1)
+            idx = (origin[:, None] + idx * vs - h_origin[:, None]) / h_vs
+            want = ndimage.map_coordinates(field, idx, order=1, mode="constant",
+                                           cval=0.0).reshape(shape)
+            # the same everywhere but where a value lies within float32 rounding of 0.5
+            near = np.abs(want - 0.5) < 1e-5
+            assert np.array_equal(got[~near], (want > 0.5)[~near])
+            assert got.any() and not got.all()

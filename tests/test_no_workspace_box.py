@@ -263,6 +263,9 @@ def test_a_lid_with_no_table_under_it_is_not_the_table() -> None:
     lo, hi, info = laser_box(p[block], n[block], f[block], s[block])
     assert info["table_z_m"] is None and info["object_points"] > 0.99 * block.sum()
     assert np.all(lo < t_lo + [0, 0, 0.0013]) and np.all(hi > t_hi), (lo, hi)
+    # no table: the floor half a millimetre under the lowest point, not a margin below
+    # it (up-facing points at the floor are the table's for fusion, not measured)
+    assert lo[2] == pytest.approx(p[block, 2].min() - 0.0005, abs=1e-9)
     # the table seen again: it is the table, as before
     assert -2e-4 <= support_height(p, n) <= 8e-4
 

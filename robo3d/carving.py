@@ -98,6 +98,7 @@ __all__ = [
     "make_grid",  # likewise
     "box_from_silhouettes",
     "laser_box",
+    "share_under",
     "support_height",
     "carve_dense",
     "carve_visual_hull",
@@ -309,8 +310,23 @@ def support_height(points: np.ndarray, normals: np.ndarray, *, max_tilt_deg: flo
     if int(sel.sum()) < min_points:
         return None
     z0 = float(np.median(z[sel]))
-    under = int(np.count_nonzero(finite & ~facing & (p[:, 2] < z0 - below_m)))
-    return None if under > max_below_share * int(finite.sum()) else z0
+    under = share_under(p, n, z0, max_tilt_deg=max_tilt_deg, below_m=below_m)
+    return None if under > max_below_share else z0
+
+
+def share_under(points: np.ndarray, normals: np.ndarray, z0: float, *,
+                max_tilt_deg: float = 20.0, below_m: float = 0.002) -> float:
+    """The share of the (finite) points that lie more than ``below_m`` under the height
+    ``z0`` on surfaces not facing up or down (normal more than ``max_tilt_deg`` from
+    ``z``): an object's sides. Under the table an object stands on it is about 0 (the
+    laser sees nothing through the table); under a lid or a shoulder it is most of them."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(p), axis=1)
+    if not finite.any():
+        return 0.0
+    side = finite & ~_facing_z(n, max_tilt_deg)
+    return float(np.count_nonzero(side & (p[:, 2] < z0 - below_m))) / float(finite.sum())
 
 
 def _height_above(p: np.ndarray, coef: np.ndarray) -> np.ndarray:

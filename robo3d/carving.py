@@ -274,9 +274,15 @@ def table_height(points: np.ndarray, normals: np.ndarray, footprint_min: np.ndar
     return float(np.median(z[near]))
 
 
+#: a height with more than this share of the laser's points on an object's sides more than
+#: 2 mm under it (:func:`share_under`) is no table: nothing stands under the table
+TABLE_MAX_SHARE_UNDER = 0.2
+
+
 def support_height(points: np.ndarray, normals: np.ndarray, *, max_tilt_deg: float = 20.0,
                    bin_m: float = 0.0005, min_points: int = 200, min_share: float = 0.3,
-                   below_m: float = 0.002, max_below_share: float = 0.2) -> float | None:
+                   below_m: float = 0.002, max_below_share: float = TABLE_MAX_SHARE_UNDER
+                   ) -> float | None:
     """The height (``z`` in ``base``) of the table an object stands on, from laser points
     alone (no footprint known): among the points on surfaces facing up or down (normal
     within ``max_tilt_deg`` of ``z``), the ``bin_m`` slabs of their heights that hold at

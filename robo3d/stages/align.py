@@ -211,11 +211,6 @@ def _px(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
-#: a table height with more than this share of the laser's points on an object's sides
-#: under it is no table (as :func:`robo3d.carving.support_height` holds it)
-_TABLE_MAX_UNDER = 0.2
-
-
 def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
                          cfg: Mapping[str, Any]) -> dict[str, Any] | None:
     """A recording without a workspace box, with views: the visual hull's box
@@ -237,6 +232,7 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     place it when the laser finds its own object (:func:`_workspace_from_laser`)."""
     from ..artefacts import clouds_up, clouds_workspace
     from ..carving import (
+        TABLE_MAX_SHARE_UNDER,
         VoxelGrid,
         hull_box,
         level_rotation,
@@ -284,7 +280,7 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     # points above the hull's floor fused as measured surface, 4.8 mm off at the median)
     if table is not None and lvl[0][2] < table and (
             table < 0.5 * (lvl[0][2] + lvl[1][2])
-            or share_under(pts, nrm, table) <= _TABLE_MAX_UNDER):
+            or share_under(pts, nrm, table) <= TABLE_MAX_SHARE_UNDER):
         box = turn_box(P.T, (np.array([lvl[0][0], lvl[0][1], table + 0.0005]), lvl[1]))
         floor = f"the table's ({up_report['up']} = {table:.4f} m, {beside})"
     for c in clouds:

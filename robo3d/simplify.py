@@ -1,4 +1,5 @@
-"""Mesh cleaning and simplification with pymeshlab (MeshLab's filters).
+"""Mesh cleaning and simplification with pymeshlab (MeshLab's filters) and
+fast_simplification (the error-bounded collapses).
 
 :func:`clean_mesh` removes what fusion leaves behind: exactly duplicated vertices and faces,
 zero-area faces, unreferenced vertices, and small floating components (fewer faces than a
@@ -29,19 +30,20 @@ distance of the result is measured the same way with more samples
 (:func:`hausdorff_distance`, the sampling of Metro, Cignoni et al. 1998; pymeshlab's own
 measure took 5 of a small scan's 20 s).
 
-Large meshes (``_CHUNK_MIN_FACES``) are collapsed in four slabs, side by side on the
-job's threads, one process each at a time (:func:`_chunk_collapse`): MeshLab's collapse
-runs on one core and was most of the stage. The faces around a slab stay as they are, so
-the slabs' shared vertices do not move and the pieces weld exactly; the cut changes axis
-at every step, so its strip is collapsed in the next; a step that went beyond the bound
-is made again only in the slabs around the places where it did. The mesh does not
-depend on the job's threads. On the simulated cup/4's 656,898 fused faces the collapses
-took 18.4 s in one piece and 8.5 s in slabs, the whole simplification 28 s and 18 s
-(``benchmarks/README.md``, stop 30).
+The error-bounded mode's collapses are Fast-Quadric-Mesh-Simplification's
+(``fast_simplification``, :func:`_fast_decimate`): the same quadric error metric, edges
+collapsed in passes of rising threshold rather than from a priority queue, about ten times
+faster than MeshLab's collapse, which ran on one core and was two thirds of the stage
+(simulated cup/4, 656,888 fused faces: collapses 9.0 s of MeshLab's, in four slabs on
+two processes, against about 1.5 s; ``benchmarks/README.md``, stop 58). Every step it makes
+is checked against the bound, as MeshLab's were. MeshLab's collapse remains for the face
+target alone (no bound: nothing checks the result, and its priority queue is the more
+careful), without held open borders, and when the fast one throws a vertex far out.
 
-Units: pymeshlab's quadric collapse has absolute thresholds inside (a mesh decimates
+Units: both quadric collapses have absolute thresholds inside (a mesh decimates
 differently in metres and in millimetres, ``benchmarks/README.md``), so meshes are scaled
-to a 100-unit bounding box diagonal before every pymeshlab filter and scaled back after.
+to a 100-unit bounding box diagonal before every pymeshlab filter, and to the error bound
+for the fast collapse, and scaled back after.
 
 The Hausdorff distance reported is measured on samples (all vertices plus points on the
 faces), so it is a slight underestimate of the exact maximum; reported in metres.
@@ -326,8 +328,7 @@ def _scale_of(v: np.ndarray) -> float:
 
 def _quadric_options(target: int, preserve_boundary: bool, preserve_normal: bool,
                      selected: bool, optimal: bool = True) -> dict[str, Any]:
-    """The arguments of pymeshlab's quadric edge collapse, one place for the whole mesh's
-    collapse (:func:`_decimate`) and a chunk's (:func:`_collapse_chunk`): towards
+    """The arguments of pymeshlab's quadric edge collapse (:func:`_decimate`): towards
     ``target`` faces (of the selected faces when ``selected``), optimal placement (unless
     not ``optimal``: each new vertex on the collapsed edge), planar quadrics, quality
     threshold 0.3."""
@@ -407,232 +408,64 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
     return out_v / scale, out_f
 
 
-#: fused meshes of at least this many faces are collapsed in spatial chunks, side by side
-#: (:func:`_chunk_collapse`); smaller ones in one piece
-_CHUNK_MIN_FACES = 100_000
-#: the number of chunks (fixed: the result does not depend on the job's threads); four
-#: rather than two: a step made again where it went beyond the bound redoes a quarter
-#: (cup/4: 19.3 s against 21.0 s)
-_N_CHUNKS = 4
+#: the fast collapse's aggressiveness (fast_simplification's ``agg``): its pass ``i`` of
+#: 100 collapses the edges whose quadric error is below 1e-9 (i + 3)^agg, in the mesh's
+#: squared units (:func:`_fast_decimate`)
+_FAST_AGG = 2.0
+#: the length the error bound is expressed as for the fast collapse: the mesh is scaled by
+#: this over the bound, so that its passes sweep errors from about half the bound to a few
+#: times it, whatever the unit and the bound (measured on the simulated cup/4, 656,888
+#: fused faces to 20,000 within 0.2 mm in metres: agg 1, 2 and 3 took 7, 8 and 9 checked
+#: trials; ``benchmarks/README.md``, stop 58)
+_FAST_BOUND_UNITS = 2e-4
 
 
-def _collapse_chunk(job: dict) -> tuple[np.ndarray, np.ndarray, bool]:
-    """One chunk's quadric collapse (:func:`_chunk_collapse`): ``job`` holds the scaled
-    vertices ``v`` and faces ``f`` of the chunk and of the ring of faces around it, the
-    faces' ``label`` (1: collapsible, 0: kept as it is, -1: the ring), the ``target``
-    number of collapsible faces and the quadric options. The ring is not selected, so the
-    vertices the chunk shares with it (and with its kept faces) do not move (MeshLab
-    collapses only edges whose vertices have every face selected). Returns the chunk's
-    faces (collapsed and kept, not the ring) and the vertices they use, scaled, and
-    whether the collapse was made again without optimal placement (:func:`_flew`)."""
-    import pymeshlab
+def _fast_decimate(v: np.ndarray, f: np.ndarray, target: int, bound: float,
+                   keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Fast quadric collapse (Fast-Quadric-Mesh-Simplification, ``fast_simplification``)
+    of the faces of (v, f) not in ``keep`` ((F,) bool: left as they are) towards
+    ``target`` of them, for the error-bounded mode, where every result is checked.
 
-    v, f, label = job["v"], job["f"], job["label"]
+    The free faces are collapsed as a mesh of their own whose open border is held (no
+    collapse touches a border vertex): the vertices they share with the kept faces lie on
+    that border, so the two weld exactly, and the mesh's own open borders stay put, as
+    MeshLab's ``preserveboundary`` keeps them. Collapses that would flip a face are
+    refused, as MeshLab's ``preservenormal`` refuses them. The mesh is expressed in units
+    where ``bound`` is about :data:`_FAST_BOUND_UNITS` (its thresholds are absolute). A collapse
+    that throws a vertex far out (:func:`_flew`) is made by MeshLab's instead
+    (:func:`_decimate`).
 
-    def collapse(optimal: bool) -> tuple[np.ndarray, np.ndarray]:
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f,
-                                   f_scalar_array=label.astype(np.float64)))
-        if np.any(label == 1) and job["target"] < int(np.sum(label == 1)):
-            ms.compute_selection_by_condition_per_face(condselect="fq > 0.5")
-            ms.meshing_decimation_quadric_edge_collapse(**_quadric_options(
-                job["target"], job["preserve_boundary"], job["preserve_normal"],
-                selected=True, optimal=optimal))
-        m = ms.current_mesh()
-        out_f = np.asarray(m.face_matrix(), dtype=np.int64).reshape(-1, 3)
-        out_f = out_f[np.asarray(m.face_scalar_array()) > -0.5]
-        used, inv = np.unique(out_f, return_inverse=True)
-        return (np.asarray(m.vertex_matrix(), dtype=np.float64)[used],
-                inv.reshape(-1, 3).astype(np.int64))
+    Why not MeshLab's: see the module notes."""
+    import fast_simplification
 
-    return _guarded(collapse, v)
-
-
-class _Workers:
-    """Worker processes for the chunks' collapses: ``python -m robo3d.simplify`` reading
-    pickled jobs on its stdin and writing the results on its stdout (not
-    ``multiprocessing``: its spawn re-runs the calling script's top level, which for a
-    workflow script is the stage itself, and fork would copy Open3D's running threads).
-    ``n`` workers besides this process, started when first needed; a worker that fails
-    hands its job back to this process (same result, only slower)."""
-
-    def __init__(self, n: int) -> None:
-        self.n, self.procs = max(0, int(n)), []
-
-    def _start(self) -> None:
-        import os
-        import subprocess
-        import sys
-        from pathlib import Path
-
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parent.parent)  # the same robo3d in the worker
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-        for _ in range(self.n - len(self.procs)):
-            try:
-                if not sys.executable:  # an embedded interpreter: no python to start
-                    raise OSError("sys.executable is not set")
-                # started in the package's folder: ``-m`` puts the working folder first on
-                # the path, and another robo3d there (a checkout run from) would answer
-                self.procs.append(subprocess.Popen(
-                    [sys.executable, "-m", "robo3d.simplify"], stdin=subprocess.PIPE,
-                    stdout=subprocess.PIPE, env=env, cwd=root))
-            except OSError as e:
-                log.warning("simplify: no worker process (%s); collapsing in one", e)
-                self.n = len(self.procs)
-                return
-
-    def map(self, jobs: list[dict]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-        """The results of :func:`_collapse_chunk` on ``jobs``, in order: the jobs dealt
-        in turn to the workers and to this process (one message per worker, so that
-        neither side waits on a full pipe), this process's collapsed meanwhile."""
-        import pickle
-
-        if self.n and not self.procs and len(jobs) > 1:
-            self._start()
-        hands = len(self.procs) + 1
-        mine = list(range(len(self.procs), len(jobs), hands))
-        sent, failed = [], []
-        for w, proc in enumerate(self.procs):
-            idx = list(range(w, len(jobs), hands))
-            if not idx:
-                continue
-            try:
-                pickle.dump([jobs[i] for i in idx], proc.stdin,
-                            protocol=pickle.HIGHEST_PROTOCOL)
-                proc.stdin.flush()
-                sent.append((proc, idx))
-            except (OSError, ValueError) as e:
-                failed.append((proc, e))
-                mine += idx
-        out: list = [None] * len(jobs)
-        for i in mine:
-            out[i] = _collapse_chunk(jobs[i])
-        for proc, idx in sent:
-            try:
-                results = pickle.load(proc.stdout)
-            except Exception as e:  # a crashed worker: its jobs again, here
-                failed.append((proc, e))
-                results = [_collapse_chunk(jobs[i]) for i in idx]
-            for i, r in zip(idx, results, strict=True):
-                out[i] = r
-        for proc, e in failed:  # not asked again
-            log.warning("simplify: a worker process failed (%s: %s); its chunks were "
-                        "collapsed here", type(e).__name__, e)
-            proc.kill()
-            self.procs.remove(proc)
-            self.n -= 1
-        return out
-
-    def close(self) -> None:
-        for proc in self.procs:
-            try:
-                proc.stdin.close()
-                proc.wait(timeout=10)
-            except Exception:
-                proc.kill()
-        self.procs = []
-
-    def __enter__(self) -> _Workers:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def _worker_main() -> None:
-    """``python -m robo3d.simplify``: a :class:`_Workers` process. Lists of jobs come
-    pickled on stdin, lists of results go pickled to the original stdout; anything a
-    library prints goes to stderr, so it cannot corrupt the stream."""
-    import os
-    import pickle
-    import sys
-
-    out = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
-    inp = sys.stdin.buffer
-    while True:
-        try:
-            job = pickle.load(inp)
-        except EOFError:
-            return
-        pickle.dump([_collapse_chunk(j) for j in job], out,
-                    protocol=pickle.HIGHEST_PROTOCOL)
-        out.flush()
-
-
-class _Chunks:
-    """A mesh cut into ``_N_CHUNKS`` slabs of equal face counts (by face centre) across
-    one axis, for :func:`_chunk_collapse`: ``step`` picks the axis (the longest first,
-    then the next), so that the strip a cut leaves at the finer resolution is collapsed
-    in the next step."""
-
-    def __init__(self, v: np.ndarray, f: np.ndarray, step: int) -> None:
-        centre = v[f].mean(axis=1)
-        order = np.argsort(-np.ptp(v, axis=0), kind="stable")
-        self.axis = int(order[step % 3])
-        x = centre[:, self.axis]
-        self.cuts = np.quantile(x, np.arange(1, _N_CHUNKS) / _N_CHUNKS)
-        self.of_face = np.searchsorted(self.cuts, x)
-        self.results: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self.count: int | None = None
-
-    def touched(self, points: np.ndarray, radius: float) -> set[int]:
-        """The chunks within ``radius`` (along the cut axis) of any of ``points``."""
-        x = points[:, self.axis]
-        lo = np.searchsorted(self.cuts, x - radius)
-        hi = np.searchsorted(self.cuts, x + radius)
-        return {int(k) for a, b in zip(lo, hi, strict=True) for k in range(a, b + 1)}
-
-
-def _chunk_collapse(v: np.ndarray, f: np.ndarray, chunks: _Chunks, count: int,
-                    keep: np.ndarray | None, redo: set[int] | None, workers: _Workers,
-                    preserve_boundary: bool, preserve_normal: bool
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_decimate` of a large mesh as ``_N_CHUNKS`` collapses side by side, one
-    per chunk, each with the faces outside it kept as they are (their shared vertices do
-    not move, so the pieces weld exactly); ``count`` collapsible faces in all, shared in
-    proportion to the chunks' collapsible faces. ``redo``: the chunks to collapse again
-    (the others keep their last result for the same ``count``; None: all). Why: MeshLab's
-    collapse runs on one core, and it is most of the stage; the chunks run side by side
-    (:class:`_Workers`), and a step that went beyond the bound at a few places is made
-    again only in the chunks around them."""
-    if chunks.count != count:
-        chunks.results, chunks.count, redo = {}, count, None
-    todo = list(range(_N_CHUNKS)) if redo is None else sorted(redo)
-    scale = _scale_of(v)
-    free = np.ones(len(f), dtype=bool) if keep is None else ~keep
-    n_free = max(1, int(free.sum()))
-    jobs = []
-    for k in todo:
-        mine = chunks.of_face == k
-        # the ring: every other face using one of the chunk's vertices
-        used = np.zeros(len(v), dtype=bool)
-        used[f[mine].ravel()] = True
-        ring = ~mine & used[f].any(axis=1)
-        sel = mine | ring
-        fk = f[sel]
-        ids, inv = np.unique(fk, return_inverse=True)
-        label = np.where(ring[sel], -1, np.where(free[sel], 1, 0)).astype(np.int8)
-        jobs.append(dict(v=v[ids] * scale, f=inv.reshape(-1, 3).astype(np.int32),
-                         label=label,
-                         target=int(round(count * np.sum(mine & free) / n_free)),
-                         preserve_boundary=preserve_boundary,
-                         preserve_normal=preserve_normal))
-    results = workers.map(jobs)
-    for k, res in zip(todo, results, strict=True):
-        chunks.results[k] = res[:2]
-    n_again = sum(bool(res[2]) for res in results)
-    if n_again:
-        log.warning("simplify: the quadric collapse put a vertex far outside %d slab(s) "
-                    "(optimal placement); made again without it", n_again)
-    parts = [chunks.results[k] for k in range(_N_CHUNKS)]
-    allv = np.concatenate([p[0] for p in parts])
-    offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
-    allf = np.concatenate([p[1] + o for p, o in zip(parts, offsets, strict=True)])
-    # weld: a vertex shared by two chunks did not move in either (the same bits)
-    uniq, inv = np.unique(allv, axis=0, return_inverse=True)
-    return uniq / scale, inv.reshape(-1)[allf]
+    f = np.asarray(f, dtype=np.int64)
+    locked = keep is not None and bool(np.any(keep))
+    free = f[~keep] if locked else f
+    if target >= len(free) or not len(free):
+        return v, f
+    # a power of two: the border's vertices come back with the same bits
+    scale = 2.0 ** round(math.log2(_FAST_BOUND_UNITS / bound))
+    used, inv = np.unique(free, return_inverse=True)
+    sub_v = v[used]
+    out_v, out_f = fast_simplification.simplify(
+        sub_v * scale, inv.reshape(-1, 3).astype(np.int32), target_count=int(target),
+        agg=_FAST_AGG, preserve_border=True)
+    out_v = np.asarray(out_v, dtype=np.float64) / scale
+    out_f = np.asarray(out_f, dtype=np.int64).reshape(-1, 3)
+    if _flew(sub_v, out_v):
+        log.warning("simplify: the fast collapse put a vertex far outside the mesh; "
+                    "made by MeshLab's instead")
+        return _decimate(v, f, target + (len(f) - len(free)), True, True, keep)
+    if not locked:
+        return out_v, out_f
+    # weld: the border's vertices did not move; the kept faces' vertices are matched to
+    # them by position
+    kept = f[keep]
+    k_used, k_inv = np.unique(kept, return_inverse=True)
+    all_v = np.concatenate([out_v, v[k_used]])
+    all_f = np.concatenate([out_f, k_inv.reshape(-1, 3) + len(out_v)])
+    uniq, weld = np.unique(all_v, axis=0, return_inverse=True)
+    return uniq, weld.reshape(-1)[all_f]
 
 
 class _Distance:
@@ -817,8 +650,7 @@ def _locked_faces(v: np.ndarray, f: np.ndarray, places: np.ndarray, radius: floa
 def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float,
                      preserve_boundary: bool, preserve_normal: bool, tolerance: float,
                      n_check: int, seed: int, threads: int = 1,
-                     loose: np.ndarray | None = None, loose_error: float | None = None,
-                     workers: _Workers | None = None):
+                     loose: np.ndarray | None = None, loose_error: float | None = None):
     """The error-bounded mode of :func:`simplify_mesh`: progressive steps towards
     ``target``, each checked as it is made: a quarter of the faces first, then as many
     times fewer as bring the last step's tail (all but 1 in 10,000 samples) to
@@ -847,7 +679,6 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     step cost about twice as many quadric collapses (a small simulated scan: 556,450 faces
     in, 151,702 out, 29 s before, ``benchmarks/README.md``)."""
     n_trials = 0
-    workers = workers if workers is not None else _Workers(0)
     dist = _Distance(v, f, n_check, seed, threads, loose, loose_error)
     radius = _LOCK_RADIUS_BOUNDS * max_error
     places = np.zeros((0, 3))
@@ -855,42 +686,31 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
     bad_n = None
     n = len(f)
 
-    def attempt(count: int, redo: set[int] | None = None
-                ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, dict]:
+    def attempt(count: int) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, dict]:
         nonlocal n_trials
         keep = _locked_faces(good[0], good[1], places, radius)
-        if chunks is not None:
-            cand_v, cand_f = _chunk_collapse(good[0], good[1], chunks, count, keep, redo,
-                                             workers, preserve_boundary, preserve_normal)
-        else:
+        if preserve_boundary:
+            cand_v, cand_f = _fast_decimate(good[0], good[1], count, max_error, keep)
+        else:  # the fast collapse holds every open border
             cand_v, cand_f = _decimate(good[0], good[1], count, preserve_boundary,
                                        preserve_normal, keep)
         n_trials += 1
         d, far, stats = dist(cand_v, cand_f, max_error)
         return cand_v, np.asarray(cand_f, dtype=np.int64), d, far, stats
 
-    def chunks_of(mesh: tuple) -> _Chunks | None:
-        return (_Chunks(mesh[0], mesh[1], step) if len(mesh[1]) >= _CHUNK_MIN_FACES
-                else None)
-
-    step, good_tail = 0, None
+    good_tail = None
     while n > target and bad_n is None:  # progressive steps, checked as they go
         n = max(target, int(n / _step_factor(good_tail, max_error)))
-        chunks, redo = chunks_of(good), None
         for k in range(_LOCK_ROUNDS + 1):
-            cand_v, cand_f, d, far, stats = attempt(n, redo)
+            cand_v, cand_f, d, far, stats = attempt(n)
             if d <= max_error:
                 good = (cand_v, cand_f, d, stats)
                 good_tail = stats["tail"]
                 break
             if k < _LOCK_ROUNDS:
                 places = _places(np.concatenate([places, far]), radius)
-                if chunks is not None:  # again only where it went beyond
-                    redo = chunks.touched(far, 2.0 * radius)
         else:
             bad_n = len(cand_f)
-        step += 1
-    chunks = chunks_of(good)
     if bad_n is not None:  # search between the last good count and the failing one
         lo, hi = bad_n, len(good[1])
         while hi > lo * (1.0 + tolerance) and hi - lo > 1:
@@ -899,7 +719,6 @@ def _decimate_within(v: np.ndarray, f: np.ndarray, target: int, max_error: float
             cand_v, cand_f, d, _, stats = attempt(mid)
             if d <= max_error:
                 good, hi = (cand_v, cand_f, d, stats), mid
-                chunks = chunks_of(good)
             else:
                 lo = mid
     return good[0], good[1], good[2], n_trials, places, good[3]
@@ -1000,10 +819,9 @@ def simplify_mesh(
                                  f"shape {inferred.shape}")
             loose = inferred[f].all(axis=1)
             report["inferred_error_m"] = options.inferred_bound_m
-        with _Workers(min(options.threads, _N_CHUNKS) - 1) as workers:
-            ov, of, search_d, n_trials, places, searched = _decimate_within(
-                v, f, target, max_error, preserve_boundary, preserve_normal, tolerance,
-                n_check, seed, options.threads, loose, options.inferred_bound_m, workers)
+        ov, of, search_d, n_trials, places, searched = _decimate_within(
+            v, f, target, max_error, preserve_boundary, preserve_normal, tolerance,
+            n_check, seed, options.threads, loose, options.inferred_bound_m)
         if searched is not None:  # unscaled: the largest distance on either surface
             search_d = searched["max"]
         kept = _locked_faces(ov, of, places, _LOCK_RADIUS_BOUNDS * max_error)
@@ -1069,7 +887,3 @@ def transfer_vertex_attributes(vertices_from: np.ndarray, attributes: dict[str, 
     _, nn = (cKDTree(v0) if tree is None else tree).query(v1, k=1,
                                                           workers=max(1, int(threads)))
     return {k: np.asarray(a)[nn] for k, a in attributes.items()}
-
-
-if __name__ == "__main__":
-    _worker_main()

@@ -267,9 +267,9 @@ def test_a_vertex_thrown_far_out_is_caught():
 
 
 def test_a_collapse_that_throws_a_vertex_out_is_made_again(monkeypatch, caplog):
-    """A collapse whose result :func:`_flew` refuses is made again without optimal
-    placement, in one piece and in slabs, and says so; the result is still a closed mesh
-    within the bound."""
+    """A collapse whose result :func:`_flew` refuses is made again and says so: MeshLab's
+    (the face target alone) without optimal placement, the fast one (the error-bounded
+    mode) by MeshLab's; either result is still a closed mesh within the bound."""
     import open3d as o3d
 
     import robo3d.simplify as simplify
@@ -285,54 +285,24 @@ def test_a_collapse_that_throws_a_vertex_out_is_made_again(monkeypatch, caplog):
     monkeypatch.setattr(simplify, "_quadric_options",
                         lambda *a, **k: options.append(k.get("optimal", True))
                         or real_opts(*a, **k))
-    opts = SimplifyOptions(target_faces=500, hausdorff_tolerance_m=0.5e-3, seed=0)
-    for chunk_min in (10**9, 1000):  # in one piece, then in slabs (this process: 1 thread)
+    for opts, said, first in (
+            (FACES.replace(target_faces=500), "made again without it", [True, False]),
+            (BOUND.replace(max_error_m=0.5e-3), "made by MeshLab's instead", [True])):
         calls.clear()
         options.clear()
-        monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", chunk_min)
         with caplog.at_level("WARNING", logger="robo3d.simplify"):
             caplog.clear()
             v2, f2, rep = simplify_mesh(v, f, options=opts)
-        assert options[:2] == [True, False]  # the first collapse, then again without
-        assert "made again without it" in caplog.text
+        assert said in caplog.text
+        assert options[:len(first)] == first  # MeshLab's collapses, in order
         assert _edges(f2).min() == _edges(f2).max() == 2
-        assert rep["hausdorff_max_m"] <= 0.5e-3 and len(f2) < len(f)
+        assert len(f2) <= 500 if opts.error_bound_m is None else (
+            rep["hausdorff_max_m"] <= 0.5e-3 and len(f2) < len(f))
 
 
-def test_workers_use_this_robo3d_not_one_in_the_working_folder(tmp_path, monkeypatch,
-                                                              caplog):
-    """The slab workers run ``python -m robo3d.simplify``, and ``-m`` puts the working
-    folder first on the path: run from a folder that holds another ``robo3d`` (a checkout
-    of another version), they imported that one (found at stop 46, whose workers answered
-    in the old form). They start in the package's own folder now."""
+def _rough_sphere():
+    """A sphere of 12,800 faces with six small rough patches (0.3 mm noise)."""
     import open3d as o3d
-
-    import robo3d.simplify as simplify
-
-    fake = tmp_path / "robo3d"
-    fake.mkdir()
-    (fake / "__init__.py").write_text("raise ImportError('not this robo3d')\n")
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", 1000)
-    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.02, resolution=40)
-    v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
-    opts = SimplifyOptions(target_faces=500, hausdorff_tolerance_m=0.5e-3, seed=0, threads=2)
-    with caplog.at_level("WARNING", logger="robo3d.simplify"):
-        _, f2, rep = simplify_mesh(v, f, options=opts)
-    assert "worker process failed" not in caplog.text
-    assert len(f2) < len(f) and rep["hausdorff_max_m"] <= 0.5e-3
-
-
-def test_large_meshes_are_collapsed_in_chunks_side_by_side(monkeypatch, caplog):
-    """Meshes above ``_CHUNK_MIN_FACES`` are collapsed in slabs, one process each, the
-    faces outside a slab kept as they are: the pieces weld into one closed mesh (no
-    border, no edge of three faces), within the bound, about as small as in one piece; a
-    step that went beyond the bound at a few places is made again only in the slabs
-    around them; the mesh does not depend on the job's threads nor on a worker process
-    that fails (its slabs are collapsed in the calling process)."""
-    import open3d as o3d
-
-    import robo3d.simplify as simplify
 
     m = o3d.geometry.TriangleMesh.create_sphere(radius=0.02, resolution=80)
     v = np.asarray(m.vertices).copy()
@@ -341,60 +311,59 @@ def test_large_meshes_are_collapsed_in_chunks_side_by_side(monkeypatch, caplog):
     for c in 0.02 * np.vstack([np.eye(3), -np.eye(3)]):
         near = np.linalg.norm(v - c, axis=1) < 0.002
         v[near] *= (1 + rng.normal(0, 0.0003, near.sum()) / 0.02)[:, None]
+    return v, f
+
+
+def test_the_fast_collapse_leaves_the_kept_faces_as_they_are():
+    """:func:`_fast_decimate` collapses the free faces alone: the kept faces come out with
+    the same vertices to the bit, welded to the collapsed rest into one closed mesh (no
+    border, no edge of three faces), and the free faces reach the target; the mesh's
+    size (metres or millimetres) changes the result only within the error bound."""
+    from robo3d.simplify import _fast_decimate
+
+    v, f = _rough_sphere()
     assert _edges(f).min() == _edges(f).max() == 2
+    keep = np.linalg.norm(v[f].mean(axis=1) - [0.0, 0.0, 0.02], axis=1) < 0.004  # a cap
+    v2, f2 = _fast_decimate(v, f, 3000, 0.2e-3, keep)
+    assert _edges(f2).min() == _edges(f2).max() == 2  # welded: closed and manifold
+    kept_in = {tuple(sorted(map(tuple, t))) for t in v[f[keep]]}
+    out = {tuple(sorted(map(tuple, t))) for t in v2[f2]}
+    assert kept_in <= out  # every kept face, bit for bit
+    assert len(f2) == pytest.approx(3000 + keep.sum(), rel=0.02)
+    d = _independent_hausdorff(v, f, v2, f2)
+    assert d < 0.8e-3  # measured 0.56 mm (a 40 mm sphere in 3,000 free faces)
+    # the same sphere in millimetres, its bound too: alike
+    v3, f3 = _fast_decimate(v * 1e3, f, 3000, 0.2, keep)
+    assert len(f3) == pytest.approx(len(f2), rel=0.02)
+    assert _independent_hausdorff(v, f, v3 * 1e-3, f3) == pytest.approx(d, rel=0.3)
+    # nothing to collapse: the input as it is
+    v4, f4 = _fast_decimate(v, f, len(f), 0.2e-3)
+    assert v4 is v and np.array_equal(f4, f)
+
+
+def test_places_beyond_the_bound_weld_into_a_closed_mesh():
+    """The error-bounded mode on a closed mesh whose rough patches go beyond the bound
+    first: the places kept at their resolution and the collapsed rest weld into one
+    closed mesh, within the bound (checked independently), a fifth larger than MeshLab's
+    collapses made it (measured: 4,022 faces, 2,022 of them kept around 16 places, against
+    3,326 before stop 58): the fast collapse's steps go beyond the bound at more places
+    here, as the patches' noise is what its passes of rising threshold meet first."""
+    v, f = _rough_sphere()
     opts = SimplifyOptions(target_faces=2000, hausdorff_tolerance_m=0.2e-3, seed=0)
-    _, f_one, r_one = simplify_mesh(v, f, options=opts)  # 12,640 faces: one piece
-    monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", 3000)
-    jobs = []
-    real_map = simplify._Workers.map
-    monkeypatch.setattr(simplify._Workers, "map",
-                        lambda self, js: jobs.append(len(js)) or real_map(self, js))
-    runs = [simplify_mesh(v, f, options=opts.replace(threads=n)) for n in (2, 1)]
-    (v2, f2, r2), (v1, f1, r1) = runs
-    np.testing.assert_array_equal(v1, v2)
-    np.testing.assert_array_equal(f1, f2)
-    counts = _edges(f2)
-    assert counts.min() == counts.max() == 2  # welded: closed and manifold
-    # the faces around a slab hold its border still, not only the open-border option
-    _, f4, _ = simplify_mesh(v, f, options=opts, preserve_boundary=False)
-    assert _edges(f4).min() == _edges(f4).max() == 2
-    assert r2["hausdorff_m"]["max"] <= 0.2e-3
+    v2, f2, rep = simplify_mesh(v, f, options=opts)
+    assert rep["kept_places"] >= 6 and rep["kept_faces"] > 0
+    assert _edges(f2).min() == _edges(f2).max() == 2
+    assert rep["hausdorff_m"]["max"] <= 0.2e-3
     assert _independent_hausdorff(v, f, v2, f2) <= 0.2e-3 * 1.1
-    # about as small as in one piece (3,908 against 3,326 faces: the noisy patches' locks
-    # fall differently in slabs)
-    assert 0.85 * len(f_one) <= len(f2) <= 1.2 * len(f_one)
-    assert max(jobs) == simplify._N_CHUNKS and min(jobs) < simplify._N_CHUNKS  # a redo
-    # a worker that dies: its slabs collapsed here, the same mesh
-    import subprocess
-    import sys
-
-    def dead(self):
-        self.procs = [subprocess.Popen([sys.executable, "-c", "pass"],
-                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-                      for _ in range(self.n)]
-
-    monkeypatch.setattr(simplify._Workers, "_start", dead)
-    with caplog.at_level("WARNING", logger="robo3d.simplify"):
-        v3, f3, _ = simplify_mesh(v, f, options=opts.replace(threads=2))
-    np.testing.assert_array_equal(v3, v2)
-    np.testing.assert_array_equal(f3, f2)
-    assert "worker process failed" in caplog.text
-    # no python to start a worker with (an embedded interpreter): collapsed here
-    monkeypatch.undo()
-    monkeypatch.setattr(simplify, "_CHUNK_MIN_FACES", 3000)
-    monkeypatch.setattr(sys, "executable", "")
-    with caplog.at_level("WARNING", logger="robo3d.simplify"):
-        v5, f5, _ = simplify_mesh(v, f, options=opts.replace(threads=2))
-    np.testing.assert_array_equal(v5, v2)
-    np.testing.assert_array_equal(f5, f2)
-    assert "no worker process" in caplog.text
+    assert len(f2) < 4500
 
 
 def test_inferred_surface_has_its_own_looser_bound():
-    """A sphere with six rough patches (0.3 mm noise), three on its upper half, which is
+    """A sphere with six rough patches (0.6 mm noise), three on its upper half, which is
     labelled inferred (hull-closed): with the labels the upper patches are simplified
-    within the inferred surface's 0.5 mm and mostly the lower ones kept (measured: 34
-    places and 2,510 faces against 81 and 3,126); the measured surface stays within
+    within the inferred surface's 0.5 mm and mostly the lower ones kept (measured: 35
+    places and 2,584 faces against 86 and 3,160; with MeshLab's collapses before stop 58,
+    0.3 mm noise: 34 and 2,510 against 81 and 3,126); the measured surface stays within
     0.2 mm (checked independently), and the report's maxima on either surface are those
     of the search's check."""
     import open3d as o3d
@@ -407,7 +376,7 @@ def test_inferred_surface_has_its_own_looser_bound():
         az, el = np.pi / 3 * k, (0.6 if k % 2 else -0.6)
         c = 0.02 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         near = np.linalg.norm(v - c, axis=1) < 0.005
-        v[near] *= (1 + rng.normal(0, 0.0003, near.sum()) / 0.02)[:, None]
+        v[near] *= (1 + rng.normal(0, 0.0006, near.sum()) / 0.02)[:, None]
     inferred = v[:, 2] > 0
     opts = SimplifyOptions(target_faces=2000, hausdorff_tolerance_m=0.2e-3,
                            inferred_tolerance_m=0.5e-3, seed=0)

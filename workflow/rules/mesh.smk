@@ -67,7 +67,7 @@ rule simplify:
         "benchmarks/simplify/{rec}.tsv"
     conda:
         "../envs/robo3d.yaml"
-    threads: stage_threads(2)  # the distance checks; a large mesh's slabs collapse side by side
+    threads: stage_threads(2)  # the distance checks (the collapses run on one)
     resources:
         mem_mb=lambda wc, attempt: 1500 * attempt,
         runtime=lambda wc, attempt: 20 * attempt,

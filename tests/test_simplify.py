@@ -463,3 +463,30 @@ def test_places_on_faces_larger_than_the_lock_radius_keep_their_nearest_faces():
     vf, ff = np.asarray(fine.vertices), np.asarray(fine.triangles).astype(np.int64)
     near = np.linalg.norm(vf[ff].mean(axis=1) - vf[5], axis=1) < 2e-3
     np.testing.assert_array_equal(_locked_faces(vf, ff, vf[[5]], radius=2e-3), near)
+
+
+def test_faces_doubled_by_a_collapse_are_dropped_in_pairs():
+    """A fin that a collapse flattened onto itself (two faces on the same three vertices,
+    hung on one edge of a closed mesh) is dropped: every edge has two faces again; of
+    three faces on the same vertices one stays. The fast collapse of a sphere to 1,500
+    faces leaves two such pairs; its result is closed and manifold."""
+    import fast_simplification
+
+    from robo3d.simplify import _drop_double_faces, _fast_decimate
+
+    v, f = _uv_sphere(20)
+    a, b = f[0, 0], f[0, 1]
+    fin = np.array([[a, b, len(v)], [b, a, len(v)]])  # on a new vertex
+    with_fin = np.vstack([f, fin])
+    assert _edges(with_fin).max() == 4
+    g = _drop_double_faces(with_fin)
+    assert np.array_equal(g, f) and _edges(g).min() == _edges(g).max() == 2
+    triple = np.vstack([f, f[:1], f[:1, ::-1]])  # the first face twice more
+    assert np.array_equal(_drop_double_faces(triple), f)
+    assert _drop_double_faces(f) is f
+    v, f = _rough_sphere()
+    _, raw = fast_simplification.simplify(v, f.astype(np.int32), target_count=1500, agg=2.0,
+                                          preserve_border=True)
+    assert _edges(raw.astype(np.int64)).max() == 4  # what the collapse itself leaves
+    _, f2 = _fast_decimate(v, f, 1500, 0.2e-3)
+    assert _edges(f2).min() == _edges(f2).max() == 2

@@ -514,6 +514,7 @@ class _Distance:
             tight_v = np.zeros(len(v), dtype=bool)
             tight_v[f[~self.loose].ravel()] = True
             self.samples_loose = np.concatenate([~tight_v, self.loose[on_face]])
+            self.all_loose = bool(self.loose.all())
 
     def _loose_at(self, points: np.ndarray) -> np.ndarray:
         """Whether the fixed mesh's face nearest to each point is inferred."""
@@ -534,7 +535,12 @@ class _Distance:
         fixed mesh's nearest face: (measured max, inferred max, the indices whose face
         was looked up, their looseness). Only the samples beyond ``bound`` or near the
         largest distance are looked up (the rest are within either bound), and more, a
-        halved threshold at a time, while one surface's maximum is still unknown."""
+        halved threshold at a time, while one surface's maximum is still unknown. When
+        every face of the fixed mesh is inferred (a hull alone) none is looked up: the
+        search for a measured one went down to every sample, four times a check, 4.5 s
+        of DTU scan 24's 10.8 s simplification (stop 58)."""
+        if self.all_loose:
+            return 0.0, float(d.max(initial=0.0)), np.arange(len(d)), np.ones(len(d), bool)
         t = min(bound, 0.5 * float(d.max(initial=0.0)))
         for t_k in (t, t / 2, t / 4, t / 8, t / 16, -np.inf):  # -inf: every sample
             idx = np.nonzero(d > t_k)[0]

@@ -490,3 +490,35 @@ def test_faces_doubled_by_a_collapse_are_dropped_in_pairs():
     assert _edges(raw.astype(np.int64)).max() == 4  # what the collapse itself leaves
     _, f2 = _fast_decimate(v, f, 1500, 0.2e-3)
     assert _edges(f2).min() == _edges(f2).max() == 2
+
+
+def test_a_hull_alone_is_checked_without_looking_up_its_faces(monkeypatch):
+    """Every face inferred (a recording of views alone): the check's split of the
+    candidate's samples by the fixed mesh's nearest face is not looked up (it went down
+    to every sample in search of a measured face, four times per check), with the same
+    result as looking it up."""
+    import robo3d.simplify as simplify
+
+    v, f = _rough_sphere()
+    opts = SimplifyOptions(target_faces=2000, hausdorff_tolerance_m=0.2e-3,
+                           inferred_tolerance_m=0.5e-3, seed=0)
+    inferred = np.ones(len(v), dtype=bool)
+    looked_up = []
+    real = simplify._Distance._loose_at
+    monkeypatch.setattr(simplify._Distance, "_loose_at",
+                        lambda self, p: looked_up.append(len(p)) or real(self, p))
+    v1, f1, r1 = simplify_mesh(v, f, options=opts, inferred=inferred)
+    assert looked_up == []
+    assert r1["hausdorff_measured_max_m"] == 0.0 < r1["hausdorff_inferred_max_m"] <= 0.5e-3
+    real_init = simplify._Distance.__init__
+
+    def looking(self, *a, **k):
+        real_init(self, *a, **k)
+        self.all_loose = False
+
+    monkeypatch.setattr(simplify._Distance, "__init__", looking)
+    v2, f2, r2 = simplify_mesh(v, f, options=opts, inferred=inferred)
+    assert len(looked_up) > 0
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(f1, f2)
+    assert r1["hausdorff_m"] == r2["hausdorff_m"]

@@ -410,13 +410,14 @@ def _decimate(v: np.ndarray, f: np.ndarray, target: int, preserve_boundary: bool
 
 #: the fast collapse's aggressiveness (fast_simplification's ``agg``): its pass ``i`` of
 #: 100 collapses the edges whose quadric error is below 1e-9 (i + 3)^agg, in the mesh's
-#: squared units (:func:`_fast_decimate`)
+#: squared units (:func:`_fast_decimate`). 2: on the simulated cup/4 (656,888 fused faces
+#: to 20,000 within 0.2 mm) agg 1, 2 and 3 took 7, 8 and 9 checked trials, but agg 1
+#: stopped short of the target where the bound allowed it (random scene 641: 21,196 faces
+#: where agg 2 reached 20,000; ``benchmarks/README.md``, stop 58)
 _FAST_AGG = 2.0
 #: the length the error bound is expressed as for the fast collapse: the mesh is scaled by
 #: this over the bound, so that its passes sweep errors from about half the bound to a few
-#: times it, whatever the unit and the bound (measured on the simulated cup/4, 656,888
-#: fused faces to 20,000 within 0.2 mm in metres: agg 1, 2 and 3 took 7, 8 and 9 checked
-#: trials; ``benchmarks/README.md``, stop 58)
+#: times it, whatever the unit and the bound
 _FAST_BOUND_UNITS = 2e-4
 
 

@@ -184,7 +184,7 @@ def robo3d_tsdf(work: Path, name: str, cfg: dict) -> dict:
                               options=FuseOptions.from_config(fc),
                               confidences=[c.confidence for c in clouds], hull=h)
         out[label] = {"cpu_s": time.process_time() - t0, "vertices": v, "faces": f,
-                      "seconds": rep["seconds"], "laser_area_fraction":
+                      "seconds": rep["seconds_by_step"], "laser_area_fraction":
                       rep["laser_area_fraction"]}
     return out
 

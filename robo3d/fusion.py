@@ -912,7 +912,7 @@ def fuse_tsdf(
     lf = _laser_area_fraction(v, f, attrs["source"] == MEASURED)
     report.update(laser_area_fraction=lf, hull_area_fraction=(1.0 - lf) if len(f) else 0.0,
                   n_vertices=int(len(v)), n_faces=int(len(f)),
-                  seconds={k: round(t, 3) for k, t in clock.items()})
+                  seconds_by_step={k: round(t, 3) for k, t in clock.items()})
     report.update(source_area_fraction=source_area_fractions(v, f, attrs["source"]))
     log.info("TSDF fusion: %d scans, %d points, grid %s, %d observed voxels -> %d faces "
              "(%.1f%% of the area from the laser)", len(P), n_used, shape,

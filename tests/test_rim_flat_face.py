@@ -1,15 +1,18 @@
-"""The silhouette term on a flat face seen at a grazing angle (issue 11: the bracket).
+"""The silhouette term on a flat face seen at a grazing angle (issue 11: the bracket; random
+scene 677, a user's box).
 
 A block is seen from above, nearly along its +y face, so that the silhouette's far
 side is the block's top edge and the +y face is back-facing at about 7 degrees from
 edge-on. Laser profiles run across that face parallel to the edge, 1.1 mm apart: every
-one of them has the grazing normal and continues along the contour, but only the
-topmost reach the contour generator. At the true pose the rim residuals must not put the
-face deep inside the silhouette: without the test of each border cell's most outward
-profile they did (mean -2.6 px, the deepest -4.6 px: 19 profiles down the face; with it
--0.9 and -1.6 px, the 5 topmost profiles that passed the other tests), and the refinement
-pushed such sweeps outward until the mean agreed (the bracket's upright ended 0.7 mm
-outward on both faces).
+one of them has the grazing normal and continues along the contour, but none passes
+over the edge, and nothing of the sweep says how far above the last of them the face
+ends. At the true pose the rim residuals must not put the face inside the silhouette:
+without the test of each border cell's most outward profile they did (mean -2.6 px, the
+deepest -4.6 px: 19 profiles down the face); with it, -0.9 and -1.6 px from the 5
+topmost profiles, and the refinement pushed such sweeps outward until the mean agreed
+(the bracket's upright ended 0.7 mm outward on both faces; a box's sweep 1.4 mm from its
+true pose). Now a face's profiles count only where the sweep passes over the contour
+generator (``test_rim_passes_contour``): these give none.
 """
 
 from __future__ import annotations
@@ -46,10 +49,12 @@ def test_profiles_across_a_grazing_flat_face_do_not_bias_the_silhouette_term():
     nrm = np.tile([0.0, 1.0, 0.0], (len(pts), 1))
     profile = np.repeat(np.arange(40), x.shape[1])
     field = _view_fields(views, _RIM_CELL_PX, 1.0)[0]
-    idx, r, _, _, _ = _rim_residuals(field, pts, nrm, profile, **_RIM)
-    assert len(idx) >= 5  # the contour along the top edge is found ...
-    assert len(np.unique(profile[idx])) <= 6  # ... from the topmost profiles only
-    assert np.mean(r) > -1.0 and r.min() > -2.0  # px; the true contour is at 0
+    idx, _, _, _, _ = _rim_residuals(field, pts, nrm, profile, **_RIM)
+    assert len(idx) == 0
+    # without the test of the sweep passing the contour: the topmost profiles, inside
+    idx, r, _, _, _ = _rim_residuals(field, pts, nrm, profile, **{**_RIM, "crossing": False})
+    assert len(idx) >= 5 and len(np.unique(profile[idx])) <= 6
+    assert np.mean(r) < -0.5  # px; the true contour is at 0
 
 
 def test_several_sweeps_in_one_call_give_each_sweeps_own_result():
@@ -66,11 +71,12 @@ def test_several_sweeps_in_one_call_give_each_sweeps_own_result():
     sweeps = [face, face + [0.0, 0.0, 3e-4], (face + [5e-4, 0.0, 0.0])[::3]]
     profiles = [profile, profile, profile[::3]]
     nrm = [np.tile([0.0, 1.0, 0.0], (len(p), 1)) for p in sweeps]
-    alone = [_rim_residuals(field, p, n, g, **_RIM)
+    rim = {**_RIM, "crossing": False}  # the grouping (with the test, no residual here)
+    alone = [_rim_residuals(field, p, n, g, **rim)
              for p, n, g in zip(sweeps, nrm, profiles, strict=True)]
     grp = np.repeat(np.arange(3), [len(p) for p in sweeps])
     together = _rim_residuals(field, np.concatenate(sweeps), np.concatenate(nrm),
-                              np.concatenate(profiles), **_RIM, group=grp)
+                              np.concatenate(profiles), **rim, group=grp)
     first = np.r_[0, np.cumsum([len(p) for p in sweeps])[:-1]]
     for k in range(3):
         assert len(alone[k][0]) >= 3
@@ -82,5 +88,5 @@ def test_several_sweeps_in_one_call_give_each_sweeps_own_result():
             np.testing.assert_allclose(a[sel], b, rtol=1e-7, atol=0.0)
     # without the groups, the sweeps' profiles 0-39 are taken as one sweep's: fewer kept
     merged = _rim_residuals(field, np.concatenate(sweeps), np.concatenate(nrm),
-                            np.concatenate(profiles), **_RIM)
+                            np.concatenate(profiles), **rim)
     assert len(merged[0]) < len(together[0])

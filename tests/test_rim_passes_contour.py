@@ -87,3 +87,4 @@ def test_horizontal_profiles_over_the_contour_generator_find_it():
     idx, r, _, _, _ = _rim_residuals(field, pts, nrm, prof, **_RIM)
     assert len(idx) >= 20
     assert abs(float(np.median(r))) < 0.25 and np.abs(r).max() < 0.6  # px
+

@@ -208,6 +208,9 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     if _get(metrics, ("surface_sources", "hull_contradicted")):
         notes.append("the hull contradicts the laser: nothing closed, the mesh is the "
                      "measured surface")
+    if _get(metrics, ("surface_sources", "object_not_found")):
+        notes.append("no object found: no box, no hull, and the laser saw too little above "
+                     "the table; the mesh is what it saw, most likely the table")
     flagged = [s.get("sweep") for s in _get(metrics, ("stages", "align", "per_sweep")) or []
                if isinstance(s, Mapping) and s.get("flagged")]
     if flagged:

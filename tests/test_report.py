@@ -277,6 +277,31 @@ def test_key_figures_against_their_targets_and_the_status():
                      "measured surface"]
 
 
+def test_a_scan_where_nothing_locates_the_object_says_so():
+    """No workspace box, no hull, and the laser's points on the table with too few above
+    it (random scene 688: a black bracket the red laser did not show): the mesh is the
+    table's, and metrics.json, the overview and the summary say that no object was
+    found, not only the logs."""
+    from robo3d.overview import recording_status
+    from robo3d.stages.evaluate import _object_not_found
+
+    align = {"workspace_from_hull": {
+        "skipped": "the hull is empty",
+        "laser": {"skipped": "too few laser points above the table to find the object"}}}
+    why = _object_not_found(align)
+    assert why.startswith("no object found") and "the hull is empty" in why
+    assert "most likely the table" in why
+    # the hull's box, or the laser's, or a recording's own box: the object is located
+    assert _object_not_found({"workspace_from_hull": {"box_min": [0, 0, 0]}}) is None
+    assert _object_not_found({"workspace_from_hull": {
+        "skipped": "no views", "laser": {"box_min": [0, 0, 0]}}}) is None
+    assert _object_not_found({}) is None and _object_not_found(None) is None
+    m = _metrics(False)
+    m["surface_sources"] = {"object_not_found": why}
+    _, notes = recording_status(m)
+    assert any(n.startswith("no object found") for n in notes)
+
+
 def test_overview_and_batch_table_speak_in_words_with_units(tmp_path):
     import json
 

@@ -287,7 +287,8 @@ def test_a_scan_where_nothing_locates_the_object_says_so():
 
     align = {"workspace_from_hull": {
         "skipped": "the hull is empty",
-        "laser": {"skipped": "too few laser points above the table to find the object"}}}
+        "laser": {"skipped": "too few laser points above the table to find the object",
+                  "object_found": False}}}
     why = _object_not_found(align)
     assert why.startswith("no object found") and "the hull is empty" in why
     assert "most likely the table" in why

@@ -358,7 +358,8 @@ def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any
     got = clouds_laser_box(clouds, margin=float(ac["workspace_from_hull_margin"]),
                            min_margin_m=margin_m)
     if got is None:
-        return {"skipped": "too few laser points above the table to find the object"}
+        return {"skipped": "too few laser points above the table to find the object",
+                "object_found": False}
     lo, hi, info, P = got
     up_report = info["up"]
     lo, hi = turn_box(P.T, (lo, hi))

@@ -136,12 +136,11 @@ def _object_not_found(align: Any) -> str | None:
     lay 61.5 mm from the object, labelled measured and nothing else)."""
     wfh = align.get("workspace_from_hull") if isinstance(align, Mapping) else None
     laser = wfh.get("laser") if isinstance(wfh, Mapping) else None
-    why = str(laser.get("skipped", "")) if isinstance(laser, Mapping) else ""
-    if not why.startswith("too few laser points above the table"):
+    if not isinstance(laser, Mapping) or laser.get("object_found") is not False:
         return None
     return (f"no object found: the recording has no workspace box, no hull of its views "
-            f"({wfh.get('skipped', 'none')}), and {why}: the measured surface is what "
-            "the laser saw, most likely the table")
+            f"({wfh.get('skipped', 'none')}), and {laser.get('skipped')}: the measured "
+            "surface is what the laser saw, most likely the table")
 
 
 def _truth_surface(rec, rec_path: str, has_true_masks: bool, metrics: dict[str, Any]):

@@ -474,7 +474,7 @@ def _pair_info(src: tuple[np.ndarray, np.ndarray], tgt: tuple[np.ndarray, np.nda
     ``S J^T r / sigma^2`` (``S = diag(prior_sd)``), or None with fewer than 6
     correspondences. The normal of a correspondence is the sum of the two (symmetric
     ICP's); ``sigma`` is the RMS residual, at least a tenth of the voxel, and each
-    correspondence's scale adds its plane model's error (:func:`_plane_model_sd`).
+    correspondence's scale adds its plane model's error (:func:`_pair_residuals`).
     """
     p = src[0] @ t[:3, :3].T + t[:3, 3]
     d, idx = tree.query(p, k=1, distance_upper_bound=max_dist)
@@ -486,10 +486,7 @@ def _pair_info(src: tuple[np.ndarray, np.ndarray], tgt: tuple[np.ndarray, np.nda
     if np.count_nonzero(ok) < 6:
         return None
     x, y = p[ok], tgt[0][idx[ok]]
-    model = _plane_model_sd(x, y, n_src[ok], tgt[1][idx[ok]])
-    n = n_src[ok] + tgt[1][idx[ok]]
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    r = np.einsum("ij,ij->i", x - y, n)
+    r, n, model = _pair_residuals(x, y, n_src[ok], tgt[1][idx[ok]])
     sigma = max(float(np.sqrt(np.mean(r**2))), 0.1 * voxel_size, 1e-6)
     jac = np.hstack([np.cross(x - c, n), n]) * prior_sd
     s = np.sqrt(sigma**2 + model**2)  # the plane model's own error
@@ -2203,32 +2200,42 @@ def _pair_subsets(P, Nn, O, G, o: AlignOptions) -> list[np.ndarray]:
     return red_idx
 
 
-def _plane_model_sd(x: np.ndarray, y: np.ndarray, nx: np.ndarray, ny: np.ndarray
-                    ) -> np.ndarray:
-    """The error of a point-to-plane residual's plane model, per correspondence (metres):
-    half the distance between the two points times the chord between their unit normals.
+def _pair_residuals(x: np.ndarray, y: np.ndarray, nx: np.ndarray, ny: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Symmetric point-to-plane residuals of correspondences ``x`` -> ``y`` (metres),
+    their normals (the normalised sum of the two unit normals) and each one's plane-model
+    error (metres).
 
-    A point-to-plane residual takes the surface between two corresponding points for the
-    plane of their normal(s). Where the normals of the two points disagree by an angle
-    ``a``, the surface turns between them (or the normals, estimated from sparse
-    profiles, are wrong there), and the residual is off by about ``|x - y| * a / 2``: on
-    a rounded edge or a thin ridge, whatever the poses. This is the standard deviation
-    added to the residuals' robust scale, so that such correspondences weigh what they
-    know (a flat face: nothing changes). Measured on the objects benchmark's thin fin
-    (7 sweeps, the TRUE poses, one pair of the low sweeps): residuals of 9 um median where
-    the normals agree within 2 degrees, 57 / 87 um where they disagree by 10-20 / 20-40
-    degrees, against 66 / 128 um that this model gives; the 1.5 mm gusset's ridge and the
-    base's rounded ends held 74 % of that pair's information along the fin, enough for
-    ICP to slide 1.5 mm, and the refinement turned a sweep 0.40 degrees away from its
-    true pose (0.003 degrees with this weight; ``benchmarks/README.md``, stop 60)."""
-    return 0.5 * np.linalg.norm(x - y, axis=1) * np.linalg.norm(nx - ny, axis=1)
+    Along the sum of the two normals, the residual of two points on one sphere or
+    cylinder is zero whatever their distance (Rusinkiewicz 2019); along one of them it is
+    the sagitta between them, ``R (1 - cos a)`` for normals ``a`` apart: 0.2 mm on a
+    rounded edge at the profiles' spacing, a pull that does not depend on the poses.
+
+    Where the two normals disagree, the surface turns between the points, or the normals
+    (estimated from profiles a millimetre apart) are wrong there: on a rounded edge or a
+    thin ridge both happen, and no residual along them is exact. Each correspondence's
+    plane-model error is taken as half the distance times the chord between the normals
+    (the sagitta above: what the residual may be off by), and it is added to the
+    residuals' robust scale, so that such correspondences weigh what they know; on a flat
+    face it is zero. Measured on the objects benchmark's thin fin (7 sweeps, the TRUE
+    poses, one pair of the low sweeps): residuals of 9 um median where the normals agree
+    within 2 degrees, 57 / 87 um where they disagree by 10-20 / 20-40 degrees; the 1.5 mm
+    gusset's ridge and the base's rounded ends held 74 % of that pair's information along
+    the fin, ICP slid 1.5 mm along it, and the refinement turned a sweep 0.40 degrees
+    away from its true pose (``benchmarks/README.md``, stop 60)."""
+    n = nx + ny
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    r = np.einsum("ij,ij->i", x - y, n)
+    model = 0.5 * np.linalg.norm(x - y, axis=1) * np.linalg.norm(nx - ny, axis=1)
+    return r, n, model
 
 
 def _add_pair_terms(H: np.ndarray, b: np.ndarray, pairs, cur, cur_n, org, red_idx,
                     index: dict[int, int], sigma_p: float, d_max: float) -> list[np.ndarray]:
-    """Add the point-to-plane terms of every pair (both directions, Huber-weighted, each
-    on the robust scale plus its plane model's error, :func:`_plane_model_sd`) to the
-    normal equations ``H``, ``b`` (in place); returns the residuals."""
+    """Add the symmetric point-to-plane terms of every pair (both directions,
+    Huber-weighted, each on the robust scale plus its plane model's error,
+    :func:`_pair_residuals`) to the normal equations ``H``, ``b`` (in place); returns the
+    residuals."""
     pair_r = []
     trees = {}
     for i, j in pairs:
@@ -2248,9 +2255,8 @@ def _add_pair_terms(H: np.ndarray, b: np.ndarray, pairs, cur, cur_n, org, red_id
             ia = red_idx[a_][ok]
             ib = red_idx[b_][nb[ok]]
             x, y = cur[a_][ia], cur[b_][ib]
-            nrm = cur_n[b_][ib]
-            r = np.einsum("ij,ij->i", x - y, nrm)
-            s = np.sqrt(sigma_p**2 + _plane_model_sd(x, y, cur_n[a_][ia], nrm)**2)
+            r, nrm, model = _pair_residuals(x, y, cur_n[a_][ia], cur_n[b_][ib])
+            s = np.sqrt(sigma_p**2 + model**2)
             w = _huber(r / s, 2.0) / s**2
             ja = np.hstack([np.cross(x - org[a_][ia], nrm), nrm])
             jb = -np.hstack([np.cross(y - org[b_][ib], nrm), nrm])
@@ -2528,9 +2534,10 @@ def refine_sweeps(
     robot translates, which a rigid transform of the sweep's points is not (it leaves a
     shear of ``rotation error x travel``). Gauss-Newton minimises, with Huber weights,
 
-    - point-to-plane distances between every overlapping pair (both directions, nearest
-      neighbours within a distance shrinking from ``max_corr_dist_m`` to three robust
-      standard deviations),
+    - symmetric point-to-plane distances between every overlapping pair (both
+      directions, nearest neighbours within a distance shrinking from
+      ``max_corr_dist_m`` to three robust standard deviations; each weighed by its
+      plane model's error, :func:`_pair_residuals`),
     - with ``silhouettes``: the distance of each view's contour-generator points to the
       image edge of that view's silhouette (:func:`_rim_residuals`), which fixes the
       absolute position the sweeps cannot give each other: the views are taken at rest,
@@ -2580,7 +2587,8 @@ def refine_sweeps(
 
     References
     ----------
-    Chen & Medioni (1992), point-to-plane residuals; Triggs et al. (2000), Bundle
+    Chen & Medioni (1992), point-to-plane residuals; Rusinkiewicz (2019), A symmetric
+    objective function for ICP (the sum of the two normals); Triggs et al. (2000), Bundle
     adjustment -- a modern synthesis (Gauss-Newton with robust weights and priors);
     Cipolla & Giblin (2000), Visual motion of curves and surfaces (contour generators).
     """

@@ -1449,8 +1449,9 @@ def _project(f: _ViewField, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @njit(nogil=True, cache=True)
 def _rim_front(x, n, centre, R, t, intr, D, sdf, cos_pre, search, cosg, uv, depth,
                d):  # noqa: ANN001, ANN202 - numba kernel
-    """:func:`_rim_residuals`' first pass, point by point: ``cosg = |n . ray|``; where it
-    is below ``cos_pre`` the distorted pixel and depth (as ``CameraModel.project``), and
+    """:func:`_rim_residuals`' first pass, point by point: ``cosg = n . ray`` (signed:
+    negative where the normal faces the camera); where ``|cosg|`` is below ``cos_pre`` the
+    distorted pixel and depth (as ``CameraModel.project``), and
     where that pixel lies in front of the camera and ``search + 2`` px inside the image,
     ``d`` = the mask's signed distance there (bilinear, as :func:`_bilinear`)."""
     h, w = sdf.shape
@@ -1460,10 +1461,10 @@ def _rim_front(x, n, centre, R, t, intr, D, sdf, cos_pre, search, cosg, uv, dept
         r0 = x[i, 0] - centre[0]
         r1 = x[i, 1] - centre[1]
         r2_ = x[i, 2] - centre[2]
-        c = abs(r0 * n[i, 0] + r1 * n[i, 1] + r2_ * n[i, 2]) / np.sqrt(
+        c = (r0 * n[i, 0] + r1 * n[i, 1] + r2_ * n[i, 2]) / np.sqrt(
             r0 * r0 + r1 * r1 + r2_ * r2_)
         cosg[i] = c
-        if not c < cos_pre:
+        if not abs(c) < cos_pre:
             continue
         p0 = R[0, 0] * x[i, 0] + R[0, 1] * x[i, 1] + R[0, 2] * x[i, 2] + t[0]
         p1_ = R[1, 0] * x[i, 0] + R[1, 1] * x[i, 1] + R[1, 2] * x[i, 2] + t[1]
@@ -1629,11 +1630,9 @@ def _rim_residuals(f: _ViewField, x: np.ndarray, n: np.ndarray, profile: np.ndar
     s_t = np.einsum("ij,ij->i", uv[c_o] - ut[grp], tang[grp])
     lo = np.minimum.reduceat(s_t, starts)
     hi = np.maximum.reduceat(s_t, starts)
-    keep = (lo < -side_px) & (hi > side_px) & (cosg[top] < cos_max)
+    keep = (lo < -side_px) & (hi > side_px) & (np.abs(cosg[top]) < cos_max)
     if crossing:  # the sweep passes over the contour generator there (docstring)
-        ray = x[c_o] - centre
-        facing = np.einsum("ij,ij->i", n[c_o], ray) / (
-            np.linalg.norm(ray, axis=1) * np.linalg.norm(n[c_o], axis=1) + 1e-12)
+        facing = cosg[c_o]  # signed: the kernel's n . ray
         along = (np.minimum.reduceat(facing, starts) < 0) & (
             np.maximum.reduceat(facing, starts) > 0)
         mean = np.add.reduceat(facing, starts) / np.diff(np.r_[starts, len(facing)])

@@ -938,6 +938,36 @@ def test_stage_carve_reads_the_segmentation_flags(tmp_path, ring):
     assert 2 in report["views_used"]
 
 
+def test_stage_carve_no_hull_from_flagged_views_alone_with_laser(tmp_path, ring):
+    """Every view the segmentation flagged (masks of the surroundings agree with each
+    other): a scan with laser frames gets no hull from them, and says why; without laser
+    frames the hull is all there is and is carved."""
+    import json
+
+    from robo3d.config import load_config
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks, _grid, _exact = ring
+    _silhouettes_npz(tmp_path / "silhouettes.npz", cam, Ts, list(masks))
+    (tmp_path / "reports").mkdir()
+    views = [{"index": i, "qa": {"flags": ["surrounds_view"]}} for i in range(len(Ts))]
+    (tmp_path / "reports" / "silhouettes.json").write_text(json.dumps({"views": views}))
+    out = {k: str(tmp_path / f"hull.{k}") for k in ("npz", "ply", "rrd")}
+    out["report"] = str(tmp_path / "carve.json")
+    cfg = load_config(overrides={"carving": {"resolution": 40, "qa_resolution": 40}})
+    sil = {"silhouettes": str(tmp_path / "silhouettes.npz")}
+    report = stage_carve(sil, out, cfg, "s", has_laser=True)
+    assert report["empty"] is True
+    assert "flagged as absurd" in report["reason"] and "surrounds_view" in report["reason"]
+    report = stage_carve(sil, out, cfg, "s", has_laser=False)
+    assert not report.get("empty") and report["occupied_voxels"] > 0
+    # one view not flagged: it carves with the others, as before
+    views[3]["qa"]["flags"] = []
+    (tmp_path / "reports" / "silhouettes.json").write_text(json.dumps({"views": views}))
+    report = stage_carve(sil, out, cfg, "s", has_laser=True)
+    assert not report.get("empty") and report["occupied_voxels"] > 0
+
+
 # ---------------------------------------------------------------------- real data
 DTU = Path(__file__).resolve().parents[2] / "shared" / "real" / "dtu_scan24.mcap"
 

@@ -694,6 +694,28 @@ def test_colour_difference_border_sample_keeps_flat_modes_only():
 
 
 # ---------------------------------------------------------------------- QA
+def test_surrounding_views_only_when_most_views_surround_theirs():
+    from robo3d.silhouettes import surrounding_views
+
+    h, w = 100, 120
+    obj = np.zeros((h, w), bool)
+    obj[30:70, 40:80] = True
+    around = ~obj                                     # the table with the object a hole
+    big = np.zeros((h, w), bool)                      # an object larger than the frame
+    big[0:80, :] = True
+    big[80:, 30:60] = True
+    cross = np.zeros((h, w), bool)                    # on all four sides, 0.33 of it
+    cross[40:60, :] = True
+    cross[:, 50:70] = True
+    empty = np.zeros((h, w), bool)                    # a failed view: not counted
+    assert surrounding_views([around, around, around, obj]) == [0, 1, 2]
+    assert surrounding_views([around, big, empty]) == [0, 1]
+    assert surrounding_views([big, obj, obj]) == []   # one close-up among whole views
+    assert surrounding_views([around, around, obj, obj]) == []   # half is not most
+    assert surrounding_views([cross, cross, cross]) == []
+    assert surrounding_views([empty, empty]) == []
+
+
 def test_silhouette_qa_flags():
     h, w = 100, 120
     roi = (10, 10, 110, 90)

@@ -128,6 +128,7 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     if given_up is None and cfg["segmentation"]["resegment_spurious"]:
         resegmented = _resegment(inputs["recording"], rec, views, cameras, poses,
                                  backgrounds, ws, options, cfg, masks, per_view)
+    _flag_surrounding(inputs["recording"], views, masks, per_view)
     report = _report(per_view, ws, t0)
     report["silhouettes_failed"] = given_up
     report["resegmented"] = resegmented
@@ -313,6 +314,24 @@ def _segment_one(path: str, rec, i: int, msg, cam, T: np.ndarray,
            "refined": sil.refined, "qa": sil.qa,
            "mask_png": f"view_{i:03d}.png"}
     return sil.mask, row
+
+
+def _flag_surrounding(path: str, views: list, masks: list[np.ndarray],
+                      per_view: list[dict]) -> None:
+    """Flag ``surrounds_view`` in the views' rows (in place) where most masks surround their
+    views (:func:`robo3d.silhouettes.surrounding_views`), with a warning."""
+    from ..silhouettes import surrounding_views
+
+    around = surrounding_views(masks)
+    for i in around:
+        qa = per_view[i].get("qa") or {}
+        per_view[i]["qa"] = {**qa, "flags": [*qa.get("flags", []), "surrounds_view"]}
+    if around:
+        log.warning("%s: %d of %d views have masks that reach all four sides of the image "
+                    "and cover most of it (views %s): the segmentation took the "
+                    "surroundings (the table, the room) for the object; flagged "
+                    "surrounds_view: they judge no laser point, and with laser frames carve "
+                    "no hull alone", path, len(around), len(masks), around)
 
 
 def _where(path: str, i: int, msg) -> str:

@@ -44,6 +44,12 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     fc = cfg["fusion"]
     opts = FuseOptions.from_config(fc, seed=cfg["seed"])
     hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
+    if hull is not None and hull.n_occupied == 0 and inputs.get("aligned"):
+        # the carve left no hull (its report says why): nothing to close from, and not a
+        # hull that contradicts the laser, as one with every measured point outside it
+        log.info("fusion: the visual hull is empty (the carve's report says why): nothing "
+                 "is closed from it")
+        hull = None
     table = None  # the laser points on the table, per sweep (no laser: none)
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])

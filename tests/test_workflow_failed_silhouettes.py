@@ -22,8 +22,8 @@ def test_a_scan_whose_silhouettes_fail_keeps_what_its_laser_measured(tmp_path):
     separate: three of ten views give no silhouette at all and the rest specks. Before,
     the first empty view stopped the recording; and masks that all missed the object
     dropped every laser point. Now the failed views are named and left out, the
-    silhouettes that contradict the laser drop nothing, their hull closes nothing, and
-    the mesh is the measured surface, labelled so."""
+    silhouettes that contradict the laser drop nothing, they carve no hull, and the mesh
+    is the measured surface, labelled so."""
     from robo3d.simulate import SimulationParams
 
     recs = tmp_path / "recs"
@@ -37,12 +37,15 @@ def test_a_scan_whose_silhouettes_fail_keeps_what_its_laser_measured(tmp_path):
     assert m["evaluation"]["mask_iou"]["mean"] < 0.5  # the masks are wrong ...
     hull_test = m["stages"]["align"]["outside_hull"]
     assert hull_test["contradicted"] is True and hull_test["dropped"] == 0  # ... the laser kept
-    assert m["surface_sources"]["hull_contradicted"] is True
+    # every mask empty or disagreeing: no hull, and the carve says why ...
+    assert m["stages"]["carve"]["empty"] is True
+    assert "no view is left to carve" in m["stages"]["carve"]["reason"]
     assert m["surface_sources"]["inferred_area_fraction"] == 0.0
-    assert m["stages"]["fuse"]["hull_contradicted"] is True
-    # and its report says so (it said "holes closed from the hull")
-    assert m["stages"]["fuse"]["source"] == ("laser (TSDF), nothing closed: the hull "
-                                             "contradicts the laser")
+    # ... and fusion closes nothing, from the laser alone (its report said "holes closed
+    # from the hull" before stop 45, then, until stop 61, that the empty hull contradicted
+    # the laser: every measured point lay outside it)
+    assert not m["surface_sources"]["hull_contradicted"]
+    assert m["stages"]["fuse"]["source"] == "laser (TSDF)"
     ev = m["evaluation"]["measured"]
     # measured 5.5e-4 m2 (5.5 cm2) of the bracket's surface, median 0.18 mm, 22 % of it
     # more than 0.5 mm off (the robot's poses hold the gauge). Before fusion.max_frame_span

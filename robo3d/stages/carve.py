@@ -100,17 +100,9 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     if not used:
         return no_hull(f"no view is left to carve: {n_views} views, all with empty or "
                        "disagreeing masks", **views_kw)
-    absurd = _segmentation_flags(inputs["silhouettes"], sil, n_views)
-    if has_laser and all(i in absurd for i in used):
-        # every view left is one the segmentation itself found absurd (a mask of the table
-        # around a black object, touching the whole frame): such views agree with each
-        # other, and their hull, the table's slab, took the workspace's place and closed
-        # the mesh (random scene 517 of stop 52: 99.4 % of the mesh closed from it, 59 mm
-        # from the truth at the median; 711: the table kept as measured surface, 56.7 mm)
-        first = used[0]
-        return no_hull(f"every view left to carve ({len(used)}) has a silhouette the "
-                       f"segmentation flagged as absurd (view {first}: "
-                       f"{', '.join(absurd[first]) or 'flagged'})", **views_kw)
+    absurd = _only_flagged(inputs["silhouettes"], sil, used) if has_laser else None
+    if absurd:
+        return no_hull(absurd, **views_kw)
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
         try:
             box_min, box_max, box_report = _carving_box(ws, masks, cameras, poses, cc, used)
@@ -263,6 +255,22 @@ def _log_hull(rrd: str, rec_name: str, grid: VoxelGrid, vertices: np.ndarray, fa
         # fused and final meshes, translucent so the laser's clouds show through it
         log_mesh(rr_stream, "base/carve/hull", vertices, faces, albedo=[240, 120, 30, 110])
         log_report(rr_stream, "reports/carve", report)
+
+
+def _only_flagged(silhouettes_npz: str, sil: Mapping[str, Any], used: list[int]) -> str | None:
+    """Why no hull is carved when every view in ``used`` is one the segmentation itself
+    flagged (:func:`_segmentation_flags`); None otherwise.
+
+    Why: masks of the table around a black object, each touching the whole frame, agree
+    with each other, and their hull, the table's slab, took the workspace's place and
+    closed the mesh (random scene 517 of stop 52: 99.4 % of the mesh closed from it, 59 mm
+    from the truth at the median; 711 of stop 61: the table kept as measured surface,
+    56.7 mm)."""
+    flags = _segmentation_flags(silhouettes_npz, sil, len(sil["masks"]))
+    if not used or not all(i in flags for i in used):
+        return None
+    return (f"every view left to carve ({len(used)}) has a silhouette the segmentation "
+            f"flagged as absurd (view {used[0]}: {', '.join(flags[used[0]]) or 'flagged'})")
 
 
 def _segmentation_flags(silhouettes_npz: str, sil: Mapping[str, Any], n_views: int

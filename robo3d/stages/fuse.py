@@ -26,7 +26,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     The report says what fraction of the surface came from the laser and from the hull.
     """
     from ..artefacts import clouds_workspace, load_clouds_npz, table_points
-    from ..carving import VoxelGrid, hull_to_mesh
+    from ..carving import hull_to_mesh
     from ..fusion import (
         HULL,
         MEASURED,
@@ -43,13 +43,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     t0 = time.perf_counter()
     fc = cfg["fusion"]
     opts = FuseOptions.from_config(fc, seed=cfg["seed"])
-    hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
-    if hull is not None and hull.n_occupied == 0 and inputs.get("aligned"):
-        # the carve left no hull (its report says why): nothing to close from, and not a
-        # hull that contradicts the laser, as one with every measured point outside it
-        log.info("fusion: the visual hull is empty (the carve's report says why): nothing "
-                 "is closed from it")
-        hull = None
+    hull = _hull(inputs)
     table = None  # the laser points on the table, per sweep (no laser: none)
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
@@ -139,6 +133,20 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
              grid, _bridges_note(report, opts.max_frame_span), report["seconds"])
     return report
+
+
+def _hull(inputs: Mapping[str, str]):
+    """The visual hull, or None: no views, or with laser frames an empty hull (the carve
+    left none, its report says why), which closes nothing and is not a hull that
+    contradicts the laser, as one with every measured point outside it."""
+    from ..carving import VoxelGrid
+
+    hull = VoxelGrid.load_npz(inputs["hull"]) if inputs.get("hull") else None
+    if hull is not None and hull.n_occupied == 0 and inputs.get("aligned"):
+        log.info("fusion: the visual hull is empty (the carve's report says why): nothing "
+                 "is closed from it")
+        return None
+    return hull
 
 
 def _tsdf_source(closes: bool, close: str, contradicted: bool) -> str:

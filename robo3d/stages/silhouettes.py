@@ -53,10 +53,9 @@ def stage_silhouettes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     frames (``has_laser``, the rule's ``params.has_laser``) every view is then flagged
     with an empty mask (``silhouettes_failed`` in the report says why), the hull is
     empty and the laser's measurement goes on alone; without laser frames the stage
-    fails with an error naming the first. A mask that is merely absurd is flagged, not
-    dropped. ``threads``: views segmented side by side (the job's; the result does not
-    depend on it).
-    """
+    fails with an error naming the first. An absurd mask is flagged, not dropped (so are
+    most views' masks when they surround their views: ``surrounds_view``). ``threads``:
+    views segmented side by side (the job's; the result does not depend on it)."""
     from ..silhouettes import SegmentOptions
 
     t0 = time.perf_counter()

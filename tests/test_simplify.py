@@ -224,6 +224,7 @@ def test_steps_far_within_the_bound_are_longer(monkeypatch):
     m = o3d.geometry.TriangleMesh.create_sphere(0.03, resolution=80)
     v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
     opts = SimplifyOptions(target_faces=800, hausdorff_tolerance_m=2e-3)
+    monkeypatch.setattr(simplify, "_DIRECT_ROUNDS", 0)  # the steps alone
     _, f1, r1 = simplify_mesh(v, f, options=opts)
     monkeypatch.setattr(simplify, "_FIRST_STEP", 2.0)  # halving only
     monkeypatch.setattr(simplify, "_STEP_MAX", 2.0)
@@ -231,6 +232,45 @@ def test_steps_far_within_the_bound_are_longer(monkeypatch):
     assert len(f1) == len(f0) == 800
     assert r0["n_trials"] == 5 and r1["n_trials"] <= 3
     assert r1["hausdorff_max_m"] <= 2e-3 / 4 and r0["hausdorff_max_m"] <= 2e-3 / 4
+
+
+def test_the_target_straight_away_then_the_steps(monkeypatch):
+    """The target first: a smooth sphere within 2 mm gets its 800 faces in one checked
+    trial. Where that trial goes beyond the bound at a few places (its tail within it),
+    a second keeps them; where it goes beyond as a whole (the rough sphere's patches: the
+    tail 0.47 mm against 0.2 mm), the steps follow from the fused mesh, as without the
+    first trial, one trial later."""
+    import open3d as o3d
+
+    import robo3d.simplify as simplify
+
+    m = o3d.geometry.TriangleMesh.create_sphere(0.03, resolution=80)
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles).astype(np.int64)
+    opts = SimplifyOptions(target_faces=800, hausdorff_tolerance_m=2e-3)
+    _, f1, r1 = simplify_mesh(v, f, options=opts)
+    assert len(f1) == 800 and r1["n_trials"] == 1 and r1["hausdorff_max_m"] <= 2e-3
+    # the first check beyond the bound at one place (a fused mesh's flap, as it is)
+    check = simplify._Distance.__call__
+    calls = []
+
+    def flap_once(self, vv, ff, bound=np.inf):
+        d, far, stats = check(self, vv, ff, bound)
+        calls.append(len(ff))
+        if len(calls) == 1:
+            return 2 * bound, vv[:1], stats
+        return d, far, stats
+
+    monkeypatch.setattr(simplify._Distance, "__call__", flap_once)
+    _, f2, r2 = simplify_mesh(v, f, options=opts)
+    assert r2["n_trials"] == 2 and r2["kept_places"] == 1 and len(f2) >= 800
+    monkeypatch.setattr(simplify._Distance, "__call__", check)
+    v, f = _rough_sphere()
+    opts = SimplifyOptions(target_faces=2000, hausdorff_tolerance_m=0.2e-3, seed=0)
+    v3, f3, r3 = simplify_mesh(v, f, options=opts)
+    monkeypatch.setattr(simplify, "_DIRECT_ROUNDS", 0)
+    v4, f4, r4 = simplify_mesh(v, f, options=opts)
+    assert np.array_equal(f3, f4) and np.array_equal(v3, v4)
+    assert r3["n_trials"] == r4["n_trials"] + 1
 
 
 def test_step_factor_follows_the_tail():

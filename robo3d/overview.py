@@ -196,7 +196,10 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     if failed:
         notes.append(f"{len(failed)} view(s) gave no silhouette and were not used")
     if _get(metrics, ("stages", "carve", "empty")):
-        notes.append("no visual hull: the silhouettes carved every voxel")
+        # the carve's own reason (every voxel carved, every mask empty, only flagged views)
+        why = _get(metrics, ("stages", "carve", "reason"))
+        notes.append(f"no visual hull: {why}" if isinstance(why, str) and why
+                     else "no visual hull: the silhouettes carved every voxel")
     if _get(metrics, ("stages", "align", "outside_hull", "contradicted")):
         notes.append("the silhouettes contradict the laser: no laser point was dropped "
                      "by them")

@@ -275,6 +275,10 @@ def test_key_figures_against_their_targets_and_the_status():
                      "the silhouettes contradict the laser: no laser point was dropped by them",
                      "the hull contradicts the laser: nothing closed, the mesh is the "
                      "measured surface"]
+    # the carve's own reason when it gives one (random scene 711: only flagged views)
+    failed["stages"]["carve"]["reason"] = "every view left to carve (4) has a silhouette ..."
+    assert recording_status(failed)[1][1] == ("no visual hull: every view left to carve (4) "
+                                              "has a silhouette ...")
 
 
 def test_a_scan_where_nothing_locates_the_object_says_so():
@@ -331,6 +335,21 @@ def test_overview_and_batch_table_speak_in_words_with_units(tmp_path):
     assert "<h2>real_b</h2>" in (tmp_path / "o.html").read_text()
     with pytest.raises(ValueError, match="one picture per recording"):
         write_batch_report([str(paths[0])], [], "x", "y", "z")
+
+
+def test_the_masks_picture_says_when_the_masks_took_the_surroundings():
+    from robo3d.stages.pictures import _surroundings
+
+    views = [{"index": i, "qa": {"flags": ["surrounds_view"] if i < 3 else []}}
+             for i in range(4)]
+    carve = {"empty": True, "reason": "every view left to carve (3) has a silhouette the "
+             "segmentation flagged as absurd (view 0: segmentation: surrounds_view)"}
+    line, = _surroundings({"stages": {"silhouettes": {"views": views}, "carve": carve}})
+    assert line.startswith("3 view(s) flagged surrounds_view") and "no hull" in line
+    line, = _surroundings({"stages": {"silhouettes": {"views": views}}})
+    assert "no hull" not in line
+    assert _surroundings({"stages": {"silhouettes": {"views": views[3:]}}}) == []
+    assert _surroundings({}) == []
 
 
 def test_the_masks_picture_says_when_the_laser_contradicts_the_masks():

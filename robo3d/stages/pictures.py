@@ -102,7 +102,27 @@ def _masks(rec, sil, metrics: Mapping[str, Any], n: int, tile: int) -> np.ndarra
     laser = {int(v) for v, c in (seeded.get("candidates") or {}).items()
              if isinstance(c, dict) and c.get("accepted")}
     return masks_picture(rec, sil, n=n, tile_px=tile, mask_iou=iou, left_out=left,
-                         from_laser=laser, notes=_laser_against_masks(metrics))
+                         from_laser=laser,
+                         notes=_surroundings(metrics) + _laser_against_masks(metrics))
+
+
+def _surroundings(metrics: Mapping[str, Any]) -> list[str]:
+    """A line for the masks picture when views are flagged ``surrounds_view``
+    (:func:`robo3d.silhouettes.surrounding_views`: most masks reach all four sides of the
+    image and cover most of it, the table and the room taken for the object), and whether
+    the carve then made no hull: the picture said only "4 view(s) flagged by the mask
+    check" over the table masked around a black bottle (random scene 711)."""
+    sil = (metrics.get("stages") or {}).get("silhouettes") or {}
+    views = [v.get("index", i) for i, v in enumerate(sil.get("views") or [])
+             if isinstance(v, dict) and "surrounds_view" in ((v.get("qa") or {}).get("flags")
+                                                              or [])]
+    if not views:
+        return []
+    carve = (metrics.get("stages") or {}).get("carve") or {}
+    hull = ("; no hull carved from them: the laser alone"
+            if carve.get("empty") and "flagged as absurd" in str(carve.get("reason")) else "")
+    return [f"{len(views)} view(s) flagged surrounds_view (masks over most of the image, on "
+            f"all four sides: the surroundings taken for the object){hull}"]
 
 
 def _laser_against_masks(metrics: Mapping[str, Any]) -> list[str]:

@@ -84,9 +84,9 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
             [i for i in range(len(cameras)) if i not in empty] if empty else None)
     except StageError as exc:  # no box in the recording, too few masks to place one
         return no_hull(f"no carving box: {exc}")
-    agreement = _view_agreement_check(inputs["silhouettes"], sil, masks, cameras, poses,
-                                      box_min, box_max, cc)
     n_views = len(cameras)
+    seg_flags = _segmentation_flags(inputs["silhouettes"], sil, n_views)
+    agreement = _view_agreement_check(seg_flags, masks, cameras, poses, box_min, box_max, cc)
     left_out = agreement["views_left_out"] if cc["qa_leave_out"] else []
     for i in empty:
         agreement["reasons"].setdefault(i, []).append("empty mask: the segmentation "
@@ -100,7 +100,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
     if not used:
         return no_hull(f"no view is left to carve: {n_views} views, all with empty or "
                        "disagreeing masks", **views_kw)
-    absurd = _only_flagged(inputs["silhouettes"], sil, used) if has_laser else None
+    absurd = _only_flagged(seg_flags, used) if has_laser else None
     if absurd:
         return no_hull(absurd, **views_kw)
     if ws is None and left_out:  # a bad mask also misplaces the box: place it again
@@ -257,20 +257,19 @@ def _log_hull(rrd: str, rec_name: str, grid: VoxelGrid, vertices: np.ndarray, fa
         log_report(rr_stream, "reports/carve", report)
 
 
-def _only_flagged(silhouettes_npz: str, sil: Mapping[str, Any], used: list[int]) -> str | None:
+def _only_flagged(seg_flags: Mapping[int, list[str]], used: list[int]) -> str | None:
     """Why no hull is carved when every view in ``used`` is one the segmentation itself
-    flagged (:func:`_segmentation_flags`); None otherwise.
+    flagged (``seg_flags``: :func:`_segmentation_flags`); None otherwise.
 
     Why: masks of the table around a black object, each touching the whole frame, agree
     with each other, and their hull, the table's slab, took the workspace's place and
     closed the mesh (random scene 517 of stop 52: 99.4 % of the mesh closed from it, 59 mm
     from the truth at the median; 711 of stop 61: the table kept as measured surface,
     56.7 mm)."""
-    flags = _segmentation_flags(silhouettes_npz, sil, len(sil["masks"]))
-    if not used or not all(i in flags for i in used):
+    if not used or not all(i in seg_flags for i in used):
         return None
     return (f"every view left to carve ({len(used)}) has a silhouette the segmentation "
-            f"flagged as absurd (view {used[0]}: {', '.join(flags[used[0]]) or 'flagged'})")
+            f"flagged as absurd (view {used[0]}: {', '.join(seg_flags[used[0]]) or 'flagged'})")
 
 
 def _segmentation_flags(silhouettes_npz: str, sil: Mapping[str, Any], n_views: int
@@ -315,12 +314,13 @@ def _used_views_agreement(agreement: Mapping[str, Any], used: list[int]) -> dict
             "n_views": len(ious)}
 
 
-def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: list,
-                          cameras: list, poses: np.ndarray, box_min: np.ndarray,
-                          box_max: np.ndarray, cc: Mapping[str, Any]) -> dict[str, Any]:
+def _view_agreement_check(seg_flags: Mapping[int, list[str]], masks: list, cameras: list,
+                          poses: np.ndarray, box_min: np.ndarray, box_max: np.ndarray,
+                          cc: Mapping[str, Any]) -> dict[str, Any]:
     """Score every view against the other views' hull and choose the views to leave out
-    (see :func:`stage_carve`); with fewer than 4 views, or ``carving.qa_resolution`` 0,
-    nothing is scored."""
+    (see :func:`stage_carve`; ``seg_flags``: the views the segmentation flagged,
+    :func:`_segmentation_flags`); with fewer than 4 views, or ``carving.qa_resolution``
+    0, nothing is scored."""
     from ..carving import (
         AgreementOptions,
         CarveOptions,
@@ -331,7 +331,6 @@ def _view_agreement_check(silhouettes_npz: str, sil: Mapping[str, Any], masks: l
 
     qa_opts = AgreementOptions.from_config(cc)
     n = len(cameras)
-    seg_flags = _segmentation_flags(silhouettes_npz, sil, n)
     out: dict[str, Any] = {"enabled": False, "segmentation_flagged": sorted(seg_flags),
                            "flagged": [], "views_left_out": [], "reasons": {}, "views": []}
     if qa_opts.qa_resolution == 0 or n < 4:

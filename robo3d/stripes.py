@@ -1024,6 +1024,51 @@ def _local_reference(cmax, good, half):  # noqa: ANN001, ANN202
     return out
 
 
+#: The ridge's baseline (:func:`_side_background`): beyond the stripe's foot, a fall of the
+#: profile's running mean below the foot by more than this fraction of the peak's height
+#: is an edge of the surface, not the stripe's flank.
+_FOOT_FLAT = 0.05
+
+
+@njit
+def _side_background(y, valid, hw, d, lowest, k_lowest, floor, ceiling):  # noqa: ANN001, ANN202
+    """The background of one side (``d`` = -1 left, +1 right) of a profile ``y`` peaking at
+    ``hw``: (value, index) of the minimum of its 3-pixel running mean, walking outward,
+    up to the first mean that falls below that minimum by more than ``_FOOT_FLAT`` of
+    the peak's height above ``floor`` (the lower side's minimum over the window), and at
+    least twice as fast as the step before, once the foot is reached (a mean at most
+    halfway down to ``ceiling``, the higher side's minimum, whose next one outward falls
+    by less than that fraction). Without such a fall, ``(lowest, k_lowest)``: that
+    side's minimum over the window, as before."""
+    m = y.shape[0]
+    half = 0.5 * (y[hw] + ceiling)
+    flat = _FOOT_FLAT * (y[hw] - floor)
+    best = np.inf
+    kb = k_lowest
+    reached = False
+    prev = np.inf
+    fall = 0.0
+    c = hw + 2 * d  # centre of the first mean wholly on this side
+    while 1 <= c <= m - 2 and valid[c - 1] and valid[c + 1]:
+        v3 = (y[c - 1] + y[c] + y[c + 1]) / 3.0
+        # an edge: a new low by more than flat, falling at least twice as fast as the
+        # step before (a stripe's flank or a lit face's shoulder falls ever slower)
+        if reached and v3 < best - flat and prev - v3 > 2.0 * fall:
+            return best, kb
+        if prev != np.inf:
+            fall = max(prev - v3, 0.0)
+        prev = v3
+        if v3 < best:
+            best = v3
+            kb = c
+        if not reached and v3 <= half:
+            cn = c + d
+            reached = (cn < 1 or cn > m - 2 or not valid[cn - 1] or not valid[cn + 1]
+                       or v3 - (y[cn - 1] + y[cn] + y[cn + 1]) / 3.0 < flat)
+        c += d
+    return lowest, k_lowest
+
+
 @njit
 def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
                 gaussian, linear=False):  # noqa: ANN001, ANN202
@@ -1060,6 +1105,20 @@ def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
         for k in range(m):
             if valid[k] and y[k] < bg:
                 bg = y[k]
+    if linear:
+        # each side's background, walking out from the peak: the running mean's minimum
+        # up to where it falls below that minimum (by more than _FOOT_FLAT of the peak's
+        # height) after the profile has reached its foot (below halfway down to that
+        # side's minimum, and no longer falling). A step edge beyond the foot (a checker's dark
+        # square beside the stripe) is not the stripe's background: the window's minimum
+        # there tilted the baseline and pulled the centre 4 px onto the plateau on the
+        # other side. A clean profile never falls again: the window's minimum, as before
+        floor = min(bl, br)
+        ceiling = max(bl, br) if max(bl, br) != np.inf else floor
+        if bl != np.inf:
+            bl, kl = _side_background(y, valid, hw, -1, bl, kl, floor, ceiling)
+        if br != np.inf:
+            br, kr = _side_background(y, valid, hw, 1, br, kr, floor, ceiling)
     if linear and bl != np.inf and br != np.inf:
         slope = (br - bl) / (kr - kl)
         for k in range(m):

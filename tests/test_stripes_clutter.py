@@ -74,3 +74,42 @@ def test_the_stronger_of_two_long_curves_wins_their_lines():
     # the faint curve lost more lines than it won: a second line, in all of them
     assert np.all(status[:50] == _SECOND) and np.all(win[:50] == -1)
     assert n_second == 100
+
+
+def _stripe_beside_a_dark_square(gap: float, side: int, seed: int = 2) -> tuple[np.ndarray,
+                                                                                np.ndarray]:
+    """A grey face (100) with a dark square (47, a checker's) from ``gap`` px beyond a blue
+    laser stripe on the ``side`` (+1 below, -1 above), the stripe slanted across the
+    columns (every sub-pixel phase). Returns the uint8 image and the stripe's row per
+    column."""
+    rng = np.random.default_rng(seed)
+    cols = np.arange(W)
+    row = 60.3 + 0.013 * cols
+    rows = np.arange(H)[:, None]
+    img = np.full((H, W, 3), 100.0)
+    dark = (rows - row[None, :]) * side >= gap
+    img[dark] = 47.0
+    prof = np.exp(-0.5 * ((rows - row[None, :]) / 1.0) ** 2)
+    img += prof[..., None] * 150.0 * BLUE_LASER
+    img += rng.normal(0.0, 1.0, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), row
+
+
+def test_a_dark_square_beside_the_stripe_does_not_pull_its_centre():
+    """Random scene 761 (a blue laser on a white checker vase): where a dark square began
+    a few pixels beyond the stripe's foot, the linear baseline ran from the square's
+    level on that side to the grey face's on the other, the grey face next to the stripe
+    stood above it and the centre of gravity moved up to 4 px onto that face (here 0.75
+    px at the median). The background of each side is now taken up to the square's
+    edge. (A square that begins within the stripe's own foot, 3-5 px from a stripe of
+    sigma 1 px, still pulls its centre 0.2-0.5 px: no flat stretch tells it apart.)"""
+    for side in (1, -1):
+        for gap in (6.0, 8.0, 11.0):
+            img, row = _stripe_beside_a_dark_square(gap, side)
+            for centre_on in ("laser", "luma"):
+                opts = StripeOptions(colour="blue", axis="columns", centre_on=centre_on)
+                sp = extract_stripe_centres(img, options=opts)
+                assert len(sp) >= 0.98 * W, (side, gap, centre_on, sp.rejected)
+                err = sp.v - row[sp.line.astype(int)]
+                assert np.median(np.abs(err)) < 0.05, (side, gap, centre_on)
+                assert np.abs(err).max() < 0.25, (side, gap, centre_on, np.abs(err).max())

@@ -108,7 +108,11 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    laser's own channel (flat-topped, still centred, where it saturates; a chroma
    difference would dip there) or the lightness, around the winning candidate's
    brightest pixel within 2 px, with a *linear* local baseline: the line through the
-   minima of the 3-pixel running mean on either side (a gradient does not bias it).
+   minima of the 3-pixel running mean on either side (a gradient does not bias it),
+   each side's minimum taken only up to an edge beyond the stripe's foot (a new low
+   after the profile has levelled out: a checker's dark square 7 px beside the stripe
+   otherwise tilted the baseline and moved the centre up to 4 px onto the grey face on
+   the other side, :func:`_side_background`).
    With ``centre_on="luma"`` the centre is taken on the profile of the luma
    ``Y = 0.299 R + 0.587 G + 0.114 B`` instead, where that profile has a peak of its own
    within 1.5 px (else the laser channel's centre stays): a JPEG that stores colour at

@@ -200,6 +200,9 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
         why = _get(metrics, ("stages", "carve", "reason"))
         notes.append(f"no visual hull: {why}" if isinstance(why, str) and why
                      else "no visual hull: the silhouettes carved every voxel")
+    pieces = _get(metrics, ("stages", "carve", "pieces", "warning"))
+    if isinstance(pieces, str) and pieces:
+        notes.append(pieces)
     if _get(metrics, ("stages", "align", "outside_hull", "contradicted")):
         notes.append("the silhouettes contradict the laser: no laser point was dropped "
                      "by them")

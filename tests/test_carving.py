@@ -1080,3 +1080,51 @@ def test_stage_carve_without_a_box_and_one_usable_view(tmp_path, sphere_views):
     assert report["empty"] and "no carving box" in report["reason"]
     grid = VoxelGrid.load_npz(out["npz"])
     assert grid.n_occupied == 0
+
+
+def test_hull_pieces_counts_the_connected_pieces():
+    from robo3d.carving import hull_pieces
+
+    occ = np.zeros((20, 20, 20), bool)
+    occ[1:9, 1:9, 1:9] = True  # 512 voxels
+    occ[12:16, 12:16, 12:16] = True  # 64
+    occ[18, 18, 18] = True  # a speck
+    occ[9, 9, 9] = True  # touches the first cube at a corner only: 26-connected to it
+    p = hull_pieces(occ)
+    assert p["n"] == 3 and p["n_over_min"] == 2
+    assert p["largest_fraction"] == pytest.approx(513 / 578)
+    assert hull_pieces(np.zeros((3, 3, 3), bool)) == {"n": 0, "largest_fraction": None,
+                                                      "n_over_min": 0}
+
+
+def test_stage_carve_says_when_the_hull_falls_apart(tmp_path, sphere_views):
+    """One object's silhouettes carve one piece, with no warning; silhouettes that carve
+    two equal pieces (here two spheres side by side: masks that disagree about an
+    object's shape carve it into shards the same way, random scene 784) are named in the
+    report, the log and the overview's notes."""
+    from robo3d.config import load_config
+    from robo3d.overview import recording_status
+    from robo3d.pipeline import stage_carve
+
+    cam, Ts, masks = sphere_views
+    cfg = load_config(overrides={"carving": {"resolution": 48}})
+    out = {k: str(tmp_path / f"hull_one.{k}") for k in ("npz", "ply", "report", "rrd")}
+    _silhouettes_npz(tmp_path / "one.npz", cam, Ts, masks)
+    one = stage_carve({"silhouettes": str(tmp_path / "one.npz")}, out, cfg, "s")
+    assert one["pieces"]["n_over_min"] == 1 and one["pieces"]["largest_fraction"] > 0.99
+    assert "warning" not in one["pieces"]
+    shift = np.array([0.7 * RADIUS, 0.0, 0.0])
+    two = [_render_sphere(cam, T, CENTRE - shift, 0.5 * RADIUS)
+           | _render_sphere(cam, T, CENTRE + shift, 0.5 * RADIUS) for T in Ts]
+    _silhouettes_npz(tmp_path / "two.npz", cam, Ts, two)
+    out = {k: str(tmp_path / f"hull_two.{k}") for k in ("npz", "ply", "report", "rrd")}
+    rep = stage_carve({"silhouettes": str(tmp_path / "two.npz")}, out, cfg, "s")
+    p = rep["pieces"]
+    assert p["n_over_min"] == 2 and 0.45 < p["largest_fraction"] < 0.55
+    assert p["warning"].startswith("the hull falls apart into 2 pieces")
+    _, notes = recording_status({"stages": {"carve": rep}})
+    assert p["warning"] in notes
+    off = load_config(overrides={"carving": {"resolution": 48, "qa_largest_piece": None}})
+    out = {k: str(tmp_path / f"hull_off.{k}") for k in ("npz", "ply", "report", "rrd")}
+    rep = stage_carve({"silhouettes": str(tmp_path / "two.npz")}, out, off, "s")
+    assert rep["pieces"]["n_over_min"] == 2 and "warning" not in rep["pieces"]

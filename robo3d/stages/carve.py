@@ -124,6 +124,7 @@ def stage_carve(inputs: Mapping[str, str], outputs: Mapping[str, str],
                           box=(box_min, box_max, box_report), method=opts.method,
                           n_views=n_views, used=used, left_out_rows=left_out_rows,
                           agreement=agreement, carve_report=carve_report)
+    report["pieces"] = _pieces(grid, cc)
     report["seconds"] = round(time.perf_counter() - t0, 3)
     grid.save_npz(outputs["npz"], carving={k: getattr(opts, k) for k in (
                       "method", "leaf_rule", "outside_image", "behind_camera",
@@ -200,6 +201,26 @@ def _carving_box(workspace: tuple[np.ndarray, np.ndarray] | None, masks: list,
              np.round(box_min, 4).tolist(), np.round(box_max, 4).tolist(),
              np.round(np.asarray(box_report["size_m"]) * 1e3, 1).tolist())
     return box_min, box_max, box_report
+
+
+def _pieces(grid: VoxelGrid, cc: Mapping[str, Any]) -> dict[str, Any]:
+    """The hull's connected pieces (:func:`robo3d.carving.hull_pieces`), with a
+    ``warning`` (logged, and shown in the overview and the hull's picture) when the largest
+    holds less than ``carving.qa_largest_piece`` of its volume: masks that disagree about
+    the object's shape carve it into shards, which fusion would close as inferred
+    surface and a views-only scan delivers as its mesh."""
+    from ..carving import hull_pieces
+
+    out = hull_pieces(grid.occupancy)
+    limit = cc.get("qa_largest_piece")
+    share = out["largest_fraction"]
+    if limit is not None and share is not None and share < float(limit):
+        out["warning"] = (f"the hull falls apart into {out['n_over_min']} pieces of 1 % of "
+                          f"its volume or more ({out['n']} in all), the largest "
+                          f"{100 * share:.0f} %: the views' masks disagree about the "
+                          "object's shape, or the scene holds more than one object")
+        log.warning("carve: %s", out["warning"])
+    return out
 
 
 def _hull_report(grid: VoxelGrid, vertices: np.ndarray, faces: np.ndarray, cameras: list,

@@ -182,6 +182,8 @@ def _hull(path: str, metrics: Mapping[str, Any], up: np.ndarray, how: str,
     if carve.get("empty"):
         lines.append(f"no hull: {carve.get('reason', 'the silhouettes carved every voxel')}"
                      "; the scan's mesh is its measured surface")
+    if isinstance((carve.get("pieces") or {}).get("warning"), str):
+        lines.append(carve["pieces"]["warning"])
     lines.append(f"up: {how}")
     col = np.tile([0.55, 0.70, 0.85], (len(V), 1))
     return titled(_tiles_row(mesh_views(V, F, col, up, tile_px=tile)),

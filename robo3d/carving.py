@@ -167,16 +167,21 @@ def hull_pieces(occupancy: np.ndarray, min_fraction: float = 0.01) -> dict[str, 
     largest 20 % (volume IoU with the object 0.06); scenes 773 and 778 0.63 and 0.66
     (0.20, 0.43); scene 769 0.78 (0.79).
     """
+    _, sizes = _voxel_pieces(np.asarray(occupancy, dtype=bool))
+    if not len(sizes):
+        return {"n": 0, "largest_fraction": None, "n_over_min": 0}
+    total = float(sizes.sum())
+    return {"n": len(sizes), "largest_fraction": float(sizes.max() / total),
+            "n_over_min": int(np.count_nonzero(sizes >= min_fraction * total))}
+
+
+def _voxel_pieces(occ: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 26-connected pieces of a boolean grid: (labels, 0 outside and 1..n in the
+    pieces; the voxel count of pieces 1..n)."""
     from scipy import ndimage
 
-    occ = np.asarray(occupancy, dtype=bool)
     labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
-    if n == 0:
-        return {"n": 0, "largest_fraction": None, "n_over_min": 0}
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
-    total = float(sizes.sum())
-    return {"n": int(n), "largest_fraction": float(sizes.max() / total),
-            "n_over_min": int(np.count_nonzero(sizes >= min_fraction * total))}
+    return labels, np.bincount(labels.reshape(-1), minlength=n + 1)[1:]
 
 
 def reference_box(grid: VoxelGrid, masks: Sequence[np.ndarray],
@@ -193,8 +198,6 @@ def reference_box(grid: VoxelGrid, masks: Sequence[np.ndarray],
     the object. Its box is grown by ``margin`` (:func:`hull_box`). None when nothing is
     left.
     """
-    from scipy import ndimage
-
     masks, cams, poses = check_views(masks, cameras, T_base_cameras)
     views = [int(v) for v in views]
     if not views:
@@ -211,10 +214,10 @@ def reference_box(grid: VoxelGrid, masks: Sequence[np.ndarray],
     keep = seen >= max(2, int(np.ceil(min_seen * len(cams))))
     occ = np.zeros(grid.shape, bool)
     occ[tuple(a[keep] for a in ijk)] = True
-    labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
-    if n == 0:
+    labels, sizes = _voxel_pieces(occ)
+    if not len(sizes):
         return None
-    largest = 1 + int(np.argmax(np.bincount(labels.reshape(-1))[1:]))
+    largest = 1 + int(np.argmax(sizes))
     return hull_box(VoxelGrid(grid.origin, grid.voxel_size, labels == largest, grid.frame),
                     margin=margin)
 

@@ -1109,14 +1109,7 @@ def _profile_at(img, nch, c, p, hw, y, valid, tail_fraction, noise_t, min_peak,
         for k in range(m):
             if valid[k] and y[k] < bg:
                 bg = y[k]
-    if linear:
-        # each side's background, walking out from the peak: the running mean's minimum
-        # up to where it falls below that minimum (by more than _FOOT_FLAT of the peak's
-        # height) after the profile has reached its foot (below halfway down to that
-        # side's minimum, and no longer falling). A step edge beyond the foot (a checker's dark
-        # square beside the stripe) is not the stripe's background: the window's minimum
-        # there tilted the baseline and pulled the centre 4 px onto the plateau on the
-        # other side. A clean profile never falls again: the window's minimum, as before
+    if linear:  # each side's minimum only up to an edge beyond the stripe's foot
         floor = min(bl, br)
         ceiling = max(bl, br) if max(bl, br) != np.inf else floor
         if bl != np.inf:

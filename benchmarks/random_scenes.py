@@ -14,7 +14,8 @@ torus in millimetres, written here with Open3D), the demo or the cell scene, 320
 colours, four textures, four table patterns, with and without the wall, a drifting robot
 error, a camera clock 2-10 ms late, PNG / JPEG views, PNG / mono / JPEG laser frames,
 laser-only and photo-only recordings; from scene 460 on, turntable rigs and recordings
-without a workspace box too. Each is run through the Snakemake workflow with the
+without a workspace box too; from scene 831 on, laser speckle in half the scenes with laser
+frames. Each is run through the Snakemake workflow with the
 DEFAULT configuration, ``--cores 2``, in a fresh work folder.
 
 The one target is that every scene completes (``completed`` = ``n_scenes``); the figures
@@ -112,6 +113,9 @@ def scene(k: int) -> tuple[str, list[str]]:
             a += ["--turntable", "--sweep-elevation", str(rnd.choice([15, 25, 40]))]
         if rnd.random() < 0.25:
             a += ["--no-box"]
+    if k >= 831 and "--no-laser" not in a and rnd.random() < 0.5:  # stop 63: speckle
+        a += ["--laser-speckle", str(rnd.choice([0.3, 0.5, 0.8, 1.0])),
+              "--speckle-grain", str(rnd.choice([1.0, 1.5, 2.5]))]
     return obj, a
 
 

@@ -201,6 +201,11 @@ _SIM_OPTIONS: list[tuple[str, str, object, str, str]] = [
      "(the robot moving meanwhile); 0: a global shutter"),
     ("--vignetting", "vignetting", float, "FRACTION",
      "light lost in the image corners"),
+    ("--laser-speckle", "laser_speckle", float, "CONTRAST",
+     "laser speckle: the stripe's light times a random factor of mean 1 and this standard "
+     "deviation (0: none, 1: fully developed), a new pattern in every frame"),
+    ("--speckle-grain", "speckle_grain_px", float, "PX",
+     "size of a speckle grain in pixels"),
 ]
 
 

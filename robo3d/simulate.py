@@ -97,6 +97,7 @@ from .sim.render import (
     render_laser_frame,
     render_view,
     sensor_noise,
+    speckle_gain,
     vignetting,
     visible_stripe_points,
 )
@@ -231,6 +232,11 @@ class SimulationParams:
         ms), each at the robot's pose then (rendered in bands of
         :data:`ROLLING_BAND_ROWS` rows). The views are taken at rest and unaffected. 0:
         a global shutter.
+    laser_speckle, speckle_grain_px : float
+        Laser speckle in the laser frames (:func:`robo3d.sim.render.speckle_gain`): the
+        stripe's light times a random factor of mean 1 and this standard deviation (0:
+        none; 1: fully developed), correlated over about ``speckle_grain_px`` pixels, a
+        new pattern in every frame. The room light is not affected.
     object_mesh : str or None
         A mesh file (STL, PLY, OBJ) to scan instead of a named object
         (:func:`load_object_mesh`).
@@ -314,6 +320,8 @@ class SimulationParams:
     pose_error_deg_per_m: float = 0.05
     clock_lag_ms: float = 0.0
     rolling_shutter_ms: float = 0.0
+    laser_speckle: float = 0.0
+    speckle_grain_px: float = 1.5
     object_mesh: str | None = None
     mesh_unit: str = "m"
     turntable: bool = False
@@ -387,6 +395,8 @@ class SimulationParams:
             ("pose_error_deg_per_m", self.pose_error_deg_per_m >= 0),
             ("clock_lag_ms", abs(self.clock_lag_ms) <= 30),
             ("rolling_shutter_ms", 0 <= self.rolling_shutter_ms <= 100),
+            ("laser_speckle", 0 <= self.laser_speckle <= 1),
+            ("speckle_grain_px", 0.5 <= self.speckle_grain_px <= 20),
             ("mesh_unit", self.mesh_unit in MESH_UNITS),
         ]
         for name, ok in checks:
@@ -432,7 +442,7 @@ CELL_SENSOR: dict[str, Any] = dict(view_encoding="jpeg", laser_encoding="jpeg",
 _NEW_FIELDS = frozenset({"laser_off", "vignetting", "robot_error", "drift_mm", "drift_deg",
                          "pose_error_mm_per_m", "pose_error_deg_per_m", "clock_lag_ms",
                          "object_mesh", "mesh_unit", "rolling_shutter_ms", "turntable",
-                         "workspace_box"})
+                         "workspace_box", "laser_speckle", "speckle_grain_px"})
 #: rows of a rolling-shutter laser frame rendered at one pose (``rolling_shutter_ms``): a
 #: 960-row frame with a 30 ms readout at 20 mm/s moves 5 micrometres within a band
 ROLLING_BAND_ROWS = 8
@@ -945,7 +955,8 @@ def _simulate(path: Path, object_name: str, p: SimulationParams, threads: int,
                         off_scene.set_room_pose(_room_pose(cam, target))
                 img = _laser_image(scene, camera, cam, t_camera_laser, p, vig,
                                    np.random.default_rng([p.seed, 11, k, j]), fast_noise,
-                                   laser_velocity[i])
+                                   laser_velocity[i],
+                                   speckle=np.random.default_rng([p.seed, 13, k, j]))
                 w.write_image(_LASER_TOPIC, stamp, camera.frame_id, img, p.laser_encoding,
                               p.jpeg_quality)
                 if p.laser_off:  # the same camera's frame with the laser dark, own noise
@@ -997,17 +1008,21 @@ def _room_pose(T_base_camera: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 def _laser_image(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: np.ndarray,
                  p: SimulationParams, vig: np.ndarray | None, rng: np.random.Generator,
-                 fast_noise: bool, velocity: np.ndarray | None = None) -> np.ndarray:
+                 fast_noise: bool, velocity: np.ndarray | None = None,
+                 speckle: np.random.Generator | None = None) -> np.ndarray:
     """One laser frame as the camera records it: rendered at camera pose ``cam``
-    (``scene``'s laser; dark for a laser-off frame), row band by row band at the poses
+    (``scene``'s laser; dark for a laser-off frame), its light speckled
+    (``p.laser_speckle``, drawn from ``speckle``), row band by row band at the poses
     of their exposure with a rolling shutter (``p.rolling_shutter_ms``, the camera moving
     at ``velocity``), averaged to grey for a monochrome camera, vignetted, with sensor
     noise drawn from ``rng``."""
+    gain = (speckle_gain(camera.height, camera.width, p.laser_speckle, p.speckle_grain_px,
+                         speckle) if p.laser_speckle > 0 and speckle is not None else None)
     if p.rolling_shutter_ms > 0 and velocity is not None:
         signal = _rolling_signal(scene, camera, cam, t_camera_laser,
-                                 p.rolling_shutter_ms * 1e-3, np.asarray(velocity))
+                                 p.rolling_shutter_ms * 1e-3, np.asarray(velocity), gain)
     else:
-        signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser)
+        signal = render_laser_frame(scene, camera, cam, cam @ t_camera_laser, gain)
     if signal.ndim == 3 and p.laser_encoding == "mono8":
         signal = signal.mean(axis=2)  # a monochrome camera: no colour filters
     if vig is not None:
@@ -1017,7 +1032,8 @@ def _laser_image(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: 
 
 
 def _rolling_signal(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_laser: np.ndarray,
-                    readout_s: float, velocity: np.ndarray) -> np.ndarray:
+                    readout_s: float, velocity: np.ndarray,
+                    gain: np.ndarray | None = None) -> np.ndarray:
     """A rolling shutter's laser frame: row ``r`` exposed ``r / (H - 1) * readout_s`` after
     the first, the camera (and the laser on its flange) moved on by ``velocity`` times
     that; each band of :data:`ROLLING_BAND_ROWS` rows rendered at its middle row's pose
@@ -1037,8 +1053,8 @@ def _rolling_signal(scene: SimScene, camera: Any, cam: np.ndarray, t_camera_lase
         crop = CameraModel(camera.frame_id, camera.width, b - a, K, camera.D)
         moved = cam.copy()
         moved[:3, 3] += velocity * readout_s * (0.5 * (r0 + r1 - 1)) / max(h - 1, 1)
-        bands.append(render_laser_frame(scene, crop, moved, moved @ t_camera_laser
-                                        )[r0 - a:r1 - a])
+        bands.append(render_laser_frame(scene, crop, moved, moved @ t_camera_laser,
+                                        None if gain is None else gain[a:b])[r0 - a:r1 - a])
     return np.concatenate(bands, axis=0)
 
 

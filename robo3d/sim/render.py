@@ -69,6 +69,7 @@ __all__ = [
     "sensor_noise",
     "pixel_grid_rays",
     "vignetting",
+    "speckle_gain",
     "visible_stripe_points",
     "StripeTruth",
     "LASER_RGB",
@@ -789,7 +790,8 @@ def _laser_dn(scene: SimScene, hits: Hits, T_base_laser: np.ndarray) -> np.ndarr
 
 
 def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.ndarray,
-                       T_base_laser: np.ndarray) -> np.ndarray:
+                       T_base_laser: np.ndarray, laser_gain: np.ndarray | None = None
+                       ) -> np.ndarray:
     """Noise-free laser-lit frame (dimmed ambient plus the stripe).
 
     Parameters
@@ -799,6 +801,9 @@ def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.n
     T_base_camera : (4, 4) float64
     T_base_laser : (4, 4) float64
         The laser frame in ``base``; the sheet is its x-z plane.
+    laser_gain : (H, W) float64, optional
+        A factor on the laser's light per pixel, the room light's unchanged: its speckle
+        (:func:`speckle_gain`). None: none (the frame as before, to the last bit).
 
     Returns
     -------
@@ -811,7 +816,7 @@ def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.n
     t = np.asarray(T_base_camera, dtype=np.float64)
     t_l = np.asarray(T_base_laser, dtype=np.float64)
     if a.laser_rgb is not None or a.laser_ambient_fraction is not None:
-        return _render_laser_frame_lit(scene, camera, t, t_l)
+        return _render_laser_frame_lit(scene, camera, t, t_l, laser_gain)
     h, w = camera.height, camera.width
     ambient = a.laser_ambient_dn / float(np.mean(a.object_albedo))
     dirs = scene.pixel_rays(camera) @ t[:3, :3].T
@@ -829,8 +834,13 @@ def render_laser_frame(scene: SimScene, camera: CameraModel, T_base_camera: np.n
     s = max(int(a.supersample), 1)
     sub_dirs = camera.rays(_subpixels(idx, w, s)) @ t[:3, :3].T
     sub = scene.cast(t[:3, 3], sub_dirs)
-    sub_dn = scene.albedo_grey(sub, texture=False) * ambient + _laser_dn(scene, sub, t_l)
-    image[idx] = sub_dn.reshape(len(idx), s * s).mean(axis=1)
+    room = scene.albedo_grey(sub, texture=False) * ambient
+    las = _laser_dn(scene, sub, t_l)
+    if laser_gain is None:
+        image[idx] = (room + las).reshape(len(idx), s * s).mean(axis=1)
+    else:
+        image[idx] = (room.reshape(len(idx), s * s).mean(axis=1)
+                      + las.reshape(len(idx), s * s).mean(axis=1) * laser_gain.reshape(-1)[idx])
     return image.reshape(h, w)
 
 
@@ -882,7 +892,8 @@ def _laser_dn_lit(scene: SimScene, hits: Hits, T_base_laser: np.ndarray,
 
 
 def _render_laser_frame_lit(scene: SimScene, camera: CameraModel, t: np.ndarray,
-                            t_l: np.ndarray) -> np.ndarray:
+                            t_l: np.ndarray, laser_gain: np.ndarray | None = None
+                            ) -> np.ndarray:
     """A laser frame in room light and/or with a coloured laser (see render_laser_frame).
 
     The room light is the view's rendering (:func:`_view_signal`: pixel centres,
@@ -905,6 +916,8 @@ def _render_laser_frame_lit(scene: SimScene, camera: CameraModel, t: np.ndarray,
         sub_dirs = camera.rays(_subpixels(idx, w, s)) @ t[:3, :3].T
         sub = scene.cast(t[:3, 3], sub_dirs)
         laser[idx] = _laser_dn_lit(scene, sub, t_l, sub_dirs).reshape(len(idx), s * s).mean(1)
+    if laser_gain is not None:
+        laser *= laser_gain.reshape(-1)
     if a.laser_rgb is None:
         return (room.mean(axis=1) + laser).reshape(h, w)
     colour = np.asarray(a.laser_rgb, dtype=np.float64)
@@ -1091,3 +1104,33 @@ def vignetting(height: int, width: int, strength: float) -> np.ndarray:
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     r2 = ((u - (width - 1) / 2) ** 2 + (v - (height - 1) / 2) ** 2)
     return 1.0 - strength * r2 / r2.max()
+
+
+def speckle_gain(height: int, width: int, contrast: float, grain_px: float,
+                 rng: np.random.Generator) -> np.ndarray:
+    """Laser speckle: a random ``(H, W)`` factor on the laser's light, mean 1, standard
+    deviation ``contrast``, correlated over about ``grain_px`` pixels.
+
+    A laser's coherent light scattered by a rough surface interferes with itself: the
+    stripe's brightness varies from one speckle grain to the next (Goodman 1975), and its
+    centre of gravity moves with the grains, the fundamental limit of laser triangulation
+    (Dorsch, Häusler & Herrmann 1994). Fully developed speckle (``contrast`` 1) has an
+    exponential intensity, the squared modulus of a complex Gaussian field (here white
+    noise blurred by a Gaussian of ``grain_px / 2`` px); a pixel larger than the grain, or
+    a wide aperture, averages several patterns: ``m = round(1 / contrast^2)`` of them,
+    their mean's deviation scaled to ``contrast`` (0.3-0.6 for a webcam's pixels and
+    lens, up to 1 behind a small machine-vision aperture). ``contrast`` 0: all ones.
+    """
+    if contrast <= 0:
+        return np.ones((height, width))
+    m = max(1, int(round(1.0 / contrast ** 2)))
+    sigma = max(grain_px, 1e-3) / 2.0
+    acc = np.zeros((height, width))
+    for _ in range(m):
+        re, im = (cv2.GaussianBlur(rng.standard_normal((height, width)), (0, 0), sigma,
+                                   borderType=cv2.BORDER_REFLECT) for _ in range(2))
+        intensity = re * re + im * im
+        acc += intensity / intensity.mean()
+    pattern = acc / m  # mean 1, deviation about 1 / sqrt(m)
+    return np.maximum(1.0 + contrast * np.sqrt(m) * (pattern - 1.0), 0.0)
+

@@ -38,6 +38,11 @@ Every recording runs through the Snakemake workflow with the DEFAULT configurati
       ``stripes.min_peak`` and it lies 3 px or more inside the image, as found when a
       detected centre lies within 1.5 px of it. Recall = found / visible bins, over all
       frames (``stripe_recall`` per colour, ``stripe_recall_min`` the worst colour).
+``speckle`` (not in the default run)
+    The three cells of ``cells`` with laser speckle (:data:`SPECKLE`: contrast 0.5, grains
+    of 1.5 px, a new pattern per frame; an error the detector does not model), scored
+    alike: how far the stripe points degrade when the laser's light is grainy, as a real
+    laser's is (``details.speckle``; not a headline figure).
 ``srv``
     ``../shared/real/srv_laser_calibration.mcap``: the stripe on the hand-held board
     (``benchmarks/laser.py``'s ``srv_board_figures``: an OpenCV oracle for the
@@ -104,6 +109,8 @@ CELL_SIZE = dict(width=640, height=480, views=12, sweeps=4, sweep_frames=60,
 EXACT = dict(sweep_error_mm=(0.0, 0.0), sweep_error_deg=(0.0, 0.0),
              view_error_mm=(0.0, 0.0), view_error_deg=(0.0, 0.0), view_jitter=0.0)
 DRIFT = dict(seed=1, sweep_spacing=0.0011, robot_error="drift", clock_lag_ms=4.0)
+#: Laser speckle of the ``speckle`` part: a webcam's partly averaged speckle (stop 63)
+SPECKLE = dict(laser_speckle=0.5, speckle_grain_px=1.5)
 
 
 def _in_box(clouds) -> np.ndarray:
@@ -208,17 +215,19 @@ def _pictures(rec, silhouettes_npz: Path, ious: list[float], folder: Path) -> No
 
 
 # --------------------------------------------------------------------------- cells
-def part_cells(base: Path, reuse: bool) -> dict[str, Any]:
+def part_cells(base: Path, reuse: bool, speckle: dict[str, Any] | None = None
+               ) -> dict[str, Any]:
+    """The ``cells`` part; with ``speckle`` (:data:`SPECKLE`) the ``speckle`` part's cells."""
     from robo3d.simulate import SimulationParams, simulate_recording
 
     out: dict[str, Any] = {}
     for colour, (obj, obj_colour) in CELLS.items():
-        name = f"cell_{colour}"
+        name = f"{'speckle' if speckle else 'cell'}_{colour}"
         work = base / name
         rec_path = _simulated(base, name, lambda p, o=obj, c=colour, oc=obj_colour:
                               simulate_recording(p, o, params=SimulationParams.cell(
-                                  laser=c, object_color=oc, **CELL_SIZE, **EXACT, seed=10),
-                                  threads=0))
+                                  laser=c, object_color=oc, **CELL_SIZE, **EXACT, seed=10,
+                                  **(speckle or {})), threads=0))
         if not _prepared(work, reuse):
             print(f"== {name}: {obj} ({obj_colour}), workflow up to the clouds ...", flush=True)
             e2e = run_workflow(rec_path, work, (f"results/{name}/silhouettes.npz",
@@ -230,6 +239,9 @@ def part_cells(base: Path, reuse: bool) -> dict[str, Any]:
         print(f"   {name}: mask IoU min {c['mask_iou_min']:.4f}; stripe points median "
               f"{c['stripe_median_mm']:.4f} p95 {c['stripe_p95_mm']:.4f} mm, outliers "
               f"{c['stripe_outlier_fraction']:.4%}; recall {c['stripe_recall']:.4f}", flush=True)
+    if speckle:
+        out["speckle"] = dict(speckle)
+        return out
     # the known limit: a white object on the white-and-black marker table (masks only)
     from robo3d.silhouettes import score_recording_silhouettes
 
@@ -415,7 +427,7 @@ def main() -> int:
     ap.add_argument("--keep", default=None, help="keep the work folders under this folder")
     ap.add_argument("--reuse", action="store_true", help="with --keep: reuse finished runs")
     ap.add_argument("--only", default="dtu,cells,srv,drift,speed",
-                    help="comma-separated parts (dtu, cells, srv, drift, speed)")
+                    help="comma-separated parts (dtu, cells, srv, drift, speed, speckle)")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "front_end.json"))
     args = ap.parse_args()
     parts = set(args.only.split(","))
@@ -429,6 +441,8 @@ def main() -> int:
         details["dtu"] = part_dtu(base, args.reuse)
     if "cells" in parts:
         details["cells"] = part_cells(base, args.reuse)
+    if "speckle" in parts:
+        details["speckle"] = part_cells(base, args.reuse, SPECKLE)
     if "srv" in parts:
         print("== srv_laser_calibration (real) ...", flush=True)
         details["srv"] = part_srv()

@@ -44,7 +44,7 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     fc = cfg["fusion"]
     opts = FuseOptions.from_config(fc, seed=cfg["seed"])
     hull = _hull(inputs)
-    table = None  # the laser points on the table, per sweep (no laser: none)
+    table = clouds = None  # the laser's clouds, its points on the table (no laser: none)
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
         crop = hull if (hull is not None and fc["crop_to_hull"]) else None
@@ -85,7 +85,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     else:
         raise StageError("fusion needs aligned clouds or a hull, got neither")
     if len(F) == 0:
-        raise StageError(f"fusion produced an empty mesh from {source}")
+        raise StageError(f"fusion produced an empty mesh from {source}"
+                         + _why_empty(fuse_report, clouds, table, hull))
     # sweeps the alignment flagged (kept at the robot's pose, checked by nothing)
     laser = clouds if inputs.get("aligned") else []
     flags = [bool((c.report or {}).get("flagged")) for c in laser]
@@ -248,3 +249,28 @@ def _poisson_provenance(V: np.ndarray, pts: np.ndarray, voxel: float, far_m: flo
             "confidence": np.where(near, np.exp(-(d / (2 * voxel)) ** 2), 0.0
                                    ).astype(np.float32),
             "far_from_measured": (~near & (d > far_m)).astype(np.uint8)}
+
+
+def _why_empty(report: Mapping[str, Any], clouds: list | None, table: list | None,
+               hull: Any) -> str:
+    """What an empty fused mesh was made of, for its error: the laser points fused, those
+    on the table, the voxels observed, and why nothing closes it (random scene 844: a
+    black thin wall under a green laser seen by a monochrome camera, 48 points on the
+    object in 40 frames, 4 voxels observed, no views)."""
+    if clouds is None:
+        return ""
+    n_all = int(sum(len(c.points_base) for c in clouds))
+    n_table = int(sum(int(np.count_nonzero(t)) for t in table)) if table else 0
+    used = report.get("n_points_used", n_all - n_table)
+    frames = int(sum(len(np.unique(c.frame_index)) for c in clouds))
+    seen = report.get("n_voxels_observed")
+    seen_s = "" if seen is None else f", {seen} voxels observed"
+    closes = ("the views' hull is empty or contradicts the laser" if hull is not None
+              else "there is no visual hull (no views) to close it")
+    return (f": {used} laser points on the object from {frames} frames of {len(clouds)} "
+            f"sweep(s) ({n_table} more on the table){seen_s}: "
+            f"too little of the object was measured to make a surface, and {closes}. The "
+            "aligned points (aligned.ply) are what the laser measured; a dark or absorbing "
+            "surface returns a weak stripe: more laser power or exposure, a laser colour the "
+            "object reflects, more sweeps, or views for a hull")
+

@@ -149,7 +149,7 @@ def test_a_turntables_revolutions_are_aligned_as_rigid_bodies(tmp_path: Path) ->
 
     rec = tmp_path / "tt.mcap"
     simulate_recording(rec, "bumpy_blob", seed=3, params=SimulationParams.cell(
-        laser="green", small=True, sweeps=2, sweep_frames=120, views=10, turntable=True,
+        laser="green", small=True, sweeps=2, sweep_frames=60, views=10, turntable=True,
         sweep_elevation_deg=25.0))
     r = read_recording(rec, roles=())
     truth = TruthSurface(*read_mesh(bytes(r.attachments["ground_truth/mesh.ply"]),
@@ -168,7 +168,8 @@ def test_a_turntables_revolutions_are_aligned_as_rigid_bodies(tmp_path: Path) ->
         d = truth.distance(pts)
         med[name] = float(np.median(d[d < 1e-3])) * 1e3
     # measured: the aligned points' median distance to the truth (those within 1 mm)
-    # 0.088 mm as rigid bodies, 0.160 mm with the straight sweep's model
+    # 0.095 mm as rigid bodies, 0.155 mm with the straight sweep's model (60 frames a
+    # revolution; 0.088 / 0.160 mm with 120, twice the simulation's time)
     assert med["rigid"] < 0.8 * med["sensor"], med
 
 

@@ -1133,4 +1133,3 @@ def speckle_gain(height: int, width: int, contrast: float, grain_px: float,
         acc += intensity / intensity.mean()
     pattern = acc / m  # mean 1, deviation about 1 / sqrt(m)
     return np.maximum(1.0 + contrast * np.sqrt(m) * (pattern - 1.0), 0.0)
-

@@ -273,4 +273,3 @@ def _why_empty(report: Mapping[str, Any], clouds: list | None, table: list | Non
             "aligned points (aligned.ply) are what the laser measured; a dark or absorbing "
             "surface returns a weak stripe: more laser power or exposure, a laser colour the "
             "object reflects, more sweeps, or views for a hull")
-

@@ -80,6 +80,10 @@ ensure_venv() {
 
 ensure_system_libs
 ensure_venv
+# robo3d's own modules compiled to bytecode here, once: where PYTHONDONTWRITEBYTECODE is
+# set (this CI image sets it) every workflow job compiled them from source again, 0.1 s
+# of each job's 1.7 s on a tiny scan (stop 64); only changed modules are compiled again
+.venv/bin/python -m compileall -q robo3d
 export PATH="$PWD/.venv/bin:$PATH"
 
 cmd=${1:-demo}

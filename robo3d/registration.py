@@ -652,7 +652,9 @@ def align_sweeps(
         Sensor position at each point's frame (needed by the refinement's motion model;
         without it each sweep turns about its centroid).
     profiles : list of (N_s,) int, optional
-        Laser frame of each point (the silhouette term groups points by it).
+        Laser frame of each point (the silhouette term groups points by it); a frame's
+        points in order along its stripe, as the triangulation writes them (else the
+        term takes noisy points as measured: :func:`_rim_points`).
     silhouettes : SilhouetteViews, optional
         Views for the absolute reference (refinement only).
 
@@ -2164,6 +2166,27 @@ _RIM_NOISY_PX = (0.04, 0.08)
 _RIM_FIT_HALF = 5
 
 
+def _profiles_in_order(x: np.ndarray, profile: np.ndarray) -> bool:
+    """Whether each profile's points come in order along it (the stripe's lines, as the
+    triangulation writes them), which :func:`_profile_quadratic` takes for granted: the
+    median step from a point to the next of its profile at most twice the median
+    distance to its nearest neighbour of the profile (about 1 in order; shuffled, the
+    steps span the profile). Judged on every k-th profile, about 20,000 points."""
+    _, rank = np.unique(profile, return_inverse=True)
+    rank = rank.reshape(-1)
+    pick = rank % max(1, len(x) // 20_000) == 0
+    x, rank = x[pick], rank[pick]
+    same = rank[1:] == rank[:-1]
+    if same.sum() < 10:
+        return True
+    step = np.linalg.norm(np.diff(x, axis=0), axis=1)[same]
+    # the profile as a fourth coordinate, far apart: neighbours within a profile only
+    far = 1e3 * (float(np.ptp(x, axis=0).max()) + 1.0)
+    xr = np.c_[x, rank * far]
+    d, _ = cKDTree(xr).query(xr, k=2)
+    return bool(np.median(step) <= 2.0 * np.median(d[:, 1]))
+
+
 def _profile_noise(x: np.ndarray, n: np.ndarray, profile: np.ndarray) -> float:
     """The points' scatter about their profile (metres, along their normals): the robust
     standard deviation of each point's distance to the quadratic through it and its two
@@ -2248,7 +2271,9 @@ def _refine_inputs(points, normals, origins, profiles, max_points: int, rng):
             raise ValueError(f"sweep {s}: profiles must have {len(p)} entries, got {len(g)}")
         length = np.linalg.norm(nrm, axis=1, keepdims=True)
         nrm = nrm / np.maximum(length, 1e-12)
-        noise.append(_profile_noise(p, nrm, g) if profiles is not None else 0.0)
+        # None: profiles not in order along themselves (no fit; _rim_points)
+        noise.append(0.0 if profiles is None else _profile_noise(p, nrm, g)
+                     if _profiles_in_order(p, g) else None)
         keep = np.arange(len(p))
         p_all, g_all = p, g
         if len(p) > max_points:
@@ -2647,7 +2672,8 @@ def refine_sweeps(
         ``pair_normals_k``, ``pair_normals_max_spacing_m`` (:func:`_pair_normals`),
         ``rim_weight``, ``degenerate_ratio`` (:func:`_solve_held`) and ``seed``.
     profiles : list of (N_s,) int, optional
-        Laser profile (frame) of each point; needed for the silhouette term.
+        Laser profile (frame) of each point, a profile's points in order along it;
+        needed for the silhouette term.
     initial : (S, 4, 4) float64, optional
         Rigid corrections to start from (e.g. the pose graph's).
     active : list of int, optional
@@ -2731,7 +2757,7 @@ def _refine_problem(points, normals, origins, pairs, *, options: AlignOptions, p
                           free, P_rim, rim_info)
 
 
-def _rim_points(P, full, noise: list[float], fields) -> tuple[list, list[dict[str, Any]]]:
+def _rim_points(P, full, noise: list, fields) -> tuple[list, list[dict[str, Any]]]:
     """The points the silhouette term meets the views' edges with: a sweep's measured
     points ``P``, or, where they scatter about their profiles in the views (their scatter
     ``noise`` over the views' median metres per pixel at them) by more than
@@ -2739,7 +2765,8 @@ def _rim_points(P, full, noise: list[float], fields) -> tuple[list, list[dict[st
     (:func:`_profile_quadratic` over all of the sweep's points, ``full``: all points,
     profile keys, the indices of ``P``'s), all the way from ``_RIM_NOISY_PX[1]`` on; and
     per sweep what was measured and taken
-    (``profile_noise_mm``, ``profile_noise_px``, ``rim_fit_share``).
+    (``profile_noise_mm``, ``profile_noise_px``, ``rim_fit_share``; no scatter, no fit,
+    where the profiles' points are not in order along them: :func:`_profiles_in_order`).
 
     Why: the term takes a profile's most outward point near the outline, and the most
     outward of noisy points lies outward of the surface. Laser speckle (front-end cells,
@@ -2763,7 +2790,11 @@ def _rim_points(P, full, noise: list[float], fields) -> tuple[list, list[dict[st
             depth = depth[depth > 0]
             if len(depth):
                 m_per_px.append(float(np.median(depth)) / np.sqrt(f.camera.fx * f.camera.fy))
-        px = noise[s] / float(np.median(m_per_px)) if m_per_px else None
+        if noise[s] is None:
+            log.warning("sweep %d: its points are not in order along their profiles; the "
+                        "silhouette term takes them as measured", s)
+        px = (noise[s] / float(np.median(m_per_px)) if m_per_px and noise[s] is not None
+              else None)
         lo, hi = _RIM_NOISY_PX
         share = float(np.clip((px - lo) / (hi - lo), 0.0, 1.0)) if px is not None else 0.0
         if share > 0:
@@ -2776,7 +2807,8 @@ def _rim_points(P, full, noise: list[float], fields) -> tuple[list, list[dict[st
             log.info("sweep %d: its points scatter %.3f px about their profiles in the views "
                      "(%.4f mm): the silhouette term takes them %.0f %% of the way to their "
                      "fit along the profiles", s, px, noise[s] * 1e3, 100 * share)
-        info.append({"profile_noise_mm": round(noise[s] * 1e3, 5),
+        info.append({"profile_noise_mm": (round(noise[s] * 1e3, 5) if noise[s] is not None
+                                          else None),
                      "profile_noise_px": round(px, 4) if px is not None else None,
                      "rim_fit_share": round(share, 3)})
     return P_rim, info

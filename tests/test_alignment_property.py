@@ -415,3 +415,14 @@ def test_noisy_profiles_do_not_push_the_sweeps_off_their_true_poses():
     clean = align_sweeps([s[0] for s in sweeps], [s[1] for s in sweeps], **args)
     assert all(e["rim_fit_share"] == 0 for e in clean.per_sweep)
     assert max(_moved_mm(clean, sweeps)) < 0.01  # measured 0.006
+    # a caller's profiles whose points are not in order along them: no fit (a quadratic
+    # through random points of the profile is no fit of it), the measured points
+    order = [np.lexsort((rng.random(len(s[3])), s[3])) for s in sweeps]
+    mixed = [tuple(a[k] for a in s) for s, k in zip(sweeps, order, strict=True)]
+    res = align_sweeps([p[k] for p, k in zip(noisy, order, strict=True)],
+                       [s[1] for s in mixed], origins=[s[2] for s in mixed],
+                       profiles=[s[3] for s in mixed], silhouettes=views,
+                       options=AlignOptions(seed=1))
+    assert all(e["rim_fit_share"] == 0 and e["profile_noise_mm"] is None
+               for e in res.per_sweep)
+    assert max(_moved_mm(res, mixed)) < 0.25  # the measured points' outward push

@@ -17,7 +17,10 @@ alignment takes them) are then split in two along each residual's search line:
   outline is where rays cast every 0.02 px along the line stop hitting the true mesh.
 - ``edge_inside``: how far inside the true outline the image edge was detected.
 
-The residual is ``point + edge_inside`` (px, outward positive). Both are printed by the
+The residual is ``point + edge_inside`` (px, outward positive). The points are those the
+refinement meets the edges with: moved toward their fit along the profiles where they
+scatter (:func:`robo3d.registration._rim_points`, stop 64; each sweep's scatter and share
+printed). Both are printed by the
 side the contour faces and by how nearly edge-on the surface is seen there
 (``|n . ray|``). ``--out FILE`` writes them as JSON. Nothing is scored against a target:
 this says what a change to the term would have to correct.
@@ -76,6 +79,12 @@ def decompose(rec_path: Path, res: Path) -> dict[str, Any]:
     pts, nrm, prof, _ = true_points(rec, res)
     scene = truth_scene(rec)
     fields = RG._view_fields(views, RG._RIM_CELL_PX, 0.7)
+    # the points the term meets the edges with, as the refinement takes them (noisy
+    # profiles moved toward their fit: registration._rim_points)
+    noise = [RG._profile_noise(p, n, np.asarray(g)) if RG._profiles_in_order(p, np.asarray(g))
+             else None for p, n, g in zip(pts, nrm, prof, strict=True)]
+    full = [(p, np.asarray(g), np.arange(len(p))) for p, g in zip(pts, prof, strict=True)]
+    pts, fit_info = RG._rim_points(pts, full, noise, fields)
     s_line = np.arange(-5.0, 5.0 + STEP_PX / 2, STEP_PX)
     k0 = len(s_line) // 2
     rows = []
@@ -132,7 +141,7 @@ def decompose(rec_path: Path, res: Path) -> dict[str, Any]:
     bins = {f"{lo:.2f}-{hi:.2f}": stats((cos >= lo) & (cos < hi))
             for lo, hi in zip(COS_BINS[:-1], COS_BINS[1:], strict=True)}
     return {"recording": rec_path.name, "all": stats(np.ones(len(r), bool)),
-            "by_side": sides, "by_abs_n_dot_ray": bins}
+            "by_side": sides, "by_abs_n_dot_ray": bins, "rim_points": fit_info}
 
 
 def _print(d: dict[str, Any]) -> None:
@@ -141,7 +150,10 @@ def _print(d: dict[str, Any]) -> None:
             return f"  {name:>10s}: n {s['n']}"
         return (f"  {name:>10s}: n {s['n']:5d}  residual {s['residual_median_px']:+.3f}  "
                 f"point {s['point_median_px']:+.3f}  edge inside {s['edge_inside_median_px']:+.3f}")
-    print(f"== {d['recording']} (median px at the true poses)")
+    print(f"== {d['recording']} (median px at the true poses; each sweep's scatter about "
+          "its profiles, px, and how far its points were moved toward their fit: "
+          + ", ".join(f"{e['profile_noise_px']} / {e['rim_fit_share']}" for e in d["rim_points"])
+          + ")")
     print(line("all", d["all"]))
     for k, s in d["by_side"].items():
         print(line(f"n {k}", s))

@@ -2217,6 +2217,8 @@ def _profile_quadratic(x: np.ndarray, profile: np.ndarray, idx: np.ndarray, half
     if not same_next.any():
         return x[idx].copy()
     med = np.median(step[same_next])
+    if not med > 0:  # most points repeat their predecessor: no profile to fit
+        return x[idx].copy()
     brk = ~same_next | (step > 3 * med)
     seg = np.r_[0, np.cumsum(brk)]
     t = np.r_[0.0, np.cumsum(np.where(brk, 0.0, step))]
@@ -2790,7 +2792,7 @@ def _rim_points(P, full, noise: list, fields) -> tuple[list, list[dict[str, Any]
             depth = depth[depth > 0]
             if len(depth):
                 m_per_px.append(float(np.median(depth)) / np.sqrt(f.camera.fx * f.camera.fy))
-        if noise[s] is None:
+        if noise[s] is None and fields:
             log.warning("sweep %d: its points are not in order along their profiles; the "
                         "silhouette term takes them as measured", s)
         px = (noise[s] / float(np.median(m_per_px)) if m_per_px and noise[s] is not None

@@ -426,3 +426,33 @@ def test_noisy_profiles_do_not_push_the_sweeps_off_their_true_poses():
     assert all(e["rim_fit_share"] == 0 and e["profile_noise_mm"] is None
                for e in res.per_sweep)
     assert max(_moved_mm(res, mixed)) < 0.25  # the measured points' outward push
+
+
+def test_the_profile_fit_keeps_a_parabola_and_survives_degenerate_profiles():
+    """registration._profile_quadratic: a parabola sampled along a profile is returned where
+    it is (its apex too: the term's contour points lie there), points without two
+    neighbours on a side keep their place, and repeated or constant points give finite
+    positions; a shuffled profile is told apart from an ordered one."""
+    from robo3d.registration import _profile_quadratic, _profiles_in_order
+
+    t = np.linspace(-3e-3, 3e-3, 61)
+    g = np.zeros(len(t), np.int64)
+    x = np.c_[t, -40.0 * t**2, np.zeros_like(t)]
+    fit = _profile_quadratic(x, g, np.arange(len(t)), 5)
+    # (a quadratic in chord length, not in t: 9 nm off where the slope is 0.24, 0.6 nm at
+    # the apex, against some 300,000 nm a pixel in the views)
+    assert np.abs(fit - x).max() < 2e-8 and np.abs(fit[30] - x[30]).max() < 2e-9
+    noisy = x + np.random.default_rng(2).normal(0.0, 2e-5, x.shape) * [0, 1, 0]
+    fit = _profile_quadratic(noisy, g, np.arange(len(t)), 5)
+    assert np.abs(fit - x)[2:-2, 1].std() < 0.6 * np.abs(noisy - x)[2:-2, 1].std()
+    np.testing.assert_array_equal(fit[:2], noisy[:2])  # one neighbour on a side: kept
+    flat = np.repeat(x[:1], len(t), axis=0)
+    assert np.isfinite(_profile_quadratic(flat, g, np.arange(len(t)), 5)).all()
+    stuck = x.copy()
+    stuck[20:30] = stuck[20]
+    assert np.isfinite(_profile_quadratic(stuck, g, np.arange(len(t)), 5)).all()
+    two = np.concatenate([x, x + [0, 0, 1e-3]])
+    g2 = np.repeat([0, 1], len(t))
+    assert _profiles_in_order(two, g2)
+    mixed = np.lexsort((np.random.default_rng(3).random(len(g2)), g2))
+    assert not _profiles_in_order(two[mixed], g2[mixed])

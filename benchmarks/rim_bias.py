@@ -81,8 +81,8 @@ def decompose(rec_path: Path, res: Path) -> dict[str, Any]:
     fields = RG._view_fields(views, RG._RIM_CELL_PX, 0.7)
     # the points the term meets the edges with, as the refinement takes them (noisy
     # profiles moved toward their fit: registration._rim_points)
-    noise = [RG._profile_noise(p, n, np.asarray(g)) if RG._profiles_in_order(p, np.asarray(g))
-             else None for p, n, g in zip(pts, nrm, prof, strict=True)]
+    noise = [RG._profile_scatter(p, n, np.asarray(g)) for p, n, g in zip(pts, nrm, prof,
+                                                                         strict=True)]
     full = [(p, np.asarray(g), np.arange(len(p))) for p, g in zip(pts, prof, strict=True)]
     pts, fit_info = RG._rim_points(pts, full, noise, fields)
     s_line = np.arange(-5.0, 5.0 + STEP_PX / 2, STEP_PX)

@@ -2202,6 +2202,13 @@ def _profile_noise(x: np.ndarray, n: np.ndarray, profile: np.ndarray) -> float:
     return float(1.4826 * np.median(dev[moved]) / 0.717) if moved.sum() >= 5 else 0.0
 
 
+def _profile_scatter(x: np.ndarray, n: np.ndarray, profile: np.ndarray) -> float | None:
+    """A sweep's scatter about its profiles (:func:`_profile_noise`, metres), or None where
+    its profiles' points are not in order along them (:func:`_profiles_in_order`): no fit
+    for the silhouette term then (:func:`_rim_points`)."""
+    return _profile_noise(x, n, profile) if _profiles_in_order(x, profile) else None
+
+
 def _profile_quadratic(x: np.ndarray, profile: np.ndarray, idx: np.ndarray, half: int
                        ) -> np.ndarray:
     """(M, 3): the points ``x[idx]`` replaced by a least-squares quadratic through their
@@ -2273,9 +2280,7 @@ def _refine_inputs(points, normals, origins, profiles, max_points: int, rng):
             raise ValueError(f"sweep {s}: profiles must have {len(p)} entries, got {len(g)}")
         length = np.linalg.norm(nrm, axis=1, keepdims=True)
         nrm = nrm / np.maximum(length, 1e-12)
-        # None: profiles not in order along themselves (no fit; _rim_points)
-        noise.append(0.0 if profiles is None else _profile_noise(p, nrm, g)
-                     if _profiles_in_order(p, g) else None)
+        noise.append(0.0 if profiles is None else _profile_scatter(p, nrm, g))
         keep = np.arange(len(p))
         p_all, g_all = p, g
         if len(p) > max_points:
@@ -2786,7 +2791,7 @@ def _rim_points(P, full, noise: list, fields) -> tuple[list, list[dict[str, Any]
     P_rim, info = [], []
     for s in range(len(P)):
         m_per_px = []
-        for f in fields:
+        for f in fields if noise[s] is not None else []:  # no scatter: nothing to scale
             sub = P[s][:: max(1, len(P[s]) // 2000)]
             _, depth = _project(f, sub)
             depth = depth[depth > 0]
@@ -2795,17 +2800,14 @@ def _rim_points(P, full, noise: list, fields) -> tuple[list, list[dict[str, Any]
         if noise[s] is None and fields:
             log.warning("sweep %d: its points are not in order along their profiles; the "
                         "silhouette term takes them as measured", s)
-        px = (noise[s] / float(np.median(m_per_px)) if m_per_px and noise[s] is not None
-              else None)
+        px = noise[s] / float(np.median(m_per_px)) if m_per_px else None
         lo, hi = _RIM_NOISY_PX
         share = float(np.clip((px - lo) / (hi - lo), 0.0, 1.0)) if px is not None else 0.0
+        P_rim.append(P[s])
         if share > 0:
             p_all, g_all, keep = full[s]
             fit = _profile_quadratic(p_all, g_all, keep, _RIM_FIT_HALF)
-            P_rim.append(P[s] + share * (fit - P[s]))
-        else:
-            P_rim.append(P[s])
-        if share > 0:
+            P_rim[-1] = P[s] + share * (fit - P[s])
             log.info("sweep %d: its points scatter %.3f px about their profiles in the views "
                      "(%.4f mm): the silhouette term takes them %.0f %% of the way to their "
                      "fit along the profiles", s, px, noise[s] * 1e3, 100 * share)

@@ -1044,7 +1044,7 @@ def _side_background(y, valid, hw, d, lowest, k_lowest, floor, ceiling):  # noqa
     halfway down to ``ceiling``, the higher side's minimum, whose next one outward falls
     by less than that fraction). Without such a fall, ``(lowest, k_lowest)``: that
     side's minimum over the window, as before."""
-    m = y.shape[0]
+    m = 2 * hw + 1  # the window (y and valid may be longer: a wider one before)
     half = 0.5 * (y[hw] + ceiling)
     flat = _FOOT_FLAT * (y[hw] - floor)
     best = np.inf

@@ -913,3 +913,35 @@ def test_auto_axis_takes_the_consistent_axis_for_a_u_shaped_stripe():
     assert sp.axis == "columns" and len(sp.u) > 0.85 * 2 * half
     truth_v = 400 - a * (sp.u - 320) ** 2
     assert np.median(np.abs(sp.v - truth_v)) < 0.2
+
+
+def _line_of_changing_width(seed: int) -> np.ndarray:
+    """A green line down a room-lit scene, its width changing from row to row (every
+    other row's profile needs the detector's wide window, the next one's does not), a
+    surface edge 14 px right of it (the background steps down)."""
+    rng = np.random.default_rng(seed)
+    h, w = 160, 200
+    rows = np.arange(h)[:, None]
+    cols = np.arange(w)[None, :]
+    uc = 80 + 0.15 * rows + 3 * np.sin(rows / 9.0)
+    sigma = np.where(rows % 2 == 0, 3.5, 1.2) + rng.uniform(0, 0.4, (h, 1))
+    bg = 90 + 0.2 * cols - 60 * (cols > uc + 14) + rng.normal(0, 3, (h, w))
+    line = rng.uniform(40, 120, (h, 1)) * np.exp(-0.5 * ((cols - uc) / sigma) ** 2)
+    img = np.stack([bg + 0.2 * line, bg + line, bg + 0.25 * line], -1)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("centre_on", ["laser", "luma"])
+def test_a_line_centre_does_not_depend_on_the_line_before(centre_on):
+    """Each line's centre comes from its own profile only: the frame upside down gives
+    the same centres on the same rows. (The right side's baseline walk once read past
+    its window into what the line before had left in the shared buffer: up to 1 px.)"""
+    o = StripeOptions(colour="green", axis="rows", centre_on=centre_on)
+    for seed in range(3):
+        img = _line_of_changing_width(seed)
+        a = extract_stripe_centres(img, options=o)
+        b = extract_stripe_centres(np.ascontiguousarray(img[::-1]), options=o)
+        assert a.u.size == b.u.size >= 150
+        ia, ib = np.argsort(a.v), np.argsort(-b.v)
+        np.testing.assert_array_equal(a.v[ia], img.shape[0] - 1 - b.v[ib])
+        np.testing.assert_array_equal(a.u[ia], b.u[ib])

@@ -2260,11 +2260,13 @@ def _profile_quadratic(x: np.ndarray, profile: np.ndarray, idx: np.ndarray, half
     return out
 
 
-def _refine_inputs(points, normals, origins, profiles, max_points: int, rng):
+def _refine_inputs(points, normals, origins, profiles, max_points: int, rng,
+                   scatter: bool = True):
     """The sweeps' points, unit normals, origins and profile keys (subsampled to
     ``max_points``, seeded); and per sweep, from all of its points, its scatter about its
-    profiles (:func:`_profile_noise`, metres) and what :func:`_rim_points` fits the kept
-    points along their profiles with (all points, profile keys, the kept ones' indices)."""
+    profiles (:func:`_profile_noise`, metres; with ``scatter``, else 0: only the
+    silhouette term uses it) and what :func:`_rim_points` fits the kept points along
+    their profiles with (all points, profile keys, the kept ones' indices)."""
     n_s = len(points)
     P, Nn, O, G, full, noise = [], [], [], [], [], []
     for s in range(n_s):
@@ -2280,7 +2282,8 @@ def _refine_inputs(points, normals, origins, profiles, max_points: int, rng):
             raise ValueError(f"sweep {s}: profiles must have {len(p)} entries, got {len(g)}")
         length = np.linalg.norm(nrm, axis=1, keepdims=True)
         nrm = nrm / np.maximum(length, 1e-12)
-        noise.append(0.0 if profiles is None else _profile_scatter(p, nrm, g))
+        noise.append(_profile_scatter(p, nrm, g) if scatter and profiles is not None
+                     else 0.0)
         keep = np.arange(len(p))
         p_all, g_all = p, g
         if len(p) > max_points:
@@ -2748,12 +2751,12 @@ def _refine_problem(points, normals, origins, pairs, *, options: AlignOptions, p
     rng = np.random.default_rng(o.seed)
     act = sorted(set(range(n_s) if active is None else active))
     fixed = sorted(set(fixed or []) & set(act))
-    P, Nn, O, G, full, noise = _refine_inputs(points, normals, origins, profiles,
-                                              max_points, rng)
-    red_idx = _pair_subsets(P, Nn, O, G, o)  # pair term on thinned copies
-    pairs = [(int(i), int(j)) for i, j in pairs if i in act and j in act and i != j]
     fields = (_view_fields(silhouettes, _RIM_CELL_PX, 0.7)
               if silhouettes is not None and profiles is not None else [])
+    P, Nn, O, G, full, noise = _refine_inputs(points, normals, origins, profiles,
+                                              max_points, rng, scatter=bool(fields))
+    red_idx = _pair_subsets(P, Nn, O, G, o)  # pair term on thinned copies
+    pairs = [(int(i), int(j)) for i, j in pairs if i in act and j in act and i != j]
     P_rim, rim_info = _rim_points(P, full, noise, fields)
     index = {s: k for k, s in enumerate(act)}
     prior_sd = np.r_[np.full(3, np.radians(o.prior_deg)), np.full(3, o.prior_mm * 1e-3)]
@@ -2796,7 +2799,7 @@ def _rim_points(P, full, noise: list, fields) -> tuple[list, list[dict[str, Any]
             _, depth = _project(f, sub)
             depth = depth[depth > 0]
             if len(depth):
-                m_per_px.append(float(np.median(depth)) / np.sqrt(f.camera.fx * f.camera.fy))
+                m_per_px.append(float(f.camera.pixel_footprint(np.median(depth))))
         if noise[s] is None and fields:
             log.warning("sweep %d: its points are not in order along their profiles; the "
                         "silhouette term takes them as measured", s)

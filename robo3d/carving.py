@@ -405,19 +405,13 @@ def _table_plane(p: np.ndarray, n: np.ndarray, tol_m: float = 0.001
     return coef, spread
 
 
-#: :func:`laser_box`: a component may be the object only with at least this share of the
-#: largest component's points (and ``min_points``): a clump of stray points may not. The
-#: laser's line on a wall may hold several times the object's points (3 times in
-#: ``tests/test_no_workspace_box.py``), so the share is small.
-_MIN_OBJECT_SHARE = 0.05
-
-
 def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
               sweeps: np.ndarray | None = None, *, margin: float = 0.05,
               min_margin_m: float = 0.002, floor_m: float = 0.0005,
               above_table_m: float = 0.001, min_cell_m: float = 0.002,
               max_cell_m: float = 0.008, min_points: int = 50, dense_share: float = 0.2,
-              link_share: float = 0.25) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
+              link_share: float = 0.25, object_share: float = 0.05
+              ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]] | None:
     """A workspace box for laser points without one and without views: the object the
     laser measured, standing on the table it measured beside it.
 
@@ -434,10 +428,11 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
        the table as sparse points above it). The occupied cells are split into
        26-connected components (``scipy.ndimage.label``); the object is the largest
        component over the middle of the table (the median of the table's points) of
-       those that hold ``min_points`` and :data:`_MIN_OBJECT_SHARE` of the largest one's
-       points (the largest of all when none is), with any other that has most of its
-       points in its box grown by a quarter (a part the laser's gaps cut off): the
-       laser's line on a wall is another component.
+       those that hold ``min_points`` and ``object_share`` of the largest one's points
+       (a clump of stray points is not the object; small, since the laser's line on a
+       wall may hold several times the object's points; the largest of all when none
+       is), with any other that has most of its points in its box grown by a quarter (a
+       part the laser's gaps cut off): the laser's line on a wall is another component.
     3. The object's points' box, grown by ``margin`` times its largest side (at least
        ``min_margin_m``), its floor ``floor_m`` above the table (the sweeps' median
        height under the box), as a recording's box has it; with no table, ``floor_m``
@@ -527,7 +522,7 @@ def laser_box(points: np.ndarray, normals: np.ndarray, frames: np.ndarray,
     around = p[on_table] if on_table.any() else p
     mid = np.floor((np.median(around[:, :2], axis=0) - lo[:2]) / cell).astype(np.int64)
     over = np.all((c_lo - 1 <= mid) & (c_hi + 1 >= mid), axis=1)
-    over &= counts >= max(float(min_points), _MIN_OBJECT_SHARE * float(counts.max()))
+    over &= counts >= max(float(min_points), float(object_share) * float(counts.max()))
     over[0] = False
     main = int(np.argmax(np.where(over, counts, -1))) if over.any() else int(np.argmax(counts))
     # with the others that have most of their points in its box grown by a quarter of

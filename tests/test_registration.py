@@ -426,3 +426,92 @@ def test_refinement_does_not_pull_the_two_sides_of_a_thin_wall_together():
     moved = (pts[1] - org[1]) @ res.rotations[1].T + org[1] + res.translations[1]
     assert res.converged
     assert np.abs(moved - pts[1]).max() < 0.02e-3
+
+
+
+def _gentle(x, y):
+    """A gently curved surface (4-6 mm of relief over 40 mm) and its normals: the slides
+    and turns its overlap leaves weakly fixed are where ICP's correspondences flip."""
+    z = 3e-3 * np.sin(120 * x) * np.cos(90 * y) + 2e-3 * np.cos(70 * x + 40 * y)
+    hx = 0.36 * np.cos(120 * x) * np.cos(90 * y) - 0.14 * np.sin(70 * x + 40 * y)
+    hy = -0.27 * np.sin(120 * x) * np.sin(90 * y) - 0.08 * np.sin(70 * x + 40 * y)
+    n = np.stack([-hx, -hy, np.ones_like(x)], axis=1)
+    return z, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _profiles(rng, across: bool, noise: float = 3e-5, spacing: float = 1.1e-3,
+              step: float = 0.3e-3):
+    """Laser profiles over :func:`_gentle`: lines 1.1 mm apart, points 0.3 mm apart along
+    them with 0.03 mm of noise, along x or (``across``) along y: two sweeps that cross."""
+    t = np.arange(-18e-3, 18e-3, spacing)
+    s = np.arange(-20e-3, 20e-3, step)
+    ss, tt = np.meshgrid(s, t)
+    ss = ss + rng.uniform(0, step, (len(t), 1))
+    x, y = (tt.ravel(), ss.ravel()) if across else (ss.ravel(), tt.ravel())
+    z, n = _gentle(x, y)
+    return np.stack([x, y, z + rng.normal(0, noise, x.size)], axis=1), n
+
+
+
+def test_sweeps_whose_icp_cycles_are_aligned():
+    """Two sweeps whose profiles cross, the second moved by a known robot error: at the
+    end ICP's correspondences at the finest distance flip between two sets and its
+    iterations cycle for ever. The one more step that alone judged convergence rejected
+    the pair and kept both sweeps at the robot's poses; the cycle (back where it was after
+    2 iterations, 0.0006 mm and 0.005 degrees apart) is convergence, to the truth."""
+    rng = np.random.default_rng(16)
+    (pa, na), (pb, nb) = _profiles(rng, False), _profiles(rng, True)
+    pa, pb = pa + OFFSET, pb + OFFSET
+    err = _about(make_transform(euler_to_matrix("zyx", np.radians([0.1, -0.05, 0.05])),
+                                np.array([0.2e-3, -0.1e-3, 0.15e-3])), pb.mean(0))
+    moved = pb @ err[:3, :3].T + err[:3, 3]
+    res = align_sweeps([pa, moved], [na, nb @ err[:3, :3].T], options=RIGID)
+    (pair,) = res.pairs
+    assert pair["accepted"] and pair["used"], pair
+    assert 2 <= pair["icp_cycle"]["period"] <= 16
+    assert 0 < pair["icp_cycle"]["span_mm"] < 0.05 and pair["icp_cycle"]["span_deg"] < 0.05
+    assert not any(p["flagged"] for p in res.per_sweep)
+    # the second sweep's error relative to the first, before and after
+    before = pose_error(_about(err, -pb.mean(0)), np.eye(4))
+    after = _relative_errors(res, [np.eye(4), err], [pa, moved]).max(axis=0)
+    assert before[0] > 0.25 and before[1] > 0.1, before
+    assert after[0] < 0.03 and after[1] < 0.08, after
+
+
+
+def test_a_cycled_pair_is_left_out_where_clean_pairs_join_its_sweeps():
+    """Three sweeps: the pairs 0-1 and 0-2 converge cleanly, 1-2 only to a cycle. A cycle
+    is the weaker evidence (on a thin wall it can flip between the two faces), so 1-2
+    is not used: both its sweeps are joined already; it says why."""
+    rng = np.random.default_rng(8)
+    a, b, c = _profiles(rng, False), _profiles(rng, True), _profiles(rng, False,
+                                                                      spacing=0.9e-3)
+    res = align_sweeps([a[0] + OFFSET, b[0] + OFFSET, c[0] + OFFSET], [a[1], b[1], c[1]],
+                       options=RIGID)
+    by = {(p["i"], p["j"]): p for p in res.pairs}
+    assert by[(0, 1)]["accepted"] and by[(0, 2)]["accepted"]
+    assert "icp_cycle" not in by[(0, 1)] and "icp_cycle" not in by[(0, 2)]
+    cyc = by[(1, 2)]
+    assert cyc["converged"] and "icp_cycle" in cyc
+    assert not cyc["accepted"] and not cyc["used"]
+    assert "ICP cycled" in cyc["reason"] and "no other pair joins" in cyc["reason"]
+    assert not any(p["flagged"] for p in res.per_sweep)
+
+
+def test_icp_still_moving_has_not_settled():
+    """ICP stopped after one iteration from 0.4 mm off still moves the same way: no
+    cycle, not converged."""
+    import open3d as o3d
+
+    from robo3d.registration import _icp_settled, _to_o3d
+
+    rng = np.random.default_rng(16)
+    a, b = _profiles(rng, False), _profiles(rng, True)
+    src, tgt = _to_o3d(*a), _to_o3d(*b)
+    reg = o3d.pipelines.registration
+    init = make_transform(np.eye(3), np.array([0.4e-3, -0.2e-3, 0.1e-3]))
+    one = reg.registration_symmetric_icp(
+        src, tgt, 2e-3, init, reg.TransformationEstimationSymmetric(),
+        reg.ICPConvergenceCriteria(relative_fitness=0.0, relative_rmse=0.0, max_iteration=1))
+    assert _icp_settled(src, tgt, 0.5e-3, np.asarray(one.transformation),
+                        a[0].mean(axis=0), 0.5e-3) == (False, None)

@@ -206,6 +206,43 @@ def test_a_hull_reaching_far_under_the_table_stands_on_it(cell, hull_run: Path,
     assert _far_fraction(boxed, out)[0] < 0.4
 
 
+
+def test_a_hull_under_the_table_does_not_place_the_workspace(cell, hull_run: Path,
+                                                             tmp_path: Path) -> None:
+    """Masks that took a marker table's pattern can carve a hull that lies wholly under
+    the table (random scene 968: its box from 11 mm under the table up to it cropped the
+    object's points away, measured surface 3.6 mm from the truth). No object standing on
+    the table is in it, however well its views agree: the laser's own box takes its
+    place."""
+    import json
+
+    from stages_in_process import stage_outputs
+
+    from robo3d.carving import make_grid
+    from robo3d.config import default_config
+    from robo3d.pipeline import stage_align
+    from robo3d.recording import read_recording
+
+    boxed, bare = cell
+    true_lo, true_hi = read_recording(boxed, roles=()).workspace
+    grid = make_grid(np.r_[true_lo[:2], -0.03], np.r_[true_hi[:2], -0.012], resolution=24)
+    grid.occupancy[...] = True
+    out = tmp_path / "under"
+    (out / "reports").mkdir(parents=True)
+    grid.save_npz(out / "hull.npz", views_used=np.arange(4),
+                  views_agreement={"iou_median": 0.9, "n_views": 4})
+    stage_align({"clouds": str(hull_run / "clouds.npz"), "recording": str(bare),
+                 "hull": str(out / "hull.npz")},
+                stage_outputs(out, "align", npz="aligned.npz", ply="aligned.ply"),
+                default_config(), "under")
+    ws = json.loads((out / "reports" / "align.json").read_text())["workspace_from_hull"]
+    assert "under the table" in ws.get("skipped", ""), ws
+    assert "box_min" in ws["laser"], ws
+    lo, hi = np.array(ws["laser"]["box_min"]), np.array(ws["laser"]["box_max"])
+    assert np.all(lo < true_hi) and np.all(hi > true_lo), (lo, hi)
+    assert hi[2] > true_lo[2] + 0.01  # it stands on the table
+    assert _far_fraction(boxed, out)[0] < 0.4 and len(_on_object(boxed, out)) > 1000
+
 def test_table_height_from_the_points_beside_the_object() -> None:
     from robo3d.carving import table_height
 

@@ -168,13 +168,11 @@ def test_a_hull_its_views_disagree_on_does_not_place_the_workspace(
     assert far["disagree"][0] < 0.4, far
 
 
-def test_a_hull_reaching_far_under_the_table_stands_on_it(cell, hull_run: Path,
-                                                          tmp_path: Path) -> None:
-    """Masks that took the table in carve a hull far under it (random scene 602: a box
-    from 144 mm under the table to 126 mm over it). Its middle then lies under the
-    table, and the table, not in the box's lower half, was not taken for its floor: the
-    table's points stood in the box as measured surface. Nothing of the object lies
-    under the table, so the table is the floor."""
+def _align_in_hull_box(bare: Path, hull_run: Path, out: Path, lo: np.ndarray,
+                       hi: np.ndarray, resolution: int) -> dict:
+    """The align stage on ``hull_run``'s clouds of the box-less recording ``bare`` with a
+    hull filling the box ``lo``-``hi`` whose 6 views agree (IoU 0.9), into ``out``: the
+    report's ``workspace_from_hull``."""
     import json
 
     from stages_in_process import stage_outputs
@@ -182,29 +180,38 @@ def test_a_hull_reaching_far_under_the_table_stands_on_it(cell, hull_run: Path,
     from robo3d.carving import make_grid
     from robo3d.config import default_config
     from robo3d.pipeline import stage_align
-    from robo3d.recording import read_recording
 
-    boxed, bare = cell
-    true_lo, true_hi = read_recording(boxed, roles=()).workspace
-    lo = np.r_[true_lo[:2] - 0.01, -0.15]
-    hi = np.r_[true_hi[:2] + 0.01, true_hi[2] + 0.01]
-    grid = make_grid(lo, hi, resolution=40)
+    grid = make_grid(lo, hi, resolution=resolution)
     grid.occupancy[...] = True
-    out = tmp_path / "deep"
     (out / "reports").mkdir(parents=True)
     grid.save_npz(out / "hull.npz", views_used=np.arange(6),
                   views_agreement={"iou_median": 0.9, "n_views": 6})
     stage_align({"clouds": str(hull_run / "clouds.npz"), "recording": str(bare),
                  "hull": str(out / "hull.npz")},
                 stage_outputs(out, "align", npz="aligned.npz", ply="aligned.ply"),
-                default_config(), "deep")
-    ws = json.loads((out / "reports" / "align.json").read_text())["workspace_from_hull"]
+                default_config(), out.name)
+    return json.loads((out / "reports" / "align.json").read_text())["workspace_from_hull"]
+
+
+def test_a_hull_reaching_far_under_the_table_stands_on_it(cell, hull_run: Path,
+                                                          tmp_path: Path) -> None:
+    """Masks that took the table in carve a hull far under it (random scene 602: a box
+    from 144 mm under the table to 126 mm over it). Its middle then lies under the
+    table, and the table, not in the box's lower half, was not taken for its floor: the
+    table's points stood in the box as measured surface. Nothing of the object lies
+    under the table, so the table is the floor."""
+    from robo3d.recording import read_recording
+
+    boxed, bare = cell
+    true_lo, true_hi = read_recording(boxed, roles=()).workspace
+    out = tmp_path / "deep"
+    ws = _align_in_hull_box(bare, hull_run, out, np.r_[true_lo[:2] - 0.01, -0.15],
+                            np.r_[true_hi[:2] + 0.01, true_hi[2] + 0.01], 40)
     assert ws["floor"].startswith("the table's"), ws["floor"]
     assert abs(ws["box_min"][2] - true_lo[2]) < 1e-3  # the table's, half a mm up
     # what the box keeps (measured): 22 % of its 1,794 points more than 1 mm from the
     # object with the table as its floor; 74 % of 5,508 with the hull's (the table in it)
     assert _far_fraction(boxed, out)[0] < 0.4
-
 
 
 def test_a_hull_under_the_table_does_not_place_the_workspace(cell, hull_run: Path,
@@ -214,28 +221,13 @@ def test_a_hull_under_the_table_does_not_place_the_workspace(cell, hull_run: Pat
     object's points away, measured surface 3.6 mm from the truth). No object standing on
     the table is in it, however well its views agree: the laser's own box takes its
     place."""
-    import json
-
-    from stages_in_process import stage_outputs
-
-    from robo3d.carving import make_grid
-    from robo3d.config import default_config
-    from robo3d.pipeline import stage_align
     from robo3d.recording import read_recording
 
     boxed, bare = cell
     true_lo, true_hi = read_recording(boxed, roles=()).workspace
-    grid = make_grid(np.r_[true_lo[:2], -0.03], np.r_[true_hi[:2], -0.012], resolution=24)
-    grid.occupancy[...] = True
     out = tmp_path / "under"
-    (out / "reports").mkdir(parents=True)
-    grid.save_npz(out / "hull.npz", views_used=np.arange(4),
-                  views_agreement={"iou_median": 0.9, "n_views": 4})
-    stage_align({"clouds": str(hull_run / "clouds.npz"), "recording": str(bare),
-                 "hull": str(out / "hull.npz")},
-                stage_outputs(out, "align", npz="aligned.npz", ply="aligned.ply"),
-                default_config(), "under")
-    ws = json.loads((out / "reports" / "align.json").read_text())["workspace_from_hull"]
+    ws = _align_in_hull_box(bare, hull_run, out, np.r_[true_lo[:2], -0.03],
+                            np.r_[true_hi[:2], -0.012], 24)
     assert "under the table" in ws.get("skipped", ""), ws
     assert "box_min" in ws["laser"], ws
     lo, hi = np.array(ws["laser"]["box_min"]), np.array(ws["laser"]["box_max"])

@@ -481,18 +481,18 @@ def _icp_settled(src, tgt, dist: float, t: np.ndarray, centroid: np.ndarray,
     est = reg.TransformationEstimationSymmetric()
     one = reg.ICPConvergenceCriteria(relative_fitness=0.0, relative_rmse=0.0, max_iteration=1)
     inv_t = invert_transform(t)
-    cur, span_mm, span_deg = t, 0.0, 0.0  # span in metres
+    cur, span_m, span_deg = t, 0.0, 0.0
     for k in range(1, _CYCLE_ITERATIONS + 1):
         cur = np.asarray(reg.registration_symmetric_icp(src, tgt, dist, cur, est,
                                                         one).transformation)
         away = cur @ inv_t
         if _step_small(away, centroid, voxel_size):
-            return True, (None if k == 1 else {"period": k, "span_mm": span_mm * 1e3,
+            return True, (None if k == 1 else {"period": k, "span_mm": span_m * 1e3,
                                                 "span_deg": span_deg})
         mm, deg = _motion(away, centroid)
         if mm * 1e-3 > _CYCLE_SPAN_VOXELS * voxel_size or deg > _CYCLE_SPAN_DEG:
             return False, None
-        span_mm, span_deg = max(span_mm, mm * 1e-3), max(span_deg, deg)
+        span_m, span_deg = max(span_m, mm * 1e-3), max(span_deg, deg)
     return False, None
 
 
@@ -1161,7 +1161,7 @@ def _register_pair(i: int, j: int, red, clouds, trees, cents, o: AlignOptions,
         pair["reason"] = (f"ICP cycled (period {cycle['period']}, {cycle['span_mm']:.4f} mm / "
                           f"{cycle['span_deg']:.4f} deg): used only for a sweep that no "
                           "other pair joins")
-        return dict(T=t, info=info, weight=overlap, pair=pair, cycled=True)
+        return dict(T=t, info=info, weight=overlap, pair=pair)
     else:
         pair["accepted"] = True
         return dict(T=t, info=info, weight=overlap, pair=pair)
@@ -1207,7 +1207,7 @@ def _register_pairs(red, clouds, cents, usable, o: AlignOptions, prior_sd: np.nd
     cycled = {}
     for (i, j, _, _), edge in zip(todo, got, strict=True):
         if edge is not None:
-            (cycled if edge.pop("cycled", False) else edges)[(i, j)] = edge
+            (cycled if "icp_cycle" in edge["pair"] else edges)[(i, j)] = edge
     # a pair whose ICP converged to a cycle (_icp_settled) joins a sweep that no other
     # pair joins; elsewhere the cleaner pairs decide (why: _icp_settled)
     joined = {s for k in edges for s in k}

@@ -274,6 +274,7 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
         # table fused as measured surface, 23.9 mm from the object at the median)
         table = support_height(pts, nrm)
         beside = "the lowest wide horizontal surface the laser saw"
+    under = None
     if table is not None and lvl[1][2] <= table + margin_m:
         # a hull whose top lies under the table the laser saw holds no object standing
         # on it: masks that took the table's pattern carve under it (random scene 968: a
@@ -282,14 +283,9 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
         # object's among them: measured surface 3.6 mm from the truth at the median)
         why = (f"the visual hull lies under the table the laser saw (its top "
                f"{lvl[1][2]:.4f} m, the table {table:.4f} m, along {up_report['up']})")
-        laser = _workspace_from_laser(clouds, cfg)
-        if "skipped" not in laser:
-            log.warning("alignment: %s: the box of the object the laser measured is the "
-                        "workspace, not the hull's", why)
-            return {"skipped": f"{why}: the laser's own box is the workspace",
-                    "laser": laser}
-        log.warning("alignment: %s, but the laser gives no box of its own (%s): the "
-                    "hull's box is kept", why, laser["skipped"])
+        under = _laser_instead_of_hull(clouds, cfg, why)
+        if "laser" in under:
+            return under
     floor = "the hull's"
     # the table in the hull box's lower half, or anywhere in it with nothing of the
     # object's sides under it (masks that took the table in carve a hull far below it:
@@ -309,7 +305,8 @@ def _workspace_from_hull(clouds: list, inputs: Mapping[str, str],
     return {"box_min": box[0].tolist(), "box_max": box[1].tolist(), "floor": floor,
             "table_z_m": table, "margin": float(ac["workspace_from_hull_margin"]),
             "min_margin_m": margin_m, "up": up_report,
-            **({"views_disagree": disagree} if disagree is not None else {})}
+            **({"views_disagree": disagree} if disagree is not None else {}),
+            **({"hull_under_table": under} if under is not None else {})}
 
 
 def _hull_views_disagree(clouds: list, extra: Mapping[str, Any], cfg: Mapping[str, Any]
@@ -334,23 +331,28 @@ def _hull_views_disagree(clouds: list, extra: Mapping[str, Any], cfg: Mapping[st
     limit = cfg["alignment"]["hull_box_views_disagree_iou"]
     if agree is None or limit is None or float(agree) >= float(limit):
         return None
-    out: dict[str, Any] = {"views_iou_median": float(agree), "limit": float(limit)}
+    why = (f"the views that carved the hull disagree with each other (median IoU "
+           f"{float(agree):.2f} with the others' hull, below "
+           f"alignment.hull_box_views_disagree_iou {float(limit):.2f})")
+    return {"views_iou_median": float(agree), "limit": float(limit),
+            **_laser_instead_of_hull(clouds, cfg, why)}
+
+
+def _laser_instead_of_hull(clouds: list, cfg: Mapping[str, Any], why: str
+                           ) -> dict[str, Any]:
+    """The box of the object the laser measured (:func:`_workspace_from_laser`) in place
+    of a hull that cannot place the workspace (``why``): ``skipped`` (why, and that the
+    laser's box is the workspace) and ``laser`` when the laser found the object; else
+    ``hull_kept`` (why it could not) and ``laser_skipped`` (why the laser gives no box),
+    and the hull's box is kept: there is nothing better."""
     laser = _workspace_from_laser(clouds, cfg)
     if "skipped" in laser:
-        log.warning("alignment: the views that carved the hull disagree with each other "
-                    "(median IoU %.2f with the others' hull, below "
-                    "alignment.hull_box_views_disagree_iou %.2f), but the laser gives no "
-                    "box of its own (%s): the hull's box is kept", float(agree),
-                    float(limit), laser["skipped"])
-        return {**out, "laser_skipped": laser["skipped"]}
-    log.warning("alignment: the views that carved the hull disagree with each other (median "
-                "IoU %.2f with the others' hull, below alignment.hull_box_views_disagree_iou "
-                "%.2f): the box of the object the laser measured is the workspace, not the "
-                "hull's", float(agree), float(limit))
-    return {**out, "skipped": f"the views that carved the hull disagree with each other "
-                              f"(median IoU {float(agree):.2f} with the others' hull, below "
-                              f"alignment.hull_box_views_disagree_iou {float(limit):.2f}): "
-                              "the laser's own box is the workspace", "laser": laser}
+        log.warning("alignment: %s, but the laser gives no box of its own (%s): the "
+                    "hull's box is kept", why, laser["skipped"])
+        return {"hull_kept": why, "laser_skipped": laser["skipped"]}
+    log.warning("alignment: %s: the box of the object the laser measured is the "
+                "workspace, not the hull's", why)
+    return {"skipped": f"{why}: the laser's own box is the workspace", "laser": laser}
 
 
 def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any]:

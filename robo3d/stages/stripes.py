@@ -59,9 +59,12 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
     axes, axis_report = _laser_axes(cfg, cameras, T_camera_laser, options)
     # the laser's colour, once for the recording, from a few evenly spaced frames (only
     # their regions of interest vote, along their axes)
-    colour_scores = None
+    colour_scores = colour_check = None
     if options.detector == "ridge" and options.colour == "auto" and frames:
-        colour, colour_scores = _laser_colour(rec, frames, background, roi, options, axes)
+        views = _views_for_colour(inputs["recording"], cfg, inputs.get("calibration"), frames,
+                                  T_camera_laser, axes, options.detector == "ridge")
+        colour, colour_scores, colour_check = _laser_colour(
+            rec, frames, background, roi, options, axes, views if n_off == 0 else None)
         options = options.replace(colour=colour)
     # the centre's profile: the luma for JPEGs whose colour is stored at half resolution
     # (the laser's channel lives mostly in the blurred chroma there), else the laser's
@@ -80,6 +83,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                          "the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
+    report["laser_colour_check"] = colour_check
     if rec.rectifiers:  # searched in the raw frames, the centres moved to the pinhole camera
         report["rectified"] = {fid: r.describe() for fid, r in rec.rectifiers.items()}
     if readout_s > 0:
@@ -271,22 +275,101 @@ def _laser_axes(cfg: Mapping[str, Any], cameras: list, T_camera_laser: np.ndarra
 
 
 def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
-                  options: StripeOptions, axes: list) -> tuple[str, dict[str, float]]:
+                  options: StripeOptions, axes: list,
+                  views: Callable[[], tuple[list, list, list, str | None]] | None
+                  ) -> tuple[str, dict[str, float], dict[str, Any] | None]:
     """The recording's laser colour from 12 evenly spaced frames
     (:func:`robo3d.stripes.estimate_laser_colour`, each along its axis where the laser's
-    geometry fixes it) and each contrast's score."""
-    from ..stripes import estimate_laser_colour
+    geometry fixes it), each contrast's score, and the check against the views where two
+    colours are close (:func:`robo3d.stripes.laser_colour_contested`; ``views`` loads
+    up to 12 of them with their regions of interest and axes; None: laser-off frames
+    already took the scene away): the colour that the laser frames show beyond the views
+    (:func:`robo3d.stripes.laser_colour_beyond_scene`). The check is None when the scores
+    are not close."""
+    from ..stripes import (
+        estimate_laser_colour,
+        image_level,
+        laser_colour_beyond_scene,
+        laser_colour_contested,
+    )
     from ..viz import spaced_indices
 
     sample = spaced_indices(len(frames), 12)
     images = [rec.decode(frames[i]) for i in sample]
+    rois = [roi(int(i)) for i in sample]
     colour, scores = estimate_laser_colour(
         images, backgrounds=[background(i, im) for i, im in zip(sample, images, strict=True)],
-        min_peak=options.min_peak,
-        rois=[roi(int(i)) for i in sample], axes=[axes[int(i)] for i in sample])
+        min_peak=options.min_peak, rois=rois, axes=[axes[int(i)] for i in sample])
     log.info("stripes: laser colour %s (scores: %s)", colour,
              ", ".join(f"{k} {v:.0f}" for k, v in scores.items()))
-    return colour, scores
+    if colour == "lightness" or not laser_colour_contested(scores):
+        return colour, scores, None
+    check: dict[str, Any] = {"contested": True, "colour_by_laser_frames": colour}
+    if views is None:
+        check["skipped"] = "laser-off frames subtracted: the scene is already taken away"
+        return colour, scores, check
+    v_images, v_rois, v_axes, why_not = views()
+    if not v_images:
+        check["skipped"] = why_not or "no views in the recording"
+        log.info("stripes: laser colour %s is close to another (%s); not checked: %s",
+                 colour, _scores_text(scores), check["skipped"])
+        return colour, scores, check
+    _, v_scores = estimate_laser_colour(v_images, min_peak=options.min_peak, rois=v_rois,
+                                        axes=v_axes)
+    best, detail = laser_colour_beyond_scene(
+        scores, image_level(images, rois), len(images), v_scores,
+        image_level(v_images, v_rois), len(v_images))
+    check.update(views=len(v_images), **detail)
+    if best is not None and best != colour:
+        log.warning("stripes: laser colour %s, not %s: the views, without the laser, show "
+                    "%s ridges as strongly as the laser frames (the scene's texture); "
+                    "excess over the views: %s", best, colour, colour,
+                    _scores_text(detail["excess"]))
+        colour = best
+    check["colour"] = colour
+    return colour, scores, check
+
+
+def _scores_text(scores: Mapping[str, float]) -> str:
+    return ", ".join(f"{k} {v:.0f}" for k, v in scores.items())
+
+
+def _views_for_colour(path: str, cfg: Mapping[str, Any], calibration: str | None,
+                      frames: list, T_camera_laser: np.ndarray, axes: list, ridge: bool
+                      ) -> Callable[[], tuple[list, list, list, str | None]]:
+    """A loader of up to 12 evenly spaced views of the recording, decoded, each with its
+    region of interest (where the laser sheet inside the workspace box would project
+    from the view's pose, the laser where it is at its camera's first laser frame,
+    :func:`_sheet_rois`) and its camera's scan axis: the scene
+    without the laser, for the laser colour's check. Views of a camera that recorded no
+    laser frame are left out. Returns empty lists and the reason when there are none or
+    their poses or images cannot be read (the silhouettes stage names such a view)."""
+    from ..errors import RecordingError, TransformError
+    from ..viz import spaced_indices
+
+    def load() -> tuple[list, list, list, str | None]:
+        try:
+            vrec = open_recording(path, cfg, roles=("views",), require=False,
+                                  calibration=calibration)
+            first: dict[str, int] = {}
+            for i, m in enumerate(frames):
+                first.setdefault(str(m.frame_id), i)
+            views = [m for m in sorted(vrec.views, key=lambda m: m.timestamp_ns)
+                     if str(m.frame_id) in first]
+            if not views:
+                return [], [], [], "no views of the laser's camera in the recording"
+            views = [views[int(i)] for i in spaced_indices(len(views), 12)]
+            idx = [first[str(m.frame_id)] for m in views]
+            roi, _, _ = _sheet_rois(vrec, cfg, [vrec.camera_for(m) for m in views],
+                                    vrec.camera_poses(views), T_camera_laser[idx], ridge)
+            return ([vrec.decode(m) for m in views], [roi(k) for k in range(len(views))],
+                    [axes[i] for i in idx], None)
+        except (RecordingError, TransformError, ValueError) as e:
+            log.warning("stripes: the views could not be read for the laser colour's "
+                        "check: %s", e)
+            return [], [], [], f"views not readable: {e}"
+
+    return load
 
 
 def _detect(rec, frames: list, background: Callable, roi: Callable,

@@ -39,7 +39,10 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    too: the height is at most the luma's ridge height over :data:`_LUMA_SHARE` (a
    JPEG stores the chroma at half resolution: smeared onto the bright side of a colour
    edge it makes a ridge of one channel with no luma ridge, a blue line along every
-   edge of a blue object against a white wall). The colour is chosen
+   edge of a blue object against a white wall), and a candidate whose luma rises less
+   than :data:`_EDGE_SHARE` of the luma's step across it is that ringing on the bright
+   side of an edge (its small overshoot of the luma, with a fringe of the laser's
+   colour: arcs along a yellow checker's edges under a blue laser). The colour is chosen
    once per recording by the stage (:func:`estimate_laser_colour` on 12 spaced frames),
    or per frame with ``colour="auto"``: the contrast in which the stripe is the
    strongest *curve* (step 3) on every 1/48-th row and column; the lightness only when
@@ -815,6 +818,13 @@ _JIT = {"nogil": True, "cache": True}
 #: a JPEG's chroma smeared onto the bright side of a colour edge is a coloured ridge
 #: with no luma ridge (the blue cell's block against the white wall: blue +26, luma +2).
 _LUMA_SHARE = 0.25
+#: A candidate whose luma rises less than this share of the luma's step across it is a
+#: JPEG's ringing beside an edge, not light (:func:`_laser_at`). Random scene 907 (a blue
+#: laser on a yellow checker sphere, the stripe all but invisible): arcs of centres along
+#: the squares' edges, luma +4 beside a step of 41 (0.10). At 0.15 the simulated cells
+#: lose 0.02-0.4 points of recall and a third of their triangulated points more than
+#: 1 mm off; at 0.25 twice the recall for a little more (``benchmarks/README.md``, stop 67).
+_EDGE_SHARE = 0.15
 #: Half-height of the first window read around a peak (rows); wider stripes are read again
 #: within the full window (from ``max_width_px``).
 _H_SMALL = 8
@@ -1443,7 +1453,9 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat, floor):  # noqa: ANN001, A
     channel that falls is the surface's colour changing). And at most the luma's
     two-sided rise over :data:`_LUMA_SHARE`: a laser's light raises the luma too, while
     a JPEG's chroma, stored at half resolution and smeared onto the bright side of a
-    colour edge, makes a ridge of one channel without a luma ridge. A height not above
+    colour edge, makes a ridge of one channel without a luma ridge; zero where the
+    luma's rise is less than :data:`_EDGE_SHARE` of its step across the pixel (that
+    ringing, with the luma's own small overshoot beside the edge). A height not above
     ``floor`` (the line's second candidate, which the caller keeps it only above) is
     returned without the luma's cap."""
     i1 = 1 if k == 0 else 0
@@ -1462,7 +1474,29 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat, floor):  # noqa: ANN001, A
     if not h > floor:  # the caller's candidate to beat: rejected in any case
         return h
     # and its luma rises too (a JPEG's chroma fringe at a colour edge does not)
-    return min(h, _luma_rise_at(img, r, c, a1, a2, along_u) / np.float32(_LUMA_SHARE))
+    lr = _luma_rise_at(img, r, c, a1, a2, along_u)
+    # not a JPEG's ringing on the bright side of an edge (a small overshoot of the luma
+    # beside a step many times its height, with a chroma fringe in the laser's channel)
+    if lr < np.float32(_EDGE_SHARE) * _luma_step_at(img, r, c, a1, a2, along_u):
+        return np.float32(0.0)
+    return min(h, lr / np.float32(_LUMA_SHARE))
+
+
+@njit
+def _luma_step_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
+    """The larger step of the luma across (r, c) between the pixels a1 and a2 away on
+    either side (an edge's contrast, :func:`_step_at` of the luma)."""
+    if along_u:
+        s1 = abs(_contrast_at(img, r, c - a1, _LUMA, 3, False)
+                 - _contrast_at(img, r, c + a1, _LUMA, 3, False))
+        s2 = abs(_contrast_at(img, r, c - a2, _LUMA, 3, False)
+                 - _contrast_at(img, r, c + a2, _LUMA, 3, False))
+    else:
+        s1 = abs(_contrast_at(img, r - a1, c, _LUMA, 3, False)
+                 - _contrast_at(img, r + a1, c, _LUMA, 3, False))
+        s2 = abs(_contrast_at(img, r - a2, c, _LUMA, 3, False)
+                 - _contrast_at(img, r + a2, c, _LUMA, 3, False))
+    return np.float32(max(s1, s2))
 
 
 @njit

@@ -300,8 +300,7 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     colour, scores = estimate_laser_colour(
         images, backgrounds=[background(i, im) for i, im in zip(sample, images, strict=True)],
         min_peak=options.min_peak, rois=rois, axes=[axes[int(i)] for i in sample])
-    log.info("stripes: laser colour %s (scores: %s)", colour,
-             ", ".join(f"{k} {v:.0f}" for k, v in scores.items()))
+    log.info("stripes: laser colour %s (scores: %s)", colour, _scores_text(scores))
     if colour == "lightness" or not laser_colour_contested(scores):
         return colour, scores, None
     check: dict[str, Any] = {"contested": True, "colour_by_laser_frames": colour}
@@ -331,6 +330,7 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
 
 
 def _scores_text(scores: Mapping[str, float]) -> str:
+    """``"red 979, green 0, ..."``: a contrast's scores for the log."""
     return ", ".join(f"{k} {v:.0f}" for k, v in scores.items())
 
 

@@ -1426,18 +1426,27 @@ def _luma_rise_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
     """Two-sided ridge height of the Rec. 601 luma (:func:`_contrast_at`'s ``_LUMA``, a
     JPEG's full-resolution component) of RGB pixel (r, c), across the line (as
     :func:`_rise_at`), float32."""
+    return _luma_rise_step_at(img, r, c, a1, a2, along_u)[0]
+
+
+@njit
+def _luma_rise_step_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
+    """The luma's two-sided rise at (r, c) (:func:`_luma_rise_at`) and its larger step
+    across it between the pixels a1 and a2 away on either side (an edge's contrast, as
+    :func:`_step_at`), from one read of the five pixels, float32."""
     y0 = _contrast_at(img, r, c, _LUMA, 3, False)
     if along_u:
-        b1 = max(_contrast_at(img, r, c - a1, _LUMA, 3, False),
-                 _contrast_at(img, r, c + a1, _LUMA, 3, False))
-        b2 = max(_contrast_at(img, r, c - a2, _LUMA, 3, False),
-                 _contrast_at(img, r, c + a2, _LUMA, 3, False))
+        m1 = _contrast_at(img, r, c - a1, _LUMA, 3, False)
+        p1 = _contrast_at(img, r, c + a1, _LUMA, 3, False)
+        m2 = _contrast_at(img, r, c - a2, _LUMA, 3, False)
+        p2 = _contrast_at(img, r, c + a2, _LUMA, 3, False)
     else:
-        b1 = max(_contrast_at(img, r - a1, c, _LUMA, 3, False),
-                 _contrast_at(img, r + a1, c, _LUMA, 3, False))
-        b2 = max(_contrast_at(img, r - a2, c, _LUMA, 3, False),
-                 _contrast_at(img, r + a2, c, _LUMA, 3, False))
-    return np.float32(y0 - min(b1, b2))
+        m1 = _contrast_at(img, r - a1, c, _LUMA, 3, False)
+        p1 = _contrast_at(img, r + a1, c, _LUMA, 3, False)
+        m2 = _contrast_at(img, r - a2, c, _LUMA, 3, False)
+        p2 = _contrast_at(img, r + a2, c, _LUMA, 3, False)
+    rise = np.float32(y0 - min(max(m1, p1), max(m2, p2)))
+    return rise, np.float32(max(abs(m1 - p1), abs(m2 - p2)))
 
 
 @njit
@@ -1474,29 +1483,12 @@ def _laser_at(img, r, c, k, a1, a2, along_u, xk, sat, floor):  # noqa: ANN001, A
     if not h > floor:  # the caller's candidate to beat: rejected in any case
         return h
     # and its luma rises too (a JPEG's chroma fringe at a colour edge does not)
-    lr = _luma_rise_at(img, r, c, a1, a2, along_u)
+    lr, step = _luma_rise_step_at(img, r, c, a1, a2, along_u)
     # not a JPEG's ringing on the bright side of an edge (a small overshoot of the luma
     # beside a step many times its height, with a chroma fringe in the laser's channel)
-    if lr < np.float32(_EDGE_SHARE) * _luma_step_at(img, r, c, a1, a2, along_u):
+    if lr < np.float32(_EDGE_SHARE) * step:
         return np.float32(0.0)
     return min(h, lr / np.float32(_LUMA_SHARE))
-
-
-@njit
-def _luma_step_at(img, r, c, a1, a2, along_u):  # noqa: ANN001, ANN202
-    """The larger step of the luma across (r, c) between the pixels a1 and a2 away on
-    either side (an edge's contrast, :func:`_step_at` of the luma)."""
-    if along_u:
-        s1 = abs(_contrast_at(img, r, c - a1, _LUMA, 3, False)
-                 - _contrast_at(img, r, c + a1, _LUMA, 3, False))
-        s2 = abs(_contrast_at(img, r, c - a2, _LUMA, 3, False)
-                 - _contrast_at(img, r, c + a2, _LUMA, 3, False))
-    else:
-        s1 = abs(_contrast_at(img, r - a1, c, _LUMA, 3, False)
-                 - _contrast_at(img, r + a1, c, _LUMA, 3, False))
-        s2 = abs(_contrast_at(img, r - a2, c, _LUMA, 3, False)
-                 - _contrast_at(img, r + a2, c, _LUMA, 3, False))
-    return np.float32(max(s1, s2))
 
 
 @njit

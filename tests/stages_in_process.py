@@ -1,6 +1,7 @@
 """The workflow's stages run in process on one recording, for tests that need a scan's
 intermediate files without Snakemake (``tests/test_view.py``, ``tests/test_table.py``,
-``tests/test_clock_offset.py``, ``tests/test_rolling_shutter.py``)."""
+``tests/test_clock_offset.py``, ``tests/test_rolling_shutter.py``,
+``tests/test_laser_colour.py``)."""
 
 from __future__ import annotations
 
@@ -18,12 +19,14 @@ def stage_outputs(res: Path, stage: str, **files: str) -> dict[str, str]:
 
 
 def laser_point_distances_mm(rec: Path, out: Path, cfg: Mapping[str, Any],
-                             min_points: int = 1) -> Any:
-    """The stripes and triangulation stages on ``rec`` (files in ``out``, created): each
-    triangulated point's distance to the recording's true surface, mm ((N,) array)."""
+                             min_points: int = 1, in_box: bool = False) -> Any:
+    """The stripes and triangulation stages on ``rec`` (files in ``out``, created; the
+    stripes report in ``out/reports/stripes.json``): each triangulated point's distance
+    to the recording's true surface, mm ((N,) array); with ``in_box`` only the points in
+    the workspace box (not the triangulation's margin around it)."""
     import numpy as np
 
-    from robo3d.artefacts import load_clouds_npz
+    from robo3d.artefacts import in_clouds_workspace, load_clouds_npz
     from robo3d.evaluate import TruthSurface
     from robo3d.meshio import read_mesh
     from robo3d.pipeline import STAGES
@@ -37,7 +40,9 @@ def laser_point_distances_mm(rec: Path, out: Path, cfg: Mapping[str, Any],
     r = read_recording(rec, roles=("laser",))
     truth = TruthSurface(*read_mesh(bytes(r.attachments["ground_truth/mesh.ply"]),
                                     suffix=".ply"))
-    pts = np.concatenate([cl.points_base for cl in load_clouds_npz(c["npz"])])
+    clouds = load_clouds_npz(c["npz"])
+    keep = in_clouds_workspace(clouds) if in_box else [slice(None)] * len(clouds)
+    pts = np.concatenate([cl.points_base[k] for cl, k in zip(clouds, keep, strict=True)])
     assert len(pts) >= min_points, (len(pts), min_points)
     return truth.distance(pts) * 1e3
 

@@ -50,7 +50,9 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    When two colours score within a factor 4 (:func:`laser_colour_contested`) and the
    recording has views, the stage scores the views the same way: a colour whose ridges
    the views show as well is the scene's texture, not the laser
-   (:func:`laser_colour_beyond_scene`).
+   (:func:`laser_colour_beyond_scene`); so do they where the lightness won over a
+   colour that scored (:func:`lightness_contested`: a textured surface under a faint,
+   speckled laser).
 2. Peak against a local baseline: the ridge height of a profile ``y`` across the line is
    ``y(r) - min(max(y(r - 3), y(r + 3)), max(y(r - 6), y(r + 6)))``: both sides lower at
    one of two distances (3 and 6 px: stripes up to ~8 px FWHM at full height), zero on
@@ -373,6 +375,7 @@ __all__ = [
     "image_level",
     "laser_colour_beyond_scene",
     "laser_colour_contested",
+    "lightness_contested",
     "extract_stripe_centres",
     "extract_stripes_batch",
 ]
@@ -3228,6 +3231,16 @@ def laser_colour_contested(scores: Mapping[str, float]) -> bool:
     return v[0] > 0 and v[1] >= _COLOUR_CONTESTED * v[0]
 
 
+def lightness_contested(scores: Mapping[str, float]) -> bool:
+    """Whether :func:`estimate_laser_colour` chose the lightness over laser colours that
+    did score (colour frames): a laser colour is there, and the lightness can be the
+    scene's texture (random scene 1113: a speckled blue laser on an orange checker block,
+    lightness 1044 against blue 101: the lightness ridges were the checker's squares)."""
+    v = [max(float(scores.get(c, 0.0)), 0.0) for c in CONTRASTS[:3] if c in scores]
+    return bool(v) and max(v) > 0 and (
+        float(scores.get("lightness", 0.0)) > _LIGHTNESS_PREFERRED * max(v))
+
+
 def image_level(images: Sequence[np.ndarray],
                 rois: Sequence[np.ndarray | None] | None = None) -> float:
     """The images' typical level: the median over the images of each one's median value
@@ -3246,7 +3259,8 @@ def image_level(images: Sequence[np.ndarray],
 
 def laser_colour_beyond_scene(scores: Mapping[str, float], level: float, n_images: int,
                               scene_scores: Mapping[str, float], scene_level: float,
-                              n_scene: int) -> tuple[str | None, dict[str, Any]]:
+                              n_scene: int, *, lightness: bool = False
+                              ) -> tuple[str | None, dict[str, Any]]:
     """The laser's colour as what the laser frames show beyond the scene's own texture.
 
     ``scene_scores`` are :func:`estimate_laser_colour`'s scores on images of the same
@@ -3259,24 +3273,41 @@ def laser_colour_beyond_scene(scores: Mapping[str, float], level: float, n_image
     frames red 979, blue 763; views red 1796, blue 310; scale 0.68: excess red -247,
     blue 551.
 
+    With ``lightness`` (the laser frames chose it over the colours,
+    :func:`lightness_contested`) the lightness competes too, by the frames' own rule: it
+    stays when its excess is positive and more than :data:`_LIGHTNESS_PREFERRED` times
+    the best colour's (a white laser: the colours show nothing beyond the scene). Else
+    the colour with the largest excess among those the laser frames show at all (that
+    scored) is returned, even where its excess is not positive: the
+    lightness is taken over a colour only on its own evidence, and the scene explains
+    it. Random scene 1113 (a speckled blue laser on an orange checker block): laser
+    frames lightness 1044, blue 101, red 79; views lightness 6398, red 5682, blue 0;
+    scale 0.68: excess lightness -3339, red -3812, blue 101.
+
     Returns
     -------
     colour : str or None
-        The colour with the largest excess, or None when no colour shows more in the
-        laser frames than in the scene (nothing to decide by).
+        The contrast with the largest excess, or None when no colour shows more in the
+        laser frames than in the scene (nothing to decide by; never with
+        ``lightness``).
     detail : dict
-        ``scale``, ``scene_scores`` and ``excess`` per colour (for the report).
+        ``scale``, ``scene_scores`` and ``excess`` per contrast (for the report).
     """
+    names = CONTRASTS if lightness else CONTRASTS[:3]
     if n_scene < 1 or n_images < 1:
         return None, {"scale": None, "scene_scores": dict(scene_scores), "excess": None}
     scale = (n_images / n_scene) * max(float(level), 1.0) / max(float(scene_level), 1.0)
     excess = {c: float(scores.get(c, 0.0)) - scale * float(scene_scores.get(c, 0.0))
-              for c in CONTRASTS[:3]}
-    best = max(CONTRASTS[:3], key=lambda c: excess[c])
+              for c in names}
+    # with the lightness: a colour the laser frames show at all (one that scored)
+    shown = [c for c in CONTRASTS[:3] if not lightness or float(scores.get(c, 0.0)) > 0]
+    best = max(shown or CONTRASTS[:3], key=lambda c: excess[c])
     detail = {"scale": round(scale, 4),
-              "scene_scores": {c: round(float(scene_scores.get(c, 0.0)), 1)
-                               for c in CONTRASTS[:3]},
+              "scene_scores": {c: round(float(scene_scores.get(c, 0.0)), 1) for c in names},
               "excess": {c: round(v, 1) for c, v in excess.items()}}
+    if lightness:
+        return ("lightness" if excess["lightness"] > _LIGHTNESS_PREFERRED * max(
+            excess[best], 0.0) else best), detail
     return (best if excess[best] > 0 else None), detail
 
 

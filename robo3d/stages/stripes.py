@@ -79,8 +79,8 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
                                   T_camera_laser, cameras, rec.workspace, poses_end)
     if frames and len(stripes.u) == 0:
         raise StageError(f"{inputs['recording']}: topic {frames[0].topic}: no laser stripe "
-                         f"found in any of {len(frames)} frames (check stripes.min_peak, "
-                         "the exposure and the laser)")
+                         f"found in any of {len(frames)} frames{_colour_why(colour_check)} "
+                         "(check stripes.min_peak, the exposure and the laser)")
     report = _report(stripes, sc, options, colour_scores, use_roi, roi_area, n_off)
     report["axis_from_laser"] = axis_report
     report["laser_colour_check"] = colour_check
@@ -281,16 +281,18 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     """The recording's laser colour from 12 evenly spaced frames
     (:func:`robo3d.stripes.estimate_laser_colour`, each along its axis where the laser's
     geometry fixes it), each contrast's score, and the check against the views where two
-    colours are close (:func:`robo3d.stripes.laser_colour_contested`; ``views`` loads
+    colours are close (:func:`robo3d.stripes.laser_colour_contested`) or the lightness
+    won over a colour that scored (:func:`robo3d.stripes.lightness_contested`; ``views`` loads
     up to 12 of them with their regions of interest and axes; None: laser-off frames
     already took the scene away): the colour that the laser frames show beyond the views
-    (:func:`robo3d.stripes.laser_colour_beyond_scene`). The check is None when the scores
-    are not close."""
+    (:func:`robo3d.stripes.laser_colour_beyond_scene`). The check is None when neither
+    holds."""
     from ..stripes import (
         estimate_laser_colour,
         image_level,
         laser_colour_beyond_scene,
         laser_colour_contested,
+        lightness_contested,
     )
     from ..viz import spaced_indices
 
@@ -301,7 +303,8 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
         images, backgrounds=[background(i, im) for i, im in zip(sample, images, strict=True)],
         min_peak=options.min_peak, rois=rois, axes=[axes[int(i)] for i in sample])
     log.info("stripes: laser colour %s (scores: %s)", colour, _scores_text(scores))
-    if colour == "lightness" or not laser_colour_contested(scores):
+    with_lightness = colour == "lightness" and lightness_contested(scores)
+    if not (with_lightness or (colour != "lightness" and laser_colour_contested(scores))):
         return colour, scores, None
     check: dict[str, Any] = {"contested": True, "colour_by_laser_frames": colour}
     if views is None:
@@ -317,16 +320,28 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
                                         axes=v_axes)
     best, detail = laser_colour_beyond_scene(
         scores, image_level(images, rois), len(images), v_scores,
-        image_level(v_images, v_rois), len(v_images))
+        image_level(v_images, v_rois), len(v_images), lightness=with_lightness)
     check.update(views=len(v_images), **detail)
     if best is not None and best != colour:
-        log.warning("stripes: laser colour %s, not %s: the views, without the laser, show "
-                    "%s ridges as strongly as the laser frames (the scene's texture); "
-                    "excess over the views: %s", best, colour, colour,
+        log.warning("stripes: laser contrast %s, not %s: the views, without the laser, "
+                    "show %s ridges as strongly as the laser frames (the scene's "
+                    "texture); excess over the views: %s", best, colour, colour,
                     _scores_text(detail["excess"]))
         colour = best
     check["colour"] = colour
     return colour, scores, check
+
+
+def _colour_why(check: Mapping[str, Any] | None) -> str:
+    """For the no-stripe error: the laser contrast searched, where the views' check chose
+    it over the laser frames' own vote (else "")."""
+    if not check or check.get("colour") in (None, check.get("colour_by_laser_frames")):
+        return ""
+    return (f" in the {check['colour']} contrast: the {check['colour_by_laser_frames']} "
+            "ridges of the laser sheet's band are the scene's texture (the views, without "
+            f"the laser, show them as well; excess over the views: "
+            f"{_scores_text(check['excess'])}), and the {check['colour']} laser is too "
+            "faint there to be found")
 
 
 def _scores_text(scores: Mapping[str, float]) -> str:

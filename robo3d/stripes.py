@@ -50,9 +50,9 @@ white surfaces and room light (a real webcam scan came out 2 mm off). Instead:
    When two colours score within a factor 4 (:func:`laser_colour_contested`) and the
    recording has views, the stage scores the views the same way: a colour whose ridges
    the views show as well is the scene's texture, not the laser
-   (:func:`laser_colour_beyond_scene`); so do they where the lightness won over a
-   colour that scored (:func:`lightness_contested`: a textured surface under a faint,
-   speckled laser).
+   (:func:`laser_colour_beyond_scene`). The stage does the same where the lightness won
+   over a colour that scored (:func:`lightness_contested`: a textured surface under a
+   faint, speckled laser).
 2. Peak against a local baseline: the ridge height of a profile ``y`` across the line is
    ``y(r) - min(max(y(r - 3), y(r + 3)), max(y(r - 6), y(r + 6)))``: both sides lower at
    one of two distances (3 and 6 px: stripes up to ~8 px FWHM at full height), zero on
@@ -3278,11 +3278,11 @@ def laser_colour_beyond_scene(scores: Mapping[str, float], level: float, n_image
     stays when its excess is positive and more than :data:`_LIGHTNESS_PREFERRED` times
     the best colour's (a white laser: the colours show nothing beyond the scene). Else
     the colour with the largest excess among those the laser frames show at all (that
-    scored) is returned, even where its excess is not positive: the
-    lightness is taken over a colour only on its own evidence, and the scene explains
-    it. Random scene 1113 (a speckled blue laser on an orange checker block): laser
-    frames lightness 1044, blue 101, red 79; views lightness 6398, red 5682, blue 0;
-    scale 0.68: excess lightness -3339, red -3812, blue 101.
+    scored) is returned, even where that excess is not positive: the lightness is
+    preferred to a colour only on evidence of its own, and here the scene explains it.
+    Random scene 1113 (a speckled blue laser on an orange checker block): laser frames
+    lightness 1044, blue 101, red 79; views lightness 6398, red 5682, blue 0; scale
+    0.68: excess lightness -3335, red -3811, blue 102.
 
     Returns
     -------

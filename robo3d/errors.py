@@ -15,6 +15,7 @@ __all__ = [
     "ImageDecodeError",
     "ConfigError",
     "StageError",
+    "NoUsablePoints",
 ]
 
 
@@ -79,3 +80,9 @@ class ConfigError(Robo3dError):
 class StageError(Robo3dError):
     """A pipeline stage that cannot produce its result from its inputs (empty masks,
     no stripe found, degenerate geometry, ...)."""
+
+
+class NoUsablePoints(StageError):
+    """Fusion was given no laser point it can use (none on the object, or none seen from
+    its sensor at a usable angle): the fuse stage then closes the surface from the visual
+    hull alone, labelled inferred, when there is one."""

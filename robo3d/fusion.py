@@ -138,7 +138,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .errors import StageError
+from .errors import NoUsablePoints, StageError
 from .options import Options
 
 __all__ = ["FuseOptions", "fuse_poisson", "fuse_tsdf", "data_voxel", "point_spacing",
@@ -458,8 +458,8 @@ def fuse_poisson(
 
     Raises
     ------
-    StageError
-        With fewer than 10 points (nothing to reconstruct).
+    NoUsablePoints
+        With fewer than 10 points (nothing to reconstruct; a StageError).
 
     References
     ----------
@@ -480,7 +480,7 @@ def fuse_poisson(
     good = length > 1e-12
     p, n = p[good], n[good] / length[good, None]
     if len(p) < 10:
-        raise StageError(f"Poisson fusion needs at least 10 oriented points, got {len(p)}")
+        raise NoUsablePoints(f"Poisson fusion needs at least 10 oriented points, got {len(p)}")
 
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(p)
@@ -834,8 +834,8 @@ def fuse_tsdf(
 
     Raises
     ------
-    StageError
-        With no usable point.
+    NoUsablePoints
+        With no usable point (a :class:`~robo3d.errors.StageError`).
 
     References
     ----------
@@ -854,7 +854,7 @@ def fuse_tsdf(
     n_used = int(sum(len(p) for p in Pm))
     n_carve = int(sum(len(p) for p in P)) - n_used
     if n_used == 0:
-        raise StageError("TSDF fusion: no point is usable (none seen from its sensor at "
+        raise NoUsablePoints("TSDF fusion: no point is usable (none seen from its sensor at "
                          f"cos(view angle) >= {o.min_cos_view} with confidence > 0)")
     across = (profile_spacing(Pm, [None if g is None else g[c > 0]
                                    for g, c in zip(G, Cf, strict=True)])

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import write_json
-from ..errors import StageError
+from ..errors import NoUsablePoints, StageError
 from ..fusion import source_colors
 from .common import log, stage_threads, summary
 
@@ -21,19 +21,18 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                ) -> dict[str, Any]:
     """Fuse the aligned clouds into one watertight surface (seed §2.4): each sweep as range
     data into a TSDF (Curless & Levoy), holes closed from the visual hull (or screened
-    Poisson, ``fusion.method``); from views alone the fused mesh is the hull's.
+    Poisson, ``fusion.method``); from views alone the fused mesh is the hull's, as it is
+    when the laser measured nothing usable on the object (all of it labelled inferred).
 
     The report says what fraction of the surface came from the laser and from the hull.
     """
-    from ..artefacts import clouds_workspace, load_clouds_npz, table_points
+    from ..artefacts import load_clouds_npz, table_points
     from ..carving import hull_to_mesh
     from ..fusion import (
         HULL,
         MEASURED,
         SOURCES,
         FuseOptions,
-        fuse_poisson,
-        fuse_tsdf,
         keep_vertices,
         source_area_fractions,
     )
@@ -45,35 +44,32 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
     opts = FuseOptions.from_config(fc, seed=cfg["seed"])
     hull = _hull(inputs)
     table = clouds = None  # the laser's clouds, its points on the table (no laser: none)
+    unusable = None  # why the laser's points made no surface, when the hull is used instead
     if inputs.get("aligned"):
         clouds = load_clouds_npz(inputs["aligned"])
         crop = hull if (hull is not None and fc["crop_to_hull"]) else None
         table = table_points(clouds, cfg["triangulation"])
-        if fc["method"] == "tsdf":
-            V, F, fuse_report, attrs = fuse_tsdf(
-                [c.points_base for c in clouds], [c.normals_base for c in clouds],
-                [c.sensor_origin_base for c in clouds], options=opts,
-                confidences=[c.confidence for c in clouds], grids=[c.grid() for c in clouds],
-                hull=crop, workspace=clouds_workspace(clouds), carve_only=table,
-                max_voxels=int(fc["max_voxels"]), threads=stage_threads(threads),
-                return_attributes=True)
-            source = _tsdf_source(crop is not None and fc["fill_holes"], fc["close"],
-                                  bool(fuse_report.get("hull_contradicted")))
-        else:
-            off = ~np.concatenate(table) if table else np.ones(0, bool)
-            pts = np.concatenate([c.points_base for c in clouds])[off]
-            nrm = np.concatenate([c.normals_base for c in clouds])[off]
-            V, F, fuse_report = fuse_poisson(pts, nrm, options=opts, hull=crop)
-            attrs = _poisson_provenance(V, pts, opts.tsdf_voxel_m,
-                                        1e-3 * opts.max_fill_distance_mm)
-            source = "laser (screened Poisson)"
-            if crop is not None:
-                cut = str(fuse_report.get("hull_cut", "applied"))
-                source += ", cut to the hull" if cut == "applied" else f", hull cut {cut}"
-    elif hull is not None:
+        try:
+            V, F, fuse_report, attrs, source = _fuse_laser(clouds, table, crop, fc, opts,
+                                                           threads)
+        except NoUsablePoints as exc:
+            if hull is None:
+                raise
+            # the laser lit nothing of the object (random scene 1163: one sweep whose
+            # line lay on the table beside a thin wall; eight right masks): the views'
+            # hull is the whole surface there is, and none of it is measured
+            unusable = str(exc)
+            log.warning("fusion: the laser measured nothing usable on the object (%s): the "
+                        "fused mesh is the visual hull's, all of it inferred", unusable)
+    if unusable is not None or not inputs.get("aligned"):
+        if hull is None:
+            raise StageError("fusion needs aligned clouds or a hull, got neither")
         V, F = hull_to_mesh(hull, smooth_sigma_vox=cfg["carving"]["smooth_sigma_vox"])
-        fuse_report = {"note": "no laser frames: the fused mesh is the visual hull's",
-                       "laser_area_fraction": 0.0, "hull_area_fraction": 1.0}
+        note = ("no laser frames: the fused mesh is the visual hull's" if unusable is None
+                else "the laser measured nothing usable on the object: the fused mesh is "
+                     "the visual hull's, all of it inferred")
+        fuse_report = {"note": note, "laser_area_fraction": 0.0, "hull_area_fraction": 1.0,
+                       **({"laser_unusable": unusable} if unusable is not None else {})}
         attrs = {"source": np.full(len(V), HULL, np.uint8),
                  "n_obs": np.zeros(len(V), np.uint16),
                  "incidence": np.zeros(len(V), np.float32),
@@ -82,8 +78,6 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
                  "confidence": np.zeros(len(V), np.float32),
                  "far_from_measured": np.ones(len(V), np.uint8)}
         source = "visual hull"
-    else:
-        raise StageError("fusion needs aligned clouds or a hull, got neither")
     if len(F) == 0:
         raise StageError(f"fusion produced an empty mesh from {source}"
                          + _why_empty(fuse_report, clouds, table, hull))
@@ -96,7 +90,8 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
         fuse_report.pop("source_area_fraction")
     fractions = source_area_fractions(V, F, attrs["source"])
     Vm, Fm, attrs_m = keep_vertices(V, F, attrs, attrs["source"] == MEASURED)
-    report = {"source": source, "method": fc["method"] if inputs.get("aligned") else "hull",
+    report = {"source": source,
+              "method": fc["method"] if inputs.get("aligned") and unusable is None else "hull",
               **fuse_report, "vertices": len(V), "faces": len(F),
               "source_area_fraction": fractions,
               "inferred_area_fraction": 1.0 - fractions["measured"],
@@ -134,6 +129,39 @@ def stage_fuse(inputs: Mapping[str, str], outputs: Mapping[str, str],
              f", {100 * lf:.1f}% of its area from the laser" if lf is not None else "",
              grid, _bridges_note(report, opts.max_frame_span), report["seconds"])
     return report
+
+
+def _fuse_laser(clouds: list, table: list[np.ndarray] | None, crop: Any,
+                fc: Mapping[str, Any], opts: Any, threads: int | None
+                ) -> tuple[np.ndarray, np.ndarray, dict[str, Any], dict[str, np.ndarray], str]:
+    """The laser's clouds fused (TSDF or screened Poisson, ``fusion.method``), holes
+    closed from the hull ``crop`` (None: not cropped): vertices, faces, the fusion's report,
+    per-vertex attributes and the report's ``source``. Raises
+    :class:`~robo3d.errors.NoUsablePoints` when no point is usable."""
+    from ..artefacts import clouds_workspace
+    from ..fusion import fuse_poisson, fuse_tsdf
+
+    if fc["method"] == "tsdf":
+        V, F, fuse_report, attrs = fuse_tsdf(
+            [c.points_base for c in clouds], [c.normals_base for c in clouds],
+            [c.sensor_origin_base for c in clouds], options=opts,
+            confidences=[c.confidence for c in clouds], grids=[c.grid() for c in clouds],
+            hull=crop, workspace=clouds_workspace(clouds), carve_only=table,
+            max_voxels=int(fc["max_voxels"]), threads=stage_threads(threads),
+            return_attributes=True)
+        source = _tsdf_source(crop is not None and fc["fill_holes"], fc["close"],
+                              bool(fuse_report.get("hull_contradicted")))
+        return V, F, fuse_report, attrs, source
+    off = ~np.concatenate(table) if table else np.ones(0, bool)
+    pts = np.concatenate([c.points_base for c in clouds])[off]
+    nrm = np.concatenate([c.normals_base for c in clouds])[off]
+    V, F, fuse_report = fuse_poisson(pts, nrm, options=opts, hull=crop)
+    attrs = _poisson_provenance(V, pts, opts.tsdf_voxel_m, 1e-3 * opts.max_fill_distance_mm)
+    source = "laser (screened Poisson)"
+    if crop is not None:
+        cut = str(fuse_report.get("hull_cut", "applied"))
+        source += ", cut to the hull" if cut == "applied" else f", hull cut {cut}"
+    return V, F, fuse_report, attrs, source
 
 
 def _hull(inputs: Mapping[str, str]):

@@ -226,7 +226,9 @@ def _workspace(rec) -> dict[str, Any]:
         return {"box": None, "source": "none in the recording: the alignment takes the "
                 "visual hull's box, standing on the table the laser saw "
                 "(alignment.workspace_from_hull), or the laser's own box when the views "
-                "that carved the hull disagree (alignment.hull_box_views_disagree_iou)"}
+                "that carved the hull disagree (alignment.hull_box_views_disagree_iou) or "
+                "the hull's box holds little of the laser's object "
+                "(alignment.hull_box_min_laser_share)"}
     if rec.laser_frames:
         return {"box": None, "source": "none, and no views to take one from: the alignment "
                 "takes the box of the object the laser measured, standing on the table it "

@@ -217,6 +217,9 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     if _get(metrics, ("surface_sources", "object_not_found")):
         notes.append("no object found: no box, no hull, and the laser saw too little above "
                      "the table; the mesh is what it saw, most likely the table")
+    if _get(metrics, ("surface_sources", "laser_unusable")):
+        notes.append("the laser measured nothing usable on the object: the mesh is the "
+                     "visual hull's, all of it inferred")
     flagged = [s.get("sweep") for s in _get(metrics, ("stages", "align", "per_sweep")) or []
                if isinstance(s, Mapping) and s.get("flagged")]
     if flagged:

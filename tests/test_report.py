@@ -307,6 +307,20 @@ def test_a_scan_where_nothing_locates_the_object_says_so():
     assert any(n.startswith("no object found") for n in notes)
 
 
+def test_a_scan_whose_laser_measured_nothing_says_its_mesh_is_the_hull():
+    """The fuse stage meshes the views' hull when the laser measured nothing usable on
+    the object (random scene 1163); the overview says so, not only reports/fuse.json."""
+    from robo3d.overview import recording_status
+
+    m = _metrics(False)
+    _, before = recording_status(m)
+    assert not any("nothing usable" in n for n in before)
+    m["surface_sources"] = {"laser_unusable": "TSDF fusion: no point is usable"}
+    _, notes = recording_status(m)
+    assert any(n.startswith("the laser measured nothing usable on the object") and
+               "all of it inferred" in n for n in notes), notes
+
+
 def test_overview_and_batch_table_speak_in_words_with_units(tmp_path):
     import json
 

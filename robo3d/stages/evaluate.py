@@ -121,6 +121,8 @@ def _stage_metrics(inputs: Mapping[str, str], results_dir: Path, cfg: Mapping[st
     missing = _object_not_found(stages.get("align"))
     if missing:
         metrics["surface_sources"]["object_not_found"] = missing
+    if fuse.get("laser_unusable"):  # the mesh is the views' hull: nothing measured
+        metrics["surface_sources"]["laser_unusable"] = str(fuse["laser_unusable"])
     carve = stages.get("carve", {})
     if isinstance(carve, dict) and "views_left_out" in carve:
         metrics["views_left_out"] = carve["views_left_out"]
@@ -544,6 +546,9 @@ def _log_summary(metrics: Mapping[str, Any]) -> None:
     missing = (metrics.get("surface_sources") or {}).get("object_not_found")
     if missing:
         parts.append(str(missing))
+    if (metrics.get("surface_sources") or {}).get("laser_unusable"):
+        parts.append("the laser measured nothing usable on the object: the mesh is the "
+                     "visual hull's")
     if metrics.get("skipped"):
         parts.append("skipped: " + "; ".join(f"{k} ({v})" for k, v in metrics["skipped"].items()))
     summary.info("%s", "; ".join(parts))

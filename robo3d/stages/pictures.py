@@ -250,6 +250,9 @@ def _mesh(path: str, mesh: tuple[np.ndarray, np.ndarray], rec, metrics: Mapping[
     if (metrics.get("surface_sources") or {}).get("object_not_found"):
         lines.append("no object found (no box, no hull, too little above the table): the "
                      "mesh is what the laser saw, most likely the table")
+    if (metrics.get("surface_sources") or {}).get("laser_unusable"):
+        lines.append("the laser measured nothing usable on the object: the mesh is the "
+                     "visual hull's, all of it inferred")
     tiles = mesh_views(V, F, col, up, tile_px=tile)
     tiles_out[:] = tiles[:1]
     return titled(np.concatenate([_tiles_row(tiles), foot], axis=0), title, lines)

@@ -378,17 +378,18 @@ def _laser_object_outside_hull(clouds: list, box: tuple[np.ndarray, np.ndarray],
     why = (f"the visual hull's box holds {held} of the {n} points of the object the laser "
            f"measured (less than alignment.hull_box_min_laser_share {float(share):g})")
     return {"laser_points": n, "in_hull_box": held, "min_share": float(share),
-            **_laser_instead_of_hull(clouds, cfg, why)}
+            **_laser_instead_of_hull(clouds, cfg, why, got)}
 
 
-def _laser_instead_of_hull(clouds: list, cfg: Mapping[str, Any], why: str
-                           ) -> dict[str, Any]:
+def _laser_instead_of_hull(clouds: list, cfg: Mapping[str, Any], why: str,
+                           got: tuple | None = None) -> dict[str, Any]:
     """The box of the object the laser measured (:func:`_workspace_from_laser`) in place
     of a hull that cannot place the workspace (``why``): ``skipped`` (why, and that the
     laser's box is the workspace) and ``laser`` when the laser found the object; else
     ``hull_kept`` (why it could not) and ``laser_skipped`` (why the laser gives no box),
-    and the hull's box is kept: there is nothing better."""
-    laser = _workspace_from_laser(clouds, cfg)
+    and the hull's box is kept: there is nothing better. ``got``: the laser's box, when
+    the caller found it already (:func:`_workspace_from_laser`)."""
+    laser = _workspace_from_laser(clouds, cfg, got)
     if "skipped" in laser:
         log.warning("alignment: %s, but the laser gives no box of its own (%s): the "
                     "hull's box is kept", why, laser["skipped"])
@@ -398,13 +399,15 @@ def _laser_instead_of_hull(clouds: list, cfg: Mapping[str, Any], why: str
     return {"skipped": f"{why}: the laser's own box is the workspace", "laser": laser}
 
 
-def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any], got: tuple | None = None
+                          ) -> dict[str, Any]:
     """A recording without a workspace box and without views (laser frames alone, a ROS
     bag of a laser cell), or whose views gave no hull (too few could be segmented): the
     box of the object the laser measured, standing on the table
     it measured beside it (:func:`robo3d.carving.laser_box`), becomes the clouds'
     workspace (``workspace_source: "laser"``), as the hull's does with views. What it
-    was, or why there is none.
+    was, or why there is none. ``got``: :func:`robo3d.artefacts.clouds_laser_box`'s
+    result with this config's margins, when the caller found it already.
 
     Why: without it every laser point was kept, the table and the wall with the object.
     A small simulated room-lit cell (a blob on a marker table, 3 sweeps, no views): the
@@ -417,8 +420,9 @@ def _workspace_from_laser(clouds: list, cfg: Mapping[str, Any]) -> dict[str, Any
     if not ac["workspace_from_laser"]:
         return {"skipped": "alignment.workspace_from_laser is false"}
     margin_m = float(cfg["triangulation"]["workspace_margin_m"])
-    got = clouds_laser_box(clouds, margin=float(ac["workspace_from_hull_margin"]),
-                           min_margin_m=margin_m)
+    if got is None:
+        got = clouds_laser_box(clouds, margin=float(ac["workspace_from_hull_margin"]),
+                               min_margin_m=margin_m)
     if got is None:
         return {"skipped": "too few laser points above the table to find the object",
                 "object_found": False}

@@ -9,6 +9,11 @@ without the laser, tell them apart.
 Random scene 1113 (a speckled blue laser on an orange checker block): the lightness
 scored ten times the blue (1044 against 101), and its ridges, the checker's squares,
 were taken for the stripe (median 2.5 mm off). The views tell that apart too.
+
+Random scene 148 (a blue laser on an orange checker body, no views): nothing showed the
+scene without the laser, and the checker's red ridges were the stripe (23.5 mm off).
+The laser frames tell them apart themselves: the laser is rigid with the camera, so its
+stripe stays where the texture moves with the scene.
 """
 
 from __future__ import annotations
@@ -153,13 +158,43 @@ def test_without_views_the_close_colour_is_reported_unchecked(orange_checker, tm
     cfg = default_config()
     cfg["topics"]["views"] = "/no/such/topic"  # the recording's views not read
     rep, d = _stripes_off_truth(orange_checker, tmp_path / "run", cfg)
-    # the known limit (scene 148, no views): the texture wins, and the report says the
-    # colour was close and why it was not checked
+    # without views the laser frames check the vote by motion, but in a sweep of 12
+    # frames the faint blue stripe has too few centres in too few pairs of frames to
+    # tell: the texture wins, and the report says the colour was close and why neither
+    # check could decide
     assert rep["laser_colour"] == "red"
     check = rep["laser_colour_check"]
     assert check["contested"] and check["colour_by_laser_frames"] == "red"
     assert "no views" in check["skipped"]
+    motion = check["motion"]["contrasts"]
+    assert motion["blue"]["static_px"] is None and motion["red"]["moves_with"] != "camera"
     assert np.median(d) > 2.0
+
+
+def test_without_views_the_colour_that_moves_with_the_camera_is_the_laser(tmp_path):
+    """Scene 977 without views, one sweep of 30 frames (random scene 148's case): the vote
+    red 538, blue 247; by motion (24 pairs, the scene 5.2 px) red static 7.3 px, shifted
+    by the scene 5.7 px; blue 1.0 and 5.0 px: blue. Read as red the points lay 7.4 mm
+    from the surface (median); read as blue 143 points, median 0.38 mm."""
+    from robo3d.config import default_config
+    from robo3d.simulate import SimulationParams, simulate_recording
+
+    path = tmp_path / "orange.mcap"
+    params = SimulationParams.cell(laser="blue", object_color="orange", texture="checker",
+                                   markers="checker", small=True, views=0, sweeps=1,
+                                   sweep_frames=30, seed=977)
+    simulate_recording(path, "near_symmetric", params=params, threads=0)
+    rep, d = _stripes_off_truth(path, tmp_path / "run", default_config())
+    check = rep["laser_colour_check"]
+    assert check["colour_by_laser_frames"] == "red" and "no views" in check["skipped"]
+    assert rep["laser_colour"] == check["colour"] == "blue"
+    motion = check["motion"]
+    assert motion["pairs"] >= 12
+    assert motion["contrasts"]["blue"]["moves_with"] == "camera"
+    assert motion["contrasts"]["red"]["static_px"] >= 2 * motion["contrasts"]["blue"]["static_px"]
+    assert len(d) >= 80
+    assert np.median(d) < 0.6
+    assert np.mean(d < 0.5) > 0.5
 
 
 def test_a_speckled_blue_laser_on_an_orange_checker_is_not_read_as_the_lightness(tmp_path):
@@ -197,3 +232,83 @@ def test_no_stripe_after_the_check_says_which_contrast_and_why():
     # the frames' own vote kept, or no check: nothing to add
     assert _colour_why({**check, "colour": "lightness"}) == ""
     assert _colour_why(None) == ""
+    # without views, the check by motion
+    moved = {"contested": True, "colour_by_laser_frames": "red", "colour": "blue",
+             "skipped": "no views in the recording",
+             "motion": {"pairs": 24, "scene_motion_px": 5.0, "contrasts": {
+                 "red": {"pairs": 13, "static_px": 6.0, "flowed_px": 1.0,
+                         "moves_with": "scene"},
+                 "blue": {"pairs": 7, "static_px": 1.0, "flowed_px": 5.0,
+                          "moves_with": "camera"}}}}
+    text = _colour_why(moved)
+    assert "in the blue contrast" in text and "red ridges move with the scene" in text
+    assert "blue moves with the camera (static 1.0 px" in text
+
+
+def _moving_pair(seed: int, laser: str, texture: str, motion: float = 5.0):
+    """Two 120 x 160 RGB frames of one sweep: a smooth grey texture and one thin vertical
+    line of the ``texture`` colour, both moved ``motion`` px right and down from the first
+    frame to the second (the scene), and a horizontal ``laser`` line that stays (0.3 px
+    lower: the surface's depth changed a little)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    h, w = 120, 160
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (h + 40, w + 40)).astype(np.float32),
+                             (0, 0), 6)
+    noise *= 30.0 / max(float(np.abs(noise).max()), 1e-6)
+    ch = {"red": 0, "green": 1, "blue": 2}
+    x0 = 40.0 + 60.0 * rng.random()
+    y0 = 50.0 + 20.0 * rng.random()
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    frames = []
+    for k in (0, 1):
+        s = int(round(k * motion))
+        img = np.repeat((100.0 + noise[20 - s:20 - s + h, 20 - s:20 - s + w])[..., None], 3,
+                        axis=2)
+        tex = np.exp(-0.5 * ((xx - x0 - k * motion) / 1.2) ** 2)
+        img[..., ch[texture]] += 70.0 * tex
+        img += 10.0 * tex[..., None]
+        las = np.exp(-0.5 * ((yy - y0 - 0.3 * k) / 1.2) ** 2)
+        img[..., ch[laser]] += 80.0 * las
+        img += 20.0 * las[..., None]
+        frames.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    return frames[0], frames[1]
+
+
+def test_without_views_the_ridges_that_stay_with_the_camera_are_the_laser():
+    """The laser is rigid with the camera: between two frames of a sweep its stripe stays
+    where the scene's texture moves with the scene (random scene 148: a blue laser on an
+    orange checker body, no views, the vote red 683, blue 347)."""
+    from robo3d.stripes import laser_colour_by_motion, scene_motion
+
+    pairs = [_moving_pair(s, laser="blue", texture="red") for s in range(4)]
+    assert np.allclose(scene_motion(*pairs[0]), [5.0, 5.0], atol=0.5)
+    scores = {"red": 600.0, "green": 0.0, "blue": 300.0, "lightness": 900.0}
+    colour, d = laser_colour_by_motion(pairs, scores, "red")
+    assert colour == "blue"
+    assert d["pairs"] == 4 and d["scene_motion_px"] == pytest.approx(7.07, abs=0.5)
+    red, blue = d["contrasts"]["red"], d["contrasts"]["blue"]
+    assert red["moves_with"] == "scene" and blue["moves_with"] == "camera"
+    assert blue["static_px"] <= 1.0 and red["flowed_px"] <= 1.0
+    assert "green" not in d["contrasts"]  # it did not score
+    # a red laser over a blue texture: the vote's red stays, nothing changes
+    pairs = [_moving_pair(s, laser="red", texture="blue") for s in range(4)]
+    colour, d = laser_colour_by_motion(pairs, scores, "red")
+    assert colour is None and d["contrasts"]["red"]["moves_with"] == "camera"
+    assert d["contrasts"]["blue"]["moves_with"] == "scene"
+
+
+def test_by_motion_nothing_is_told_where_the_scene_does_not_move():
+    from robo3d.stripes import laser_colour_by_motion
+
+    pairs = [_moving_pair(s, laser="blue", texture="red", motion=0.0) for s in range(4)]
+    colour, d = laser_colour_by_motion(pairs, {"red": 600.0, "blue": 300.0}, "red")
+    assert colour is None and d["pairs"] == 0 and d["scene_motion_px"] is None
+    assert all(e["moves_with"] is None for e in d["contrasts"].values())
+    # too few pairs to tell: nothing changes either
+    pairs = [_moving_pair(s, laser="blue", texture="red") for s in range(2)]
+    colour, d = laser_colour_by_motion(pairs, {"red": 600.0, "blue": 300.0}, "red")
+    assert colour is None and d["contrasts"]["blue"]["static_px"] is None
+    with pytest.raises(ValueError, match="one roi pair"):
+        laser_colour_by_motion(pairs, {"red": 1.0}, "red", rois=[(None, None)])

@@ -64,7 +64,7 @@ def stage_stripes(inputs: Mapping[str, str], outputs: Mapping[str, str],
         views = _views_for_colour(inputs["recording"], cfg, inputs.get("calibration"), frames,
                                   T_camera_laser, axes, options.detector == "ridge")
         colour, colour_scores, colour_check = _laser_colour(
-            rec, frames, background, roi, options, axes, views if n_off == 0 else None)
+            rec, frames, background, roi, options, axes, views if n_off == 0 else None, cfg)
         options = options.replace(colour=colour)
     # the centre's profile: the luma for JPEGs whose colour is stored at half resolution
     # (the laser's channel lives mostly in the blurred chroma there), else the laser's
@@ -276,8 +276,8 @@ def _laser_axes(cfg: Mapping[str, Any], cameras: list, T_camera_laser: np.ndarra
 
 def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
                   options: StripeOptions, axes: list,
-                  views: Callable[[], tuple[list, list, list, str | None]] | None
-                  ) -> tuple[str, dict[str, float], dict[str, Any] | None]:
+                  views: Callable[[], tuple[list, list, list, str | None]] | None,
+                  cfg: Mapping[str, Any]) -> tuple[str, dict[str, float], dict[str, Any] | None]:
     """The recording's laser colour from 12 evenly spaced frames
     (:func:`robo3d.stripes.estimate_laser_colour`, each along its axis where the laser's
     geometry fixes it), each contrast's score, and the check against the views where two
@@ -285,8 +285,9 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     won over a colour that scored (:func:`robo3d.stripes.lightness_contested`; ``views`` loads
     up to 12 of them with their regions of interest and axes; None: laser-off frames
     already took the scene away): the colour that the laser frames show beyond the views
-    (:func:`robo3d.stripes.laser_colour_beyond_scene`). The check is None when neither
-    holds."""
+    (:func:`robo3d.stripes.laser_colour_beyond_scene`). Without views the laser frames
+    check it themselves: the colour whose ridges move with the camera, not with the
+    scene (:func:`_colour_by_motion`). The check is None when neither holds."""
     from ..stripes import (
         estimate_laser_colour,
         image_level,
@@ -313,9 +314,8 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     v_images, v_rois, v_axes, why_not = views()
     if not v_images:
         check["skipped"] = why_not or "no views in the recording"
-        log.info("stripes: laser colour %s is close to another (%s); not checked: %s",
-                 colour, _scores_text(scores), check["skipped"])
-        return colour, scores, check
+        return _colour_by_motion(rec, frames, roi, options, axes, scores, colour, check,
+                                 cfg)
     _, v_scores = estimate_laser_colour(v_images, min_peak=options.min_peak, rois=v_rois,
                                         axes=v_axes)
     best, detail = laser_colour_beyond_scene(
@@ -332,11 +332,87 @@ def _laser_colour(rec, frames: list, background: Callable, roi: Callable,
     return colour, scores, check
 
 
+#: The motion check's pairs: up to this many, each a frame and the nearest one of its
+#: sweep (this many frames later, or earlier at a sweep's end) over which the scene moved
+#: far enough in the image to tell (the stripe itself moves less the nearer the frames).
+_MOTION_PAIRS = 24
+_MOTION_OFFSETS = (1, 2, 4, 8)
+
+
+def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, axes: list,
+                      scores: Mapping[str, float], colour: str, check: dict[str, Any],
+                      cfg: Mapping[str, Any]) -> tuple[str, dict[str, float], dict[str, Any]]:
+    """A contested colour without views to check it by: the laser frames' own check, the
+    contrast whose ridges move with the camera (:func:`robo3d.stripes.laser_colour_by_motion`)
+    on up to :data:`_MOTION_PAIRS` pairs of frames of one sweep and one camera."""
+    from ..stripes import _MOTION_MIN_PX, laser_colour_by_motion, scene_motion
+    from ..viz import spaced_indices
+
+    sweep = sweeps_of(np.array([m.timestamp_ns for m in frames], dtype=np.int64), cfg)
+    n = len(frames)
+
+    def partner(i: int, d: int) -> int | None:
+        for j in (i + d, i - d):
+            if 0 <= j < n and sweep[j] == sweep[i] and frames[j].frame_id == frames[i].frame_id:
+                return j
+        return None
+
+    pairs, rois, pair_axes = [], [], []
+    for i in (int(k) for k in spaced_indices(n, _MOTION_PAIRS)):
+        a = rec.decode(frames[i])
+        for d in _MOTION_OFFSETS:
+            j = partner(i, d)
+            if j is None:
+                continue
+            b = rec.decode(frames[j])
+            if float(np.hypot(*scene_motion(a, b))) >= _MOTION_MIN_PX:
+                pairs.append((a, b))
+                rois.append((roi(i), roi(j)))
+                pair_axes.append(axes[i] if axes[i] == axes[j] else None)
+                break
+    best, detail = laser_colour_by_motion(pairs, scores, colour, rois=rois, axes=pair_axes,
+                                          options=options)
+    check["motion"] = detail
+    if best is not None:
+        log.warning("stripes: laser contrast %s, not %s: without views to check the vote "
+                    "(%s), the laser frames' %s ridges move with the scene (its texture) "
+                    "and the %s ridges with the camera, as the laser does (%s)", best,
+                    colour, _scores_text(scores), colour, best, _motion_text(detail))
+        colour = best
+    else:
+        log.info("stripes: laser colour %s is close to another (%s); no views to check it "
+                 "by (%s); by motion: %s", colour, _scores_text(scores), check["skipped"],
+                 _motion_text(detail))
+    check["colour"] = colour
+    return colour, dict(scores), check
+
+
+def _motion_text(detail: Mapping[str, Any]) -> str:
+    """``"red moves with the scene (static 11.8 px, shifted 4.9 px), ..."`` for the log."""
+    parts = []
+    for c, e in detail["contrasts"].items():
+        if e["static_px"] is None:
+            parts.append(f"{c} too few centres in {detail['pairs']} pairs")
+        else:
+            how = f"moves with the {e['moves_with']}" if e["moves_with"] else "unclear"
+            parts.append(f"{c} {how} (static {e['static_px']:.1f} px, shifted by the "
+                         f"scene {e['flowed_px']:.1f} px)")
+    return (f"{detail['pairs']} pairs of frames, the scene moved {detail['scene_motion_px']}"
+            f" px: " + "; ".join(parts)) if detail["pairs"] else (
+            "the scene moved too little in the image between frames to tell")
+
+
 def _colour_why(check: Mapping[str, Any] | None) -> str:
-    """For the no-stripe error: the laser contrast searched, where the views' check chose
-    it over the laser frames' own vote (else "")."""
+    """For the no-stripe error: the laser contrast searched, where the views' check (or,
+    without views, the check by motion) chose it over the laser frames' own vote (else
+    "")."""
     if not check or check.get("colour") in (None, check.get("colour_by_laser_frames")):
         return ""
+    if "motion" in check:
+        return (f" in the {check['colour']} contrast: the {check['colour_by_laser_frames']} "
+                "ridges move with the scene (its texture), the "
+                f"{check['colour']} ones with the camera ({_motion_text(check['motion'])}), "
+                f"and the {check['colour']} laser is too faint there to be found")
     return (f" in the {check['colour']} contrast: the {check['colour_by_laser_frames']} "
             "ridges of the laser sheet's band are the scene's texture (the views, without "
             f"the laser, show them as well; excess over the views: "

@@ -241,7 +241,7 @@ def test_no_stripe_after_the_check_says_which_contrast_and_why():
                  "blue": {"pairs": 7, "static_px": 1.0, "flowed_px": 5.0,
                           "moves_with": "camera"}}}}
     text = _colour_why(moved)
-    assert "in the blue contrast" in text and "red ridges move with the scene" in text
+    assert "in the blue contrast" in text and "red ridges do not stay put" in text
     assert "blue moves with the camera (static 1.0 px" in text
 
 

@@ -375,9 +375,10 @@ def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, 
     check["motion"] = detail
     if best is not None:
         log.warning("stripes: laser contrast %s, not %s: without views to check the vote "
-                    "(%s), the laser frames' %s ridges move with the scene (its texture) "
-                    "and the %s ridges with the camera, as the laser does (%s)", best,
-                    colour, _scores_text(scores), colour, best, _motion_text(detail))
+                    "(%s), the laser frames' %s ridges stay put between frames of a sweep, "
+                    "as the laser's do (it is rigid with the camera), and the %s ridges do "
+                    "not (the scene's texture): %s", best, colour, _scores_text(scores), best,
+                    colour, _motion_text(detail))
         colour = best
     else:
         log.info("stripes: laser colour %s is close to another (%s); no views to check it "
@@ -388,7 +389,8 @@ def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, 
 
 
 def _motion_text(detail: Mapping[str, Any]) -> str:
-    """``"red moves with the scene (static 11.8 px, shifted 4.9 px), ..."`` for the log."""
+    """``"24 pairs of frames, the scene moved 5.0 px: red moves with the scene (static
+    6.0 px, shifted by the scene 1.0 px); ..."``: the check by motion, for the log."""
     parts = []
     for c, e in detail["contrasts"].items():
         if e["static_px"] is None:
@@ -410,9 +412,10 @@ def _colour_why(check: Mapping[str, Any] | None) -> str:
         return ""
     if "motion" in check:
         return (f" in the {check['colour']} contrast: the {check['colour_by_laser_frames']} "
-                "ridges move with the scene (its texture), the "
-                f"{check['colour']} ones with the camera ({_motion_text(check['motion'])}), "
-                f"and the {check['colour']} laser is too faint there to be found")
+                "ridges do not stay put between frames of a sweep (the scene's texture), "
+                f"the {check['colour']} ones do, as the laser's "
+                f"({_motion_text(check['motion'])}), and the {check['colour']} laser is too "
+                "faint there to be found")
     return (f" in the {check['colour']} contrast: the {check['colour_by_laser_frames']} "
             "ridges of the laser sheet's band are the scene's texture (the views, without "
             f"the laser, show them as well; excess over the views: "

@@ -220,6 +220,9 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     if _get(metrics, ("surface_sources", "laser_unusable")):
         notes.append("the laser measured nothing usable on the object: the mesh is the "
                      "visual hull's, all of it inferred")
+    colour_note = _laser_colour_note(_get(metrics, ("stages", "stripes")))
+    if colour_note:
+        notes.append(colour_note)
     flagged = [s.get("sweep") for s in _get(metrics, ("stages", "align", "per_sweep")) or []
                if isinstance(s, Mapping) and s.get("flagged")]
     if flagged:
@@ -230,6 +233,33 @@ def recording_status(metrics: Mapping[str, Any]) -> tuple[str, list[str]]:
     if _get(metrics, ("stages", "simplify", "within_tolerance")) is False:
         notes.append("the simplified mesh is not within its Hausdorff tolerance")
     return status, notes
+
+
+def _laser_colour_note(stripes: Any) -> str | None:
+    """The stripes stage's laser colour check in words, where a person should know of it:
+    the colour was changed from the laser frames' own vote (by the views, or without them
+    by motion), or it was close to another and nothing could check it (its stripe points
+    may be a coloured texture's edges, labelled measured); None otherwise."""
+    if not isinstance(stripes, Mapping):
+        return None
+    check = stripes.get("laser_colour_check")
+    if not isinstance(check, Mapping) or not check.get("contested"):
+        return None
+    vote, colour = check.get("colour_by_laser_frames"), check.get("colour")
+    if colour and vote and colour != vote:
+        by = ("the laser frames' motion (its ridges stay put between frames, the "
+              f"{vote} ones move with the scene)" if "motion" in check else
+              f"the views (they show the {vote} ridges without the laser)")
+        return f"laser colour {colour}, not the laser frames' vote {vote}: told by {by}"
+    if "views" in check or "motion" not in check:
+        return None  # the views kept it, or laser-off frames took the scene away
+    moves = _get(check, ("motion", "contrasts", str(vote), "moves_with"))
+    if moves == "camera":  # the frames' motion confirms it
+        return None
+    why = check.get("skipped") or "not checked"
+    return (f"laser colour {vote} was close to another and could not be checked ({why}; "
+            "nor by the frames' motion): its stripe points may be a coloured texture's "
+            "edges (laser_colour_check in reports/stripes.json)")
 
 
 def _fmt(v: Any, digits: int, scale: float = 1.0) -> str:

@@ -396,3 +396,43 @@ def test_the_masks_picture_says_when_the_laser_contradicts_the_masks():
         "align": {"outside_hull": over}}})
     assert notes[-1] == ("the views agree with each other and overrule the laser: 92 % of "
                          "its points outside them dropped as not on the object")
+
+
+def test_the_laser_colour_check_is_in_the_overview_where_it_matters():
+    """A laser colour changed from the frames' vote (by the views, or by motion without
+    them) is said in the overview, and so is a close colour that nothing could check:
+    its points may be a texture's edges, measured surface in every file."""
+    from robo3d.overview import recording_status
+
+    def notes(check):
+        m = _metrics(False)
+        m["stages"] = {"stripes": {"laser_colour": (check or {}).get("colour", "red"),
+                                   "laser_colour_check": check}}
+        return [n for n in recording_status(m)[1] if n.startswith("laser colour")]
+
+    assert notes(None) == []
+    by_motion = {"contested": True, "colour_by_laser_frames": "red", "colour": "blue",
+                 "skipped": "no views in the recording",
+                 "motion": {"pairs": 24, "contrasts": {
+                     "red": {"moves_with": "scene"}, "blue": {"moves_with": "camera"}}}}
+    (n,) = notes(by_motion)
+    assert n.startswith("laser colour blue, not the laser frames' vote red") and "motion" in n
+    by_views = {"contested": True, "colour_by_laser_frames": "red", "colour": "blue",
+                "views": 6, "excess": {"red": -247.0, "blue": 551.0}}
+    (n,) = notes(by_views)
+    assert "told by the views" in n
+    # kept and confirmed, by the views or by motion: nothing to say
+    assert notes({**by_views, "colour": "red"}) == []
+    confirmed = {**by_motion, "colour": "red", "motion": {"pairs": 24, "contrasts": {
+        "red": {"moves_with": "camera"}, "blue": {"moves_with": None}}}}
+    assert notes(confirmed) == []
+    # close, and neither the views nor the motion could tell
+    unchecked = {**confirmed, "motion": {"pairs": 3, "contrasts": {
+        "red": {"moves_with": None}, "blue": {"moves_with": None}}}}
+    (n,) = notes(unchecked)
+    assert n.startswith("laser colour red was close to another and could not be checked")
+    assert "no views in the recording" in n and "texture" in n
+    # laser-off frames subtracted: the scene's texture is gone, the vote stands on them
+    assert notes({"contested": True, "colour_by_laser_frames": "red", "colour": "red",
+                  "skipped": "laser-off frames subtracted: the scene is already taken "
+                             "away"}) == []

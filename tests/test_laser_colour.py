@@ -173,8 +173,8 @@ def test_without_views_the_close_colour_is_reported_unchecked(orange_checker, tm
 
 def test_without_views_the_colour_that_moves_with_the_camera_is_the_laser(tmp_path):
     """Scene 977 without views, one sweep of 30 frames (random scene 148's case): the vote
-    red 538, blue 247; by motion (24 pairs, the scene 5.2 px) red static 7.3 px, shifted
-    by the scene 5.7 px; blue 1.0 and 5.0 px: blue. Read as red the points lay 7.4 mm
+    red 538, blue 247; by motion (24 pairs, the scene 5.2 px) red static 7.2 px, shifted
+    by the scene 5.9 px; blue 0.7 and 5.1 px: blue. Read as red the points lay 7.4 mm
     from the surface (median); read as blue 143 points, median 0.38 mm."""
     from robo3d.config import default_config
     from robo3d.simulate import SimulationParams, simulate_recording

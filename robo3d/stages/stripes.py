@@ -340,7 +340,7 @@ _MOTION_OFFSETS = (1, 2, 4, 8)
 
 
 def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, axes: list,
-                      scores: Mapping[str, float], colour: str, check: dict[str, Any],
+                      scores: dict[str, float], colour: str, check: dict[str, Any],
                       cfg: Mapping[str, Any]) -> tuple[str, dict[str, float], dict[str, Any]]:
     """A contested colour without views to check it by: the laser frames' own check, the
     contrast whose ridges move with the camera (:func:`robo3d.stripes.laser_colour_by_motion`)
@@ -357,7 +357,7 @@ def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, 
                 return j
         return None
 
-    pairs, rois, pair_axes = [], [], []
+    pairs, rois, pair_axes, motions = [], [], [], []
     for i in (int(k) for k in spaced_indices(n, _MOTION_PAIRS)):
         a = rec.decode(frames[i])
         for d in _MOTION_OFFSETS:
@@ -365,13 +365,15 @@ def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, 
             if j is None:
                 continue
             b = rec.decode(frames[j])
-            if float(np.hypot(*scene_motion(a, b))) >= _MOTION_MIN_PX:
+            m = scene_motion(a, b)
+            if float(np.hypot(*m)) >= _MOTION_MIN_PX:
                 pairs.append((a, b))
                 rois.append((roi(i), roi(j)))
                 pair_axes.append(axes[i] if axes[i] == axes[j] else None)
+                motions.append(m)
                 break
     best, detail = laser_colour_by_motion(pairs, scores, colour, rois=rois, axes=pair_axes,
-                                          options=options)
+                                          options=options, motions=motions)
     check["motion"] = detail
     if best is not None:
         log.warning("stripes: laser contrast %s, not %s: without views to check the vote "
@@ -385,7 +387,7 @@ def _colour_by_motion(rec, frames: list, roi: Callable, options: StripeOptions, 
                  "by (%s); by motion: %s", colour, _scores_text(scores), check["skipped"],
                  _motion_text(detail))
     check["colour"] = colour
-    return colour, dict(scores), check
+    return colour, scores, check
 
 
 def _motion_text(detail: Mapping[str, Any]) -> str:

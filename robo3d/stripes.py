@@ -3393,7 +3393,9 @@ def laser_colour_by_motion(
     flow is only roughly one translation: its flowed distance is not near zero); neither,
     where the scene moved along the stripe (both distances small). The vote's colour
     gives way only to a colour that moves with the camera where its own centres do not
-    (a static distance at least :data:`_MOTION_RATIO` times larger). Pairs where the scene
+    (a static distance at least :data:`_MOTION_RATIO` times larger); the lightness also
+    where it moves with the camera (it holds the laser's light with the texture's: random
+    scene 376, a green laser, lightness 1.9 px / 4.0 px, green 0.7 / 5.5 px). Pairs where the scene
     moved less than :data:`_MOTION_MIN_PX` tell nothing and are left out. Random scene 148
     (a blue laser on an orange checker body, no views; the vote red 683, blue 347): red
     static 6.3 px, flowed 1.3 px (the checker's edges); blue 0.8 px and 4.9 px (the
@@ -3472,7 +3474,10 @@ def laser_colour_by_motion(
                 entry["moves_with"] = "scene"
         detail["contrasts"][c] = entry
     won = detail["contrasts"].get(colour, {})
-    if won.get("static_px") is None or won["moves_with"] == "camera":
+    # the lightness holds every colour's light: it stays with the camera wherever a
+    # coloured laser does, so there only a colour that stays put closer takes its place
+    if won.get("static_px") is None or (won["moves_with"] == "camera"
+                                        and colour != "lightness"):
         return None, detail
     # a colour whose centres stay where the vote's do not
     with_camera = [c for c in cands if c != colour

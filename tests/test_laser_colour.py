@@ -292,6 +292,12 @@ def test_without_views_the_ridges_that_stay_with_the_camera_are_the_laser():
     assert red["moves_with"] == "scene" and blue["moves_with"] == "camera"
     assert blue["static_px"] <= 1.0 and red["flowed_px"] <= 1.0
     assert "green" not in d["contrasts"]  # it did not score
+    # the lightness voted: here its ridges are the laser's line itself (it stays put as
+    # closely as the blue), so it is kept; only a colour that stays put twice as close
+    # takes its place (random scene 376: lightness 1.9 px, green 0.7 px: green)
+    colour, d = laser_colour_by_motion(pairs, scores, "lightness")
+    assert colour is None and d["contrasts"]["lightness"]["moves_with"] == "camera"
+    assert d["contrasts"]["lightness"]["static_px"] < 2 * blue["static_px"]
     # a red laser over a blue texture: the vote's red stays, nothing changes
     pairs = [_moving_pair(s, laser="red", texture="blue") for s in range(4)]
     colour, d = laser_colour_by_motion(pairs, scores, "red")
